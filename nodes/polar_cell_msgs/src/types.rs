@@ -1,0 +1,417 @@
+//! Rust mirrors of the `.msg` files, field by field in file order (CDR is positional).
+
+use serde::{Deserialize, Serialize};
+
+use crate::schema::{self, MsgType};
+use crate::RosMessage;
+
+macro_rules! ros_message {
+    ($ty:ident => $def:path) => {
+        impl RosMessage for $ty {
+            const TYPE: &'static MsgType = &$def;
+        }
+    };
+}
+
+// ---------------------------------------------------------------- builtin_interfaces
+
+/// `builtin_interfaces/msg/Time`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct Time {
+    pub sec: i32,
+    pub nanosec: u32,
+}
+ros_message!(Time => schema::TIME);
+
+impl Time {
+    /// From nanoseconds since the epoch (or since any origin).
+    pub fn from_nanos(nanos: i64) -> Self {
+        Time {
+            sec: nanos.div_euclid(1_000_000_000) as i32,
+            nanosec: nanos.rem_euclid(1_000_000_000) as u32,
+        }
+    }
+    pub fn as_nanos(&self) -> i64 {
+        self.sec as i64 * 1_000_000_000 + self.nanosec as i64
+    }
+    /// The wall clock now.
+    pub fn now() -> Self {
+        let since_epoch = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap_or_default();
+        Self::from_nanos(since_epoch.as_nanos() as i64)
+    }
+}
+
+/// `builtin_interfaces/msg/Duration`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct Duration {
+    pub sec: i32,
+    pub nanosec: u32,
+}
+ros_message!(Duration => schema::DURATION);
+
+impl Duration {
+    /// From seconds, rounded to the nearest nanosecond.
+    pub fn from_secs_f64(seconds: f64) -> Self {
+        let nanos = (seconds * 1e9).round() as i64;
+        Duration {
+            sec: nanos.div_euclid(1_000_000_000) as i32,
+            nanosec: nanos.rem_euclid(1_000_000_000) as u32,
+        }
+    }
+    pub fn as_secs_f64(&self) -> f64 {
+        self.sec as f64 + self.nanosec as f64 * 1e-9
+    }
+}
+
+// ---------------------------------------------------------------- std_msgs
+
+/// `std_msgs/msg/Header`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Header {
+    pub stamp: Time,
+    pub frame_id: String,
+}
+ros_message!(Header => schema::HEADER);
+
+/// `std_msgs/msg/String`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StringMsg {
+    pub data: String,
+}
+ros_message!(StringMsg => schema::STRING);
+
+// ---------------------------------------------------------------- sensor_msgs
+
+/// `sensor_msgs/msg/JointState`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct JointState {
+    pub header: Header,
+    pub name: Vec<String>,
+    pub position: Vec<f64>,
+    pub velocity: Vec<f64>,
+    pub effort: Vec<f64>,
+}
+ros_message!(JointState => schema::JOINT_STATE);
+
+// ---------------------------------------------------------------- trajectory_msgs
+
+/// `trajectory_msgs/msg/JointTrajectoryPoint`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct JointTrajectoryPoint {
+    pub positions: Vec<f64>,
+    pub velocities: Vec<f64>,
+    pub accelerations: Vec<f64>,
+    pub effort: Vec<f64>,
+    pub time_from_start: Duration,
+}
+ros_message!(JointTrajectoryPoint => schema::JOINT_TRAJECTORY_POINT);
+
+/// `trajectory_msgs/msg/JointTrajectory`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct JointTrajectory {
+    pub header: Header,
+    pub joint_names: Vec<String>,
+    pub points: Vec<JointTrajectoryPoint>,
+}
+ros_message!(JointTrajectory => schema::JOINT_TRAJECTORY);
+
+// ---------------------------------------------------------------- geometry_msgs
+
+/// `geometry_msgs/msg/Point`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Point {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+ros_message!(Point => schema::POINT);
+
+/// `geometry_msgs/msg/Quaternion` (default: identity, as in the `.msg` defaults).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Quaternion {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub w: f64,
+}
+ros_message!(Quaternion => schema::QUATERNION);
+
+impl Default for Quaternion {
+    fn default() -> Self {
+        Quaternion {
+            x: 0.0,
+            y: 0.0,
+            z: 0.0,
+            w: 1.0,
+        }
+    }
+}
+
+/// `geometry_msgs/msg/Pose`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    pub position: Point,
+    pub orientation: Quaternion,
+}
+ros_message!(Pose => schema::POSE);
+
+/// `geometry_msgs/msg/PoseStamped`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PoseStamped {
+    pub header: Header,
+    pub pose: Pose,
+}
+ros_message!(PoseStamped => schema::POSE_STAMPED);
+
+// ---------------------------------------------------------------- diagnostic_msgs
+
+/// `diagnostic_msgs/msg/KeyValue`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct KeyValue {
+    pub key: String,
+    pub value: String,
+}
+ros_message!(KeyValue => schema::KEY_VALUE);
+
+/// `diagnostic_msgs/msg/DiagnosticStatus`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct DiagnosticStatus {
+    pub level: u8,
+    pub name: String,
+    pub message: String,
+    pub hardware_id: String,
+    pub values: Vec<KeyValue>,
+}
+ros_message!(DiagnosticStatus => schema::DIAGNOSTIC_STATUS);
+
+impl DiagnosticStatus {
+    pub const OK: u8 = 0;
+    pub const WARN: u8 = 1;
+    pub const ERROR: u8 = 2;
+    pub const STALE: u8 = 3;
+}
+
+/// `diagnostic_msgs/msg/DiagnosticArray`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct DiagnosticArray {
+    pub header: Header,
+    pub status: Vec<DiagnosticStatus>,
+}
+ros_message!(DiagnosticArray => schema::DIAGNOSTIC_ARRAY);
+
+// ---------------------------------------------------------------- rosgraph_msgs, rcl_interfaces
+
+/// `rosgraph_msgs/msg/Clock`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Clock {
+    pub clock: Time,
+}
+ros_message!(Clock => schema::CLOCK);
+
+/// `rcl_interfaces/msg/Log` (what `/rosout` carries).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Log {
+    pub stamp: Time,
+    pub level: u8,
+    pub name: String,
+    pub msg: String,
+    pub file: String,
+    pub function: String,
+    pub line: u32,
+}
+ros_message!(Log => schema::LOG);
+
+impl Log {
+    pub const DEBUG: u8 = 10;
+    pub const INFO: u8 = 20;
+    pub const WARN: u8 = 30;
+    pub const ERROR: u8 = 40;
+    pub const FATAL: u8 = 50;
+}
+
+// ---------------------------------------------------------------- polar_cell_msgs
+
+/// `polar_cell_msgs/msg/GcodeMove`: one motion command in SI units.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct GcodeMove {
+    pub sequence: u64,
+    pub source_line: u32,
+    pub kind: u8,
+    pub segment_index: u32,
+    pub segment_count: u32,
+    pub x_m: f64,
+    pub y_m: f64,
+    pub z_m: f64,
+    pub e_m: f64,
+    pub delta_e_m: f64,
+    pub feedrate_m_per_s: f64,
+    pub extrude: bool,
+    pub dwell_s: f64,
+    pub axes: u8,
+    pub tool: u8,
+}
+ros_message!(GcodeMove => schema::GCODE_MOVE);
+
+impl GcodeMove {
+    pub const KIND_RAPID: u8 = 0;
+    pub const KIND_LINEAR: u8 = 1;
+    pub const KIND_ARC_CW: u8 = 2;
+    pub const KIND_ARC_CCW: u8 = 3;
+    pub const KIND_DWELL: u8 = 4;
+    pub const KIND_HOME: u8 = 5;
+    pub const KIND_SET_POSITION: u8 = 6;
+    pub const AXIS_X: u8 = 1;
+    pub const AXIS_Y: u8 = 2;
+    pub const AXIS_Z: u8 = 4;
+    pub const AXIS_E: u8 = 8;
+}
+
+/// `polar_cell_msgs/msg/GcodeAck`: cumulative flow-control acknowledgement.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct GcodeAck {
+    pub consumer: String,
+    pub next_expected: u64,
+    pub resume: bool,
+}
+ros_message!(GcodeAck => schema::GCODE_ACK);
+
+/// `polar_cell_msgs/msg/GcodeProgress`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct GcodeProgress {
+    pub header: Header,
+    pub file: String,
+    pub bytes_read: u64,
+    pub bytes_total: u64,
+    pub lines_read: u32,
+    pub moves_published: u64,
+    pub moves_acknowledged: u64,
+    pub warnings: u32,
+    pub finished: bool,
+}
+ros_message!(GcodeProgress => schema::GCODE_PROGRESS);
+
+/// `polar_cell_msgs/msg/StepSegment`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StepSegment {
+    pub header: Header,
+    pub move_sequence: u64,
+    pub source_line: u32,
+    pub axis_names: Vec<String>,
+    pub step_counts: Vec<u32>,
+    pub directions: Vec<i8>,
+    pub dominant_axis: u8,
+    pub timer_frequency_hz: f64,
+    pub first_period_ticks: f64,
+    pub ramp_r: f64,
+    pub cruise_period_ticks: f64,
+    pub accelerate_steps: u32,
+    pub cruise_steps: u32,
+    pub decelerate_steps: u32,
+}
+ros_message!(StepSegment => schema::STEP_SEGMENT);
+
+/// `polar_cell_msgs/msg/ScrewCommand`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ScrewCommand {
+    pub header: Header,
+    pub rpm: f64,
+    pub pin_open: bool,
+    pub source_line: u32,
+    pub model: String,
+}
+ros_message!(ScrewCommand => schema::SCREW_COMMAND);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cdr;
+
+    /// Bytes computed by hand from the CDR rules (little-endian, natural alignment counted from
+    /// the start of the body, strings as u32 length including the NUL), not by the encoder.
+    #[test]
+    fn gcode_ack_encodes_to_hand_computed_cdr() {
+        let ack = GcodeAck {
+            consumer: "/p".into(),
+            next_expected: 0x0102030405060708,
+            resume: true,
+        };
+        let bytes = cdr::encode(&ack).unwrap();
+        let expected: Vec<u8> = [
+            &[0u8, 1, 0, 0][..],
+            &[3, 0, 0, 0, b'/', b'p', 0],
+            &[0],
+            &[8, 7, 6, 5, 4, 3, 2, 1],
+            &[1],
+        ]
+        .concat();
+        assert_eq!(bytes, expected);
+        assert_eq!(cdr::decode::<GcodeAck>(&bytes).unwrap(), ack);
+    }
+
+    #[test]
+    fn every_type_round_trips_and_names_its_definition() {
+        let js = JointState {
+            header: Header {
+                stamp: Time::from_nanos(1_500_000_001),
+                frame_id: "base".into(),
+            },
+            name: vec!["bed_theta".into(), "arm_r".into()],
+            position: vec![1.5, -0.25],
+            velocity: vec![],
+            effort: vec![0.0, 1.0],
+        };
+        assert_eq!(cdr::decode::<JointState>(&cdr::encode(&js).unwrap()).unwrap(), js);
+        assert_eq!(JointState::TYPE.full_name(), "sensor_msgs/msg/JointState");
+        assert_eq!(GcodeMove::TYPE.full_name(), "polar_cell_msgs/msg/GcodeMove");
+        assert_eq!(js.header.stamp.sec, 1);
+        assert_eq!(js.header.stamp.nanosec, 500_000_001);
+    }
+
+    #[test]
+    fn time_and_duration_conversions() {
+        assert_eq!(Time::from_nanos(-1), Time { sec: -1, nanosec: 999_999_999 });
+        assert_eq!(Time::from_nanos(-1).as_nanos(), -1);
+        let d = Duration::from_secs_f64(2.75);
+        assert_eq!((d.sec, d.nanosec), (2, 750_000_000));
+        assert!((d.as_secs_f64() - 2.75).abs() < 1e-12);
+    }
+
+    /// Every constant of a `.msg` file has a Rust twin with the same value.
+    #[test]
+    fn rust_constants_match_msg_constants() {
+        let consts = |text: &str| -> Vec<(String, i64)> {
+            text.lines()
+                .filter_map(|l| {
+                    let l = l.split('#').next()?.trim();
+                    let (decl, value) = l.split_once('=')?;
+                    let name = decl.split_whitespace().nth(1)?;
+                    Some((name.to_string(), value.trim().parse().ok()?))
+                })
+                .collect()
+        };
+        let gm = consts(GcodeMove::TYPE.text);
+        let rust = [
+            ("KIND_RAPID", GcodeMove::KIND_RAPID),
+            ("KIND_LINEAR", GcodeMove::KIND_LINEAR),
+            ("KIND_ARC_CW", GcodeMove::KIND_ARC_CW),
+            ("KIND_ARC_CCW", GcodeMove::KIND_ARC_CCW),
+            ("KIND_DWELL", GcodeMove::KIND_DWELL),
+            ("KIND_HOME", GcodeMove::KIND_HOME),
+            ("KIND_SET_POSITION", GcodeMove::KIND_SET_POSITION),
+            ("AXIS_X", GcodeMove::AXIS_X),
+            ("AXIS_Y", GcodeMove::AXIS_Y),
+            ("AXIS_Z", GcodeMove::AXIS_Z),
+            ("AXIS_E", GcodeMove::AXIS_E),
+        ];
+        assert_eq!(gm.len(), rust.len());
+        for (name, value) in rust {
+            assert!(gm.contains(&(name.to_string(), value as i64)), "{name}");
+        }
+        let ds = consts(DiagnosticStatus::TYPE.text);
+        assert_eq!(ds, [("OK".into(), 0), ("WARN".into(), 1), ("ERROR".into(), 2), ("STALE".into(), 3)]);
+        assert_eq!(consts(Log::TYPE.text).len(), 5);
+        assert!(consts(Log::TYPE.text).contains(&("WARN".into(), Log::WARN as i64)));
+    }
+}

@@ -199,6 +199,9 @@ mod tests {
         assert_eq!(find("sensor_msgs/msg/JointState"), Some(&JOINT_STATE));
         assert_eq!(find("sensor_msgs/JointState"), Some(&JOINT_STATE));
         assert_eq!(find("sensor_msgs/Nope"), None);
-        assert_eq!(GCODE_MOVE.dds_name(), "polar_cell_msgs::msg::dds_::GcodeMove_");
+        assert_eq!(
+            GCODE_MOVE.dds_name(),
+            "polar_cell_msgs::msg::dds_::GcodeMove_"
+        );
     }
 }

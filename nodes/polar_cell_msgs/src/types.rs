@@ -288,6 +288,8 @@ pub struct GcodeProgress {
     pub moves_published: u64,
     pub moves_acknowledged: u64,
     pub warnings: u32,
+    pub consumers: Vec<String>,
+    pub consumer_next_expected: Vec<u64>,
     pub finished: bool,
 }
 ros_message!(GcodeProgress => schema::GCODE_PROGRESS);
@@ -362,7 +364,10 @@ mod tests {
             velocity: vec![],
             effort: vec![0.0, 1.0],
         };
-        assert_eq!(cdr::decode::<JointState>(&cdr::encode(&js).unwrap()).unwrap(), js);
+        assert_eq!(
+            cdr::decode::<JointState>(&cdr::encode(&js).unwrap()).unwrap(),
+            js
+        );
         assert_eq!(JointState::TYPE.full_name(), "sensor_msgs/msg/JointState");
         assert_eq!(GcodeMove::TYPE.full_name(), "polar_cell_msgs/msg/GcodeMove");
         assert_eq!(js.header.stamp.sec, 1);
@@ -371,7 +376,13 @@ mod tests {
 
     #[test]
     fn time_and_duration_conversions() {
-        assert_eq!(Time::from_nanos(-1), Time { sec: -1, nanosec: 999_999_999 });
+        assert_eq!(
+            Time::from_nanos(-1),
+            Time {
+                sec: -1,
+                nanosec: 999_999_999
+            }
+        );
         assert_eq!(Time::from_nanos(-1).as_nanos(), -1);
         let d = Duration::from_secs_f64(2.75);
         assert_eq!((d.sec, d.nanosec), (2, 750_000_000));
@@ -410,7 +421,15 @@ mod tests {
             assert!(gm.contains(&(name.to_string(), value as i64)), "{name}");
         }
         let ds = consts(DiagnosticStatus::TYPE.text);
-        assert_eq!(ds, [("OK".into(), 0), ("WARN".into(), 1), ("ERROR".into(), 2), ("STALE".into(), 3)]);
+        assert_eq!(
+            ds,
+            [
+                ("OK".into(), 0),
+                ("WARN".into(), 1),
+                ("ERROR".into(), 2),
+                ("STALE".into(), 3)
+            ]
+        );
         assert_eq!(consts(Log::TYPE.text).len(), 5);
         assert!(consts(Log::TYPE.text).contains(&("WARN".into(), Log::WARN as i64)));
     }

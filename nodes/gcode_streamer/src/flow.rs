@@ -1,0 +1,441 @@
+//! Lossless flow control between the streamer and the consumers of `/gcode/moves`, without I/O.
+//!
+//! Go-back-N over a reliable-but-volatile DDS topic. The streamer ([`SendWindow`]) keeps at
+//! most `window` moves that some consumer has not acknowledged. Each consumer ([`AckTracker`])
+//! processes moves strictly in sequence order, drops duplicates, and on a gap (a move lost
+//! before the DDS reader matched, say) keeps acknowledging the first missing sequence number.
+//! When acknowledgements stop advancing for `resend_after`, the streamer goes back to the
+//! oldest unacknowledged move and sends again. A consumer that (re)starts announces itself
+//! with `resume = true` and learns its resume point from the per-consumer acknowledgements in
+//! `/gcode/progress` ([`SendWindow::consumer_acks`]); the streamer resends everything after
+//! that point, so a restarted consumer loses and repeats nothing.
+
+use std::collections::VecDeque;
+use std::time::Duration;
+
+use polar_cell_msgs::{GcodeAck, GcodeMove};
+
+/// Options of the streamer's window.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WindowOptions {
+    /// Most moves in flight (sent or queued, not acknowledged by every consumer).
+    pub window: usize,
+    /// Go back to the oldest unacknowledged move when no acknowledgement advanced for this long.
+    pub resend_after: Duration,
+}
+
+impl Default for WindowOptions {
+    fn default() -> Self {
+        WindowOptions {
+            window: 4096,
+            resend_after: Duration::from_millis(500),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Eq)]
+struct ConsumerState {
+    name: String,
+    next_expected: u64,
+    /// Has announced itself (a `resume` acknowledgement) since the streamer started.
+    present: bool,
+}
+
+/// The streamer's side: a bounded buffer of unacknowledged moves.
+#[derive(Debug)]
+pub struct SendWindow {
+    options: WindowOptions,
+    buffer: VecDeque<GcodeMove>,
+    /// Sequence number of `buffer[0]`.
+    base: u64,
+    next_to_send: u64,
+    consumers: Vec<ConsumerState>,
+    last_progress: Duration,
+    resends: u64,
+}
+
+impl SendWindow {
+    /// A window gated by the named consumers (fully qualified node names).
+    pub fn new(options: WindowOptions, consumers: &[String]) -> Self {
+        SendWindow {
+            options,
+            buffer: VecDeque::new(),
+            base: 0,
+            next_to_send: 0,
+            consumers: consumers
+                .iter()
+                .map(|name| ConsumerState {
+                    name: name.clone(),
+                    next_expected: 0,
+                    present: false,
+                })
+                .collect(),
+            last_progress: Duration::ZERO,
+            resends: 0,
+        }
+    }
+
+    /// True when another move may be queued.
+    pub fn has_room(&self) -> bool {
+        self.buffer.len() < self.options.window
+    }
+
+    /// Queue the next move; its sequence number must follow the previous one.
+    pub fn push(&mut self, mv: GcodeMove) {
+        debug_assert_eq!(mv.sequence, self.base + self.buffer.len() as u64);
+        self.buffer.push_back(mv);
+    }
+
+    /// The next move to put on the wire, if any. Sending only starts once every consumer has
+    /// announced itself, so nothing is published into a reader that has not matched yet.
+    pub fn next_to_send(&mut self) -> Option<&GcodeMove> {
+        if !self.all_present() {
+            return None;
+        }
+        let index = self.next_to_send.checked_sub(self.base)? as usize;
+        let mv = self.buffer.get(index)?;
+        self.next_to_send += 1;
+        Some(mv)
+    }
+
+    /// Apply an acknowledgement received at monotonic time `now`. Unknown consumers are
+    /// ignored (returns false) so a stray node cannot stall or speed up the stream.
+    pub fn on_ack(&mut self, ack: &GcodeAck, now: Duration) -> bool {
+        let Some(c) = self.consumers.iter_mut().find(|c| c.name == ack.consumer) else {
+            return false;
+        };
+        let sent_end = self.base + self.buffer.len() as u64;
+        if ack.resume {
+            c.present = true;
+            // Everything after this consumer's last acknowledgement goes again.
+            self.next_to_send = self.next_to_send.min(c.next_expected.max(self.base));
+            self.last_progress = now;
+        } else if ack.next_expected > c.next_expected {
+            c.next_expected = ack.next_expected.min(sent_end);
+            self.last_progress = now;
+        }
+        let new_base = self
+            .consumers
+            .iter()
+            .map(|c| c.next_expected)
+            .min()
+            .unwrap_or(self.next_to_send);
+        while self.base < new_base && !self.buffer.is_empty() {
+            self.buffer.pop_front();
+            self.base += 1;
+        }
+        self.next_to_send = self.next_to_send.max(self.base);
+        true
+    }
+
+    /// Call periodically: goes back to the oldest unacknowledged move when acknowledgements
+    /// stalled for `resend_after`. Returns true when it did.
+    pub fn on_tick(&mut self, now: Duration) -> bool {
+        let outstanding = self.next_to_send > self.base;
+        if outstanding && now.saturating_sub(self.last_progress) >= self.options.resend_after {
+            self.next_to_send = self.base;
+            self.last_progress = now;
+            self.resends += 1;
+            return true;
+        }
+        false
+    }
+
+    /// Lowest sequence number not yet acknowledged by every consumer.
+    pub fn acknowledged(&self) -> u64 {
+        self.base
+    }
+
+    /// True when every queued move is acknowledged by every consumer.
+    pub fn is_drained(&self) -> bool {
+        self.buffer.is_empty()
+    }
+
+    /// How many times the window went back to resend.
+    pub fn resends(&self) -> u64 {
+        self.resends
+    }
+
+    fn all_present(&self) -> bool {
+        self.consumers.iter().all(|c| c.present)
+    }
+
+    /// Each consumer's name and next expected sequence number, for `/gcode/progress`.
+    pub fn consumer_acks(&self) -> (Vec<String>, Vec<u64>) {
+        self.consumers
+            .iter()
+            .map(|c| (c.name.clone(), c.next_expected))
+            .unzip()
+    }
+
+    /// Names of consumers that have not announced themselves yet.
+    pub fn missing_consumers(&self) -> Vec<&str> {
+        self.consumers
+            .iter()
+            .filter(|c| !c.present)
+            .map(|c| c.name.as_str())
+            .collect()
+    }
+}
+
+/// What a consumer should do with a received move.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    /// The next move in order: process it.
+    Process,
+    /// Already processed: drop it.
+    Duplicate,
+    /// A move before it is missing: drop it and wait for the resend.
+    Gap,
+}
+
+/// The consumer's side: in-order acceptance and cumulative acknowledgements.
+///
+/// A new tracker does not know where it stands: it announces itself with [`Self::hello`] and
+/// drops every move until [`Self::on_progress`] tells it its resume point.
+#[derive(Debug, Clone)]
+pub struct AckTracker {
+    consumer: String,
+    next_expected: u64,
+    ack_every: u64,
+    last_acked: u64,
+    resume_point_known: bool,
+}
+
+impl AckTracker {
+    /// A tracker for `consumer` (its fully qualified node name) that acknowledges at least
+    /// every `ack_every` processed moves.
+    pub fn new(consumer: impl Into<String>, ack_every: u64) -> Self {
+        AckTracker {
+            consumer: consumer.into(),
+            next_expected: 0,
+            ack_every: ack_every.max(1),
+            last_acked: 0,
+            resume_point_known: false,
+        }
+    }
+
+    /// The announcement to publish (repeatedly) until the resume point is known.
+    pub fn hello(&self) -> GcodeAck {
+        GcodeAck {
+            consumer: self.consumer.clone(),
+            next_expected: self.next_expected,
+            resume: true,
+        }
+    }
+
+    /// True until the resume point is known (keep sending [`Self::hello`] until then).
+    pub fn needs_hello(&self) -> bool {
+        !self.resume_point_known
+    }
+
+    /// Learn the resume point from the streamer's progress report (consumer names and their
+    /// next expected sequence numbers). Returns true when it was learnt now.
+    pub fn on_progress(&mut self, consumers: &[String], next_expected: &[u64]) -> bool {
+        if self.resume_point_known {
+            return false;
+        }
+        let Some(i) = consumers.iter().position(|c| *c == self.consumer) else {
+            return false;
+        };
+        let Some(&n) = next_expected.get(i) else {
+            return false;
+        };
+        self.next_expected = n;
+        self.last_acked = n;
+        self.resume_point_known = true;
+        true
+    }
+
+    /// Classify a received move by its sequence number.
+    pub fn accept(&mut self, sequence: u64) -> Verdict {
+        if !self.resume_point_known {
+            return Verdict::Gap;
+        }
+        match sequence.cmp(&self.next_expected) {
+            std::cmp::Ordering::Equal => {
+                self.next_expected += 1;
+                Verdict::Process
+            }
+            std::cmp::Ordering::Less => Verdict::Duplicate,
+            std::cmp::Ordering::Greater => Verdict::Gap,
+        }
+    }
+
+    /// The acknowledgement to publish now, if one is due: after `ack_every` new moves, or any
+    /// time `force` is set (idle timer; repeating an unchanged acknowledgement is harmless and
+    /// recovers a lost one).
+    pub fn ack_due(&mut self, force: bool) -> Option<GcodeAck> {
+        if !self.resume_point_known {
+            return None;
+        }
+        let since = self.next_expected - self.last_acked;
+        if since < self.ack_every && !force {
+            return None;
+        }
+        self.last_acked = self.next_expected;
+        Some(GcodeAck {
+            consumer: self.consumer.clone(),
+            next_expected: self.next_expected,
+            resume: false,
+        })
+    }
+
+    /// Sequence number of the next move this consumer will process.
+    pub fn next_expected(&self) -> u64 {
+        self.next_expected
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn mv(sequence: u64) -> GcodeMove {
+        GcodeMove {
+            sequence,
+            ..Default::default()
+        }
+    }
+
+    fn ms(n: u64) -> Duration {
+        Duration::from_millis(n)
+    }
+
+    /// Simulates a lossy channel; the consumer's effect log must end up as 0..n exactly once,
+    /// in order. With `restart_at`, the consumer crashes after that many processed moves,
+    /// losing what it processed since its last acknowledgement, and a fresh one takes over.
+    fn run(n: u64, window: usize, drop_every: u64, restart_at: Option<usize>) -> (Vec<u64>, u64) {
+        let options = WindowOptions {
+            window,
+            resend_after: ms(10),
+        };
+        let mut w = SendWindow::new(options, &["/c".to_string()]);
+        let mut c = AckTracker::new("/c", 8);
+        let mut processed = Vec::new();
+        let mut queued = 0u64;
+        let mut now = Duration::ZERO;
+        let mut wire_count = 0u64;
+        let mut restart_at = restart_at;
+        for _step in 0..1_000_000 {
+            now += ms(1);
+            if c.needs_hello() {
+                w.on_ack(&c.hello(), now);
+                let (names, acks) = w.consumer_acks();
+                c.on_progress(&names, &acks);
+            }
+            while w.has_room() && queued < n {
+                w.push(mv(queued));
+                queued += 1;
+            }
+            let mut batch = Vec::new();
+            while let Some(m) = w.next_to_send() {
+                batch.push(m.sequence);
+            }
+            for seq in batch {
+                wire_count += 1;
+                if drop_every > 0 && wire_count % drop_every == 0 {
+                    continue; // lost on the wire
+                }
+                if c.accept(seq) == Verdict::Process {
+                    processed.push(seq);
+                }
+                if let Some(ack) = c.ack_due(false) {
+                    w.on_ack(&ack, now);
+                }
+                if restart_at == Some(processed.len()) {
+                    restart_at = None;
+                    // Crash: the effects after the last acknowledgement are not committed.
+                    processed.truncate(w.consumer_acks().1[0] as usize);
+                    c = AckTracker::new("/c", 8);
+                    break;
+                }
+            }
+            if let Some(ack) = c.ack_due(true) {
+                w.on_ack(&ack, now);
+            }
+            w.on_tick(now);
+            if queued == n && w.is_drained() {
+                break;
+            }
+        }
+        (processed, w.resends())
+    }
+
+    #[test]
+    fn lossless_channel_delivers_in_order_without_resends() {
+        let (p, resends) = run(10_000, 64, 0, None);
+        assert_eq!(p, (0..10_000).collect::<Vec<_>>());
+        assert_eq!(resends, 0);
+    }
+
+    #[test]
+    fn lossy_channel_still_delivers_everything_once_in_order() {
+        let (p, resends) = run(5_000, 32, 7, None);
+        assert_eq!(p, (0..5_000).collect::<Vec<_>>());
+        assert!(resends > 0);
+    }
+
+    #[test]
+    fn restarted_consumer_resumes_after_its_last_acknowledgement() {
+        let (p, _) = run(3_000, 50, 0, Some(1_234));
+        assert_eq!(p, (0..3_000).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn window_bounds_unacknowledged_moves_and_slowest_consumer_gates() {
+        let consumers = ["/a".to_string(), "/b".to_string()];
+        let mut w = SendWindow::new(
+            WindowOptions {
+                window: 4,
+                resend_after: ms(100),
+            },
+            &consumers,
+        );
+        for s in 0..4 {
+            w.push(mv(s));
+        }
+        assert!(!w.has_room());
+        w.on_ack(&AckTracker::new("/a", 1).hello(), ms(0));
+        assert!(w.next_to_send().is_none(), "/b has not announced itself");
+        assert_eq!(w.missing_consumers(), ["/b"]);
+        w.on_ack(&AckTracker::new("/b", 1).hello(), ms(0));
+        let sent: Vec<u64> = std::iter::from_fn(|| w.next_to_send().map(|m| m.sequence)).collect();
+        assert_eq!(sent, [0, 1, 2, 3]);
+        let ack = |name: &str, n| GcodeAck {
+            consumer: name.into(),
+            next_expected: n,
+            resume: false,
+        };
+        w.on_ack(&ack("/a", 4), ms(1));
+        assert_eq!(w.acknowledged(), 0, "/b still holds the window");
+        w.on_ack(&ack("/b", 2), ms(2));
+        assert_eq!(w.acknowledged(), 2);
+        assert!(w.has_room());
+        assert!(!w.on_ack(&ack("/stranger", 4), ms(3)));
+        assert_eq!(w.acknowledged(), 2);
+        // No progress for resend_after: go back to 2.
+        assert!(!w.on_tick(ms(50)));
+        assert!(w.on_tick(ms(102)));
+        assert_eq!(w.next_to_send().map(|m| m.sequence), Some(2));
+    }
+
+    #[test]
+    fn tracker_classifies_and_acknowledges() {
+        let mut t = AckTracker::new("/c", 3);
+        assert!(t.needs_hello());
+        assert_eq!(t.accept(0), Verdict::Gap, "resume point unknown yet");
+        assert!(!t.on_progress(&["/other".into()], &[5]));
+        assert!(t.on_progress(&["/other".into(), "/c".into()], &[5, 0]));
+        assert!(!t.needs_hello());
+        assert_eq!(t.accept(0), Verdict::Process);
+        assert_eq!(t.accept(0), Verdict::Duplicate);
+        assert_eq!(t.accept(2), Verdict::Gap);
+        assert_eq!(t.ack_due(false), None);
+        assert_eq!(t.ack_due(true).unwrap().next_expected, 1);
+        assert_eq!(t.accept(1), Verdict::Process);
+        assert_eq!(t.accept(2), Verdict::Process);
+        assert_eq!(t.accept(3), Verdict::Process);
+        assert_eq!(t.ack_due(false).unwrap().next_expected, 4);
+    }
+}

@@ -1,0 +1,398 @@
+//! Splits one G-code line into words (`letter number`), without allocating.
+//!
+//! Handles what slicers and hosts write: `;` and `( )` comments, any case, words packed without
+//! spaces (`G1X10Y10`), leading-dot and signed numbers (`E.04`, `X-.5`), `N` line numbers and a
+//! trailing `*` checksum (the XOR of every byte before the `*`, as RepRap hosts compute it),
+//! and the free-text argument of `M117`-like commands.
+
+use crate::error::ErrorKind;
+
+/// One `letter number` pair. `letter` is upper case; `column` is 1-based; `value` is NaN for a
+/// bare letter (a flag word such as the axes of `G28 X Y`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Word {
+    pub letter: u8,
+    pub value: f64,
+    pub column: u32,
+}
+
+/// Commands whose argument is free text up to the end of the line (or `;` comment).
+const TEXT_ARGUMENT_M_CODES: &[u32] = &[23, 28, 30, 32, 117, 118, 928];
+
+/// The lexed content of one line.
+#[derive(Debug, Default)]
+pub struct LexedLine<'a> {
+    /// Words in line order, `N` excluded.
+    pub words: Vec<Word>,
+    /// The `N` line number, when present.
+    pub line_number: Option<i64>,
+    /// Free-text argument of `M117` and friends.
+    pub text: Option<&'a [u8]>,
+}
+
+/// A lexing failure at a 1-based column.
+#[derive(Debug, PartialEq)]
+pub struct LexError {
+    pub column: u32,
+    pub kind: ErrorKind,
+}
+
+/// Reusable lexer; keeps its word buffer between lines so lexing does not allocate.
+#[derive(Debug, Default)]
+pub struct Lexer {
+    words: Vec<Word>,
+}
+
+impl Lexer {
+    /// Lex one line (without its line terminator; a trailing `\r` is ignored).
+    pub fn lex<'a>(&mut self, line: &'a [u8]) -> Result<LexedLine<'a>, LexError> {
+        let mut words = std::mem::take(&mut self.words);
+        words.clear();
+        let result = lex_into(line, &mut words);
+        match result {
+            Ok((line_number, text)) => Ok(LexedLine {
+                words,
+                line_number,
+                text,
+            }),
+            Err(e) => {
+                self.words = words;
+                Err(e)
+            }
+        }
+    }
+
+    /// Give the word buffer of a finished line back for reuse.
+    pub fn recycle(&mut self, line: LexedLine<'_>) {
+        self.words = line.words;
+    }
+}
+
+fn lex_into<'a>(
+    line: &'a [u8],
+    words: &mut Vec<Word>,
+) -> Result<(Option<i64>, Option<&'a [u8]>), LexError> {
+    let line = line.strip_suffix(b"\r").unwrap_or(line);
+    let mut i = 0usize;
+    let mut line_number = None;
+    let mut text = None;
+    let col = |i: usize| (i + 1) as u32;
+    while i < line.len() {
+        let c = line[i];
+        match c {
+            b' ' | b'\t' => i += 1,
+            b';' => break,
+            b'(' => match line[i + 1..].iter().position(|&b| b == b')') {
+                Some(close) => i += close + 2,
+                None => {
+                    return Err(LexError {
+                        column: col(i),
+                        kind: ErrorKind::UnterminatedComment,
+                    })
+                }
+            },
+            b'*' => {
+                let checksum_col = col(i);
+                if line_number.is_none() {
+                    return Err(LexError {
+                        column: checksum_col,
+                        kind: ErrorKind::Expected("an N line number before a `*` checksum"),
+                    });
+                }
+                let (value, end) = parse_unsigned(line, i + 1).ok_or(LexError {
+                    column: col(i + 1),
+                    kind: ErrorKind::Expected("a checksum (0-255) after `*`"),
+                })?;
+                if value > 255 {
+                    return Err(LexError {
+                        column: col(i + 1),
+                        kind: ErrorKind::Expected("a checksum (0-255) after `*`"),
+                    });
+                }
+                let computed = line[..i].iter().fold(0u8, |acc, &b| acc ^ b);
+                if computed as u64 != value {
+                    return Err(LexError {
+                        column: checksum_col,
+                        kind: ErrorKind::ChecksumMismatch {
+                            given: value as u8,
+                            computed,
+                        },
+                    });
+                }
+                ensure_only_trailing_comment(line, end)?;
+                break;
+            }
+            _ if c.is_ascii_alphabetic() => {
+                let letter = c.to_ascii_uppercase();
+                let word_col = col(i);
+                let mut j = i + 1;
+                while j < line.len() && (line[j] == b' ' || line[j] == b'\t') {
+                    j += 1;
+                }
+                let (value, end) = match parse_number(line, j) {
+                    Some(parsed) => parsed,
+                    // A bare letter (`G28 X Y`) is a flag word; its value is NaN and only the
+                    // commands that take flags accept it (see the interpreter).
+                    None if matches!(
+                        line.get(j),
+                        None | Some(b' ' | b'\t' | b';' | b'(' | b'*')
+                    ) =>
+                    {
+                        (f64::NAN, j)
+                    }
+                    None => {
+                        return Err(LexError {
+                            column: col(j),
+                            kind: ErrorKind::ExpectedNumberAfter(letter as char),
+                        })
+                    }
+                };
+                i = end;
+                if letter == b'N' && words.is_empty() && line_number.is_none() {
+                    if value.fract() != 0.0 || value.is_nan() {
+                        return Err(LexError {
+                            column: word_col,
+                            kind: ErrorKind::Expected("an integer line number after N"),
+                        });
+                    }
+                    line_number = Some(value as i64);
+                    continue;
+                }
+                words.push(Word {
+                    letter,
+                    value,
+                    column: word_col,
+                });
+                if letter == b'M'
+                    && words.len() == 1
+                    && value.fract() == 0.0
+                    && TEXT_ARGUMENT_M_CODES.contains(&(value as u32))
+                {
+                    let rest = &line[i..];
+                    let stop = rest
+                        .iter()
+                        .position(|&b| b == b';' || b == b'*')
+                        .unwrap_or(rest.len());
+                    let t = trim(&rest[..stop]);
+                    text = Some(t);
+                    i += stop;
+                }
+            }
+            _ => {
+                return Err(LexError {
+                    column: col(i),
+                    kind: if c.is_ascii_graphic() {
+                        ErrorKind::UnexpectedChar(c as char)
+                    } else {
+                        ErrorKind::UnexpectedByte(c)
+                    },
+                })
+            }
+        }
+    }
+    Ok((line_number, text))
+}
+
+fn ensure_only_trailing_comment(line: &[u8], mut i: usize) -> Result<(), LexError> {
+    while i < line.len() {
+        match line[i] {
+            b' ' | b'\t' => i += 1,
+            b';' => return Ok(()),
+            _ => {
+                return Err(LexError {
+                    column: (i + 1) as u32,
+                    kind: ErrorKind::Expected("end of line after the checksum"),
+                })
+            }
+        }
+    }
+    Ok(())
+}
+
+fn trim(s: &[u8]) -> &[u8] {
+    let start = s
+        .iter()
+        .position(|b| !b.is_ascii_whitespace())
+        .unwrap_or(s.len());
+    let end = s
+        .iter()
+        .rposition(|b| !b.is_ascii_whitespace())
+        .map_or(start, |p| p + 1);
+    &s[start..end]
+}
+
+fn parse_unsigned(line: &[u8], start: usize) -> Option<(u64, usize)> {
+    let mut i = start;
+    let mut v: u64 = 0;
+    while i < line.len() && line[i].is_ascii_digit() {
+        v = v.checked_mul(10)?.checked_add((line[i] - b'0') as u64)?;
+        i += 1;
+    }
+    (i > start).then_some((v, i))
+}
+
+/// Parse `[+-]digits[.digits]` or `[+-].digits` starting at `start`; returns the value and the
+/// index after it. Up to 15 significant digits the result is exact to the last bit (an integer
+/// mantissa divided by an exact power of ten rounds once), so it equals `str::parse::<f64>`;
+/// longer numbers take `str::parse`.
+pub(crate) fn parse_number(line: &[u8], start: usize) -> Option<(f64, usize)> {
+    let mut i = start;
+    let negative = match line.get(i) {
+        Some(b'-') => {
+            i += 1;
+            true
+        }
+        Some(b'+') => {
+            i += 1;
+            false
+        }
+        _ => false,
+    };
+    let mut mantissa: u64 = 0;
+    let mut digits = 0u32;
+    let mut frac_digits = 0u32;
+    let mut seen_dot = false;
+    let mut any_digit = false;
+    while i < line.len() {
+        let b = line[i];
+        if b.is_ascii_digit() {
+            any_digit = true;
+            if mantissa != 0 || b != b'0' {
+                digits += 1;
+            }
+            if digits <= 19 {
+                mantissa = mantissa * 10 + (b - b'0') as u64;
+            }
+            if seen_dot {
+                frac_digits += 1;
+            }
+            i += 1;
+        } else if b == b'.' && !seen_dot {
+            seen_dot = true;
+            i += 1;
+        } else {
+            break;
+        }
+    }
+    if !any_digit {
+        return None;
+    }
+    let value = if digits <= 15 && frac_digits <= 22 {
+        mantissa as f64 / POW10[frac_digits as usize]
+    } else {
+        let s = std::str::from_utf8(&line[start..i]).ok()?;
+        let s = s.strip_suffix('.').unwrap_or(s);
+        return s.parse::<f64>().ok().map(|v| (v, i));
+    };
+    Some((if negative { -value } else { value }, i))
+}
+
+const POW10: [f64; 23] = [
+    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
+    1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
+];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn lex(s: &str) -> Result<Vec<(char, f64)>, LexError> {
+        let mut lexer = Lexer::default();
+        lexer.lex(s.as_bytes()).map(|l| {
+            l.words
+                .iter()
+                .map(|w| (w.letter as char, w.value))
+                .collect()
+        })
+    }
+
+    #[test]
+    fn packed_lowercase_leading_dot_and_signs() {
+        assert_eq!(
+            lex("g1x10Y-.5 e.04 F+300").unwrap(),
+            [
+                ('G', 1.0),
+                ('X', 10.0),
+                ('Y', -0.5),
+                ('E', 0.04),
+                ('F', 300.0)
+            ]
+        );
+    }
+
+    #[test]
+    fn comments_of_both_kinds() {
+        assert_eq!(
+            lex("G1 (move x) X1 ; Y2").unwrap(),
+            [('G', 1.0), ('X', 1.0)]
+        );
+        assert_eq!(lex("(only a comment)").unwrap(), []);
+        let err = lex("G1 (open X1").unwrap_err();
+        assert_eq!(err.column, 4);
+        assert_eq!(err.kind, ErrorKind::UnterminatedComment);
+    }
+
+    #[test]
+    fn numbers_match_std_parse_exactly() {
+        for s in [
+            "0.1",
+            "-2.922",
+            "1.202",
+            "123456.789012",
+            "0.0000001",
+            ".5",
+            "5.",
+            "007",
+        ] {
+            let (v, end) = parse_number(s.as_bytes(), 0).unwrap();
+            assert_eq!(end, s.len());
+            let expected: f64 = s.trim_end_matches('.').parse().unwrap();
+            assert_eq!(v.to_bits(), expected.to_bits(), "{s}");
+        }
+        let long = "3.14159265358979323846264338";
+        assert_eq!(
+            parse_number(long.as_bytes(), 0).unwrap().0,
+            long.parse::<f64>().unwrap()
+        );
+        assert_eq!(parse_number(b"-", 0), None);
+        assert_eq!(parse_number(b".", 0), None);
+    }
+
+    #[test]
+    fn checksums_are_verified() {
+        // XOR of "N1 G1 X1" computed independently below.
+        let body = "N1 G1 X1";
+        let sum = body.bytes().fold(0u8, |a, b| a ^ b);
+        let mut lexer = Lexer::default();
+        let text = format!("{body}*{sum}");
+        let ok = lexer.lex(text.as_bytes()).unwrap();
+        assert_eq!(ok.line_number, Some(1));
+        assert_eq!(ok.words.len(), 2);
+        let bad = lex(&format!("{body}*{}", sum ^ 1)).unwrap_err();
+        assert_eq!(
+            bad.kind,
+            ErrorKind::ChecksumMismatch {
+                given: sum ^ 1,
+                computed: sum
+            }
+        );
+        assert_eq!(bad.column, 9);
+        assert!(matches!(
+            lex("G1 X1*5").unwrap_err().kind,
+            ErrorKind::Expected(_)
+        ));
+    }
+
+    #[test]
+    fn text_argument_and_bad_bytes() {
+        let mut lexer = Lexer::default();
+        let l = lexer.lex(b"M117 Printing layer 3 ; comment").unwrap();
+        assert_eq!(l.text, Some(&b"Printing layer 3"[..]));
+        let err = lex("G1 X1 \u{e9}").unwrap_err();
+        assert_eq!(err.column, 7);
+        assert_eq!(err.kind, ErrorKind::UnexpectedByte(0xC3));
+        let err = lex("G1 X=1").unwrap_err();
+        assert_eq!(err.kind, ErrorKind::ExpectedNumberAfter('X'));
+        assert_eq!(err.column, 5);
+    }
+}

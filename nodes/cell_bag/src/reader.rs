@@ -1,0 +1,146 @@
+//! Reading rosbag2 MCAP bags: summary information and the message stream.
+
+use std::borrow::Cow;
+
+use crate::qos::QosRecord;
+use crate::BagError;
+
+/// One topic of a bag, from its summary.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TopicInfo {
+    pub name: String,
+    pub type_name: String,
+    pub message_count: u64,
+    pub qos: Option<QosRecord>,
+    /// The channel's `ros2msg` schema text.
+    pub schema_text: String,
+}
+
+/// What `bag info` prints.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BagInfo {
+    pub profile: String,
+    pub message_count: u64,
+    pub start_ns: u64,
+    pub end_ns: u64,
+    pub chunk_count: usize,
+    pub compression: Vec<String>,
+    pub topics: Vec<TopicInfo>,
+}
+
+impl BagInfo {
+    pub fn duration_s(&self) -> f64 {
+        self.end_ns.saturating_sub(self.start_ns) as f64 * 1e-9
+    }
+}
+
+/// One recorded message.
+#[derive(Clone, Debug)]
+pub struct BagMessage<'a> {
+    pub topic: String,
+    pub type_name: String,
+    pub log_time_ns: u64,
+    pub publish_time_ns: u64,
+    pub sequence: u32,
+    /// CDR with its encapsulation header.
+    pub data: Cow<'a, [u8]>,
+}
+
+/// A bag in memory: its info and access to its messages.
+pub struct BagContents<'a> {
+    bytes: &'a [u8],
+    pub info: BagInfo,
+}
+
+/// Read a bag's summary (the bytes of the whole file).
+pub fn read_bag(bytes: &[u8]) -> Result<BagContents<'_>, BagError> {
+    let header_profile = read_profile(bytes)?;
+    if header_profile != "ros2" {
+        return Err(BagError::NotRos2(format!(
+            "header profile is `{header_profile}`, not `ros2`"
+        )));
+    }
+    let summary = mcap::Summary::read(bytes)?.ok_or(BagError::NoSummary)?;
+    let stats = summary.stats.clone().unwrap_or_default();
+    let mut topics: Vec<TopicInfo> = summary
+        .channels
+        .values()
+        .map(|c| {
+            let (type_name, schema_text) = match &c.schema {
+                Some(s) => (
+                    s.name.clone(),
+                    String::from_utf8_lossy(&s.data).into_owned(),
+                ),
+                None => (String::new(), String::new()),
+            };
+            TopicInfo {
+                name: c.topic.clone(),
+                type_name,
+                message_count: stats
+                    .channel_message_counts
+                    .get(&c.id)
+                    .copied()
+                    .unwrap_or(0),
+                qos: c
+                    .metadata
+                    .get("offered_qos_profiles")
+                    .and_then(|y| QosRecord::from_yaml(y)),
+                schema_text,
+            }
+        })
+        .collect();
+    topics.sort_by(|a, b| a.name.cmp(&b.name));
+    let mut compression: Vec<String> = summary
+        .chunk_indexes
+        .iter()
+        .map(|c| c.compression.clone())
+        .collect();
+    compression.sort();
+    compression.dedup();
+    Ok(BagContents {
+        bytes,
+        info: BagInfo {
+            profile: header_profile,
+            message_count: stats.message_count,
+            start_ns: stats.message_start_time,
+            end_ns: stats.message_end_time,
+            chunk_count: summary.chunk_indexes.len(),
+            compression,
+            topics,
+        },
+    })
+}
+
+fn read_profile(bytes: &[u8]) -> Result<String, BagError> {
+    let mut records = mcap::read::LinearReader::new(bytes)?;
+    match records.next() {
+        Some(Ok(mcap::records::Record::Header(h))) => Ok(h.profile),
+        Some(Err(e)) => Err(e.into()),
+        _ => Err(BagError::NotRos2("no MCAP header record".into())),
+    }
+}
+
+impl<'a> BagContents<'a> {
+    /// Every message in file order (the recorder writes in receive order).
+    pub fn messages(
+        &self,
+    ) -> Result<impl Iterator<Item = Result<BagMessage<'a>, BagError>> + 'a, BagError> {
+        let stream = mcap::MessageStream::new(self.bytes)?;
+        Ok(stream.map(|m| {
+            let m = m?;
+            Ok(BagMessage {
+                topic: m.channel.topic.clone(),
+                type_name: m
+                    .channel
+                    .schema
+                    .as_ref()
+                    .map(|s| s.name.clone())
+                    .unwrap_or_default(),
+                log_time_ns: m.log_time,
+                publish_time_ns: m.publish_time,
+                sequence: m.sequence,
+                data: m.data,
+            })
+        }))
+    }
+}

@@ -1,0 +1,106 @@
+//! Write a bag, read it back with our reader (the independent Python readers check the same
+//! files in the repository's integration tests).
+
+use std::io::Cursor;
+
+use cell_bag::{
+    read_bag, BagWriter, Compression, Durability, QosRecord, Reliability, WriterOptions,
+};
+use polar_cell_msgs::{cdr, GcodeMove, JointState, RosMessage, StringMsg};
+
+fn write_sample(compression: Compression) -> Vec<u8> {
+    let options = WriterOptions {
+        compression,
+        chunk_size_bytes: 4096,
+    };
+    let mut bag = BagWriter::new(Cursor::new(Vec::new()), &options).unwrap();
+    let moves = bag
+        .add_topic("/gcode/moves", GcodeMove::TYPE, QosRecord::ROS_DEFAULT)
+        .unwrap();
+    let latched = QosRecord {
+        reliability: Reliability::Reliable,
+        durability: Durability::TransientLocal,
+        depth: 1,
+    };
+    let desc = bag
+        .add_topic("/robot_description", StringMsg::TYPE, latched)
+        .unwrap();
+    assert_eq!(
+        bag.add_topic("/gcode/moves", GcodeMove::TYPE, QosRecord::ROS_DEFAULT)
+            .unwrap(),
+        moves
+    );
+    assert!(bag
+        .add_topic("/gcode/moves", JointState::TYPE, QosRecord::ROS_DEFAULT)
+        .is_err());
+    for i in 0..1000u64 {
+        let m = GcodeMove {
+            sequence: i,
+            x_m: i as f64 * 1e-3,
+            ..Default::default()
+        };
+        bag.write_message(moves, 1_000_000_000 + i * 1000, &m)
+            .unwrap();
+    }
+    bag.write_message(
+        desc,
+        1_000_000_500,
+        &StringMsg {
+            data: "<robot/>".into(),
+        },
+    )
+    .unwrap();
+    assert!(
+        bag.write(moves, 0, 0, &[0, 1]).is_err(),
+        "short CDR is refused"
+    );
+    let (cursor, topics) = bag.finish().unwrap();
+    assert_eq!(topics.len(), 2);
+    assert_eq!(topics[0].3.message_count, 1000);
+    cursor.into_inner()
+}
+
+#[test]
+fn bag_round_trips_with_summary_and_qos() {
+    for compression in [Compression::Zstd, Compression::Lz4] {
+        let bytes = write_sample(compression);
+        let bag = read_bag(&bytes).unwrap();
+        assert_eq!(bag.info.profile, "ros2");
+        assert_eq!(bag.info.message_count, 1001);
+        assert!(bag.info.chunk_count > 1, "small chunks: several chunks");
+        let expected_compression = match compression {
+            Compression::Zstd => "zstd",
+            Compression::Lz4 => "lz4",
+        };
+        assert_eq!(bag.info.compression, [expected_compression]);
+        assert_eq!(bag.info.start_ns, 1_000_000_000);
+        assert_eq!(bag.info.end_ns, 1_000_999_000);
+        let moves = &bag.info.topics[0];
+        assert_eq!(moves.name, "/gcode/moves");
+        assert_eq!(moves.type_name, "polar_cell_msgs/msg/GcodeMove");
+        assert_eq!(moves.message_count, 1000);
+        assert_eq!(moves.schema_text, GcodeMove::TYPE.schema_text().unwrap());
+        assert_eq!(
+            bag.info.topics[1].qos.unwrap().durability,
+            Durability::TransientLocal
+        );
+        let mut seqs = Vec::new();
+        for m in bag.messages().unwrap() {
+            let m = m.unwrap();
+            if m.topic == "/gcode/moves" {
+                let mv: GcodeMove = cdr::decode(&m.data).unwrap();
+                assert_eq!(m.log_time_ns, 1_000_000_000 + mv.sequence * 1000);
+                assert_eq!(m.sequence as u64, mv.sequence);
+                seqs.push(mv.sequence);
+            }
+        }
+        assert_eq!(seqs, (0..1000).collect::<Vec<_>>());
+    }
+}
+
+#[test]
+fn non_ros2_and_truncated_files_are_errors() {
+    let bytes = write_sample(Compression::Zstd);
+    assert!(read_bag(&bytes[..bytes.len() / 2]).is_err());
+    assert!(read_bag(b"not an mcap file at all").is_err());
+}

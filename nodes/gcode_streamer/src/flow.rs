@@ -86,16 +86,34 @@ impl SendWindow {
         self.buffer.push_back(mv);
     }
 
-    /// The next move to put on the wire, if any. Sending only starts once every consumer has
-    /// announced itself, so nothing is published into a reader that has not matched yet.
-    pub fn next_to_send(&mut self) -> Option<&GcodeMove> {
+    /// The next move to put on the wire, if any, without consuming it: call
+    /// [`Self::mark_sent`] once it is actually published. Sending only starts once every
+    /// consumer has announced itself, so nothing is published into a reader not yet matched.
+    pub fn peek_next(&self) -> Option<&GcodeMove> {
         if !self.all_present() {
             return None;
         }
         let index = self.next_to_send.checked_sub(self.base)? as usize;
-        let mv = self.buffer.get(index)?;
+        self.buffer.get(index)
+    }
+
+    /// The move returned by [`Self::peek_next`] went out.
+    pub fn mark_sent(&mut self) {
+        if self.peek_next().is_some() {
+            self.next_to_send += 1;
+        }
+    }
+
+    /// Peek and mark sent in one step (for callers whose send cannot fail).
+    pub fn next_to_send(&mut self) -> Option<GcodeMove> {
+        let m = self.peek_next()?.clone();
         self.next_to_send += 1;
-        Some(mv)
+        Some(m)
+    }
+
+    /// Moves published and not yet acknowledged by every consumer.
+    pub fn in_flight(&self) -> u64 {
+        self.next_to_send - self.base
     }
 
     /// Apply an acknowledgement received at monotonic time `now`. Unknown consumers are

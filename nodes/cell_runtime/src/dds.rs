@@ -1,0 +1,323 @@
+//! A ROS 2 node on DDS, set up the way every node of the cell needs it.
+//!
+//! What ros2-client leaves to the application and this module does:
+//! * `ROS_DOMAIN_ID` is read here (ros2-client's `Context::new` ignores it);
+//! * DDS traffic stays on loopback unless `POLAR_CELL_NETWORK` says otherwise;
+//! * QoS is the ROS default (reliable, volatile, keep-last 10) — ros2-client's subscriber
+//!   default is best-effort, depth 1;
+//! * topic names are expanded and remapped per the ROS command line;
+//! * parameters are declared so `ros2 param list/get` shows them; they are read-only at run
+//!   time (changing one means restarting the node);
+//! * `/diagnostics` and `/rosout` publishing.
+
+use std::net::{IpAddr, Ipv4Addr};
+
+use polar_cell_msgs::{DiagnosticArray, DiagnosticStatus, Header, KeyValue, RosMessage, Time};
+use ros2_client::{
+    ros2::LogLevel, Context, MessageTypeName, Name, Node, NodeName, NodeOptions, ParameterValue,
+    Publisher, QosProfile, Subscription,
+};
+
+use crate::args::RosArgs;
+use crate::names::NameResolver;
+use crate::params::{ParamSpec, ParamValue, Params};
+use crate::RuntimeError;
+
+/// Which network interfaces DDS may use.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Network {
+    /// 127.0.0.1 only (the default).
+    Loopback,
+    /// Every interface.
+    All,
+    /// These addresses' interfaces.
+    Only(Vec<IpAddr>),
+}
+
+impl Network {
+    /// From `POLAR_CELL_NETWORK`: unset or `loopback`, `all`, or comma-separated addresses.
+    pub fn from_env() -> Result<Network, RuntimeError> {
+        match std::env::var("POLAR_CELL_NETWORK") {
+            Err(_) => Ok(Network::Loopback),
+            Ok(v) => Network::parse(&v),
+        }
+    }
+
+    pub fn parse(text: &str) -> Result<Network, RuntimeError> {
+        match text.trim() {
+            "" | "loopback" => Ok(Network::Loopback),
+            "all" => Ok(Network::All),
+            list => list
+                .split(',')
+                .map(|a| {
+                    a.trim()
+                        .parse::<IpAddr>()
+                        .map_err(|_| RuntimeError::Environment {
+                            variable: "POLAR_CELL_NETWORK",
+                            problem: format!("`{a}` is not an IP address (or `loopback`, `all`)"),
+                        })
+                })
+                .collect::<Result<Vec<_>, _>>()
+                .map(Network::Only),
+        }
+    }
+}
+
+/// `ROS_DOMAIN_ID` (0 when unset), validated to ROS's 0–232.
+pub fn domain_id_from_env() -> Result<u16, RuntimeError> {
+    match std::env::var("ROS_DOMAIN_ID") {
+        Err(_) => Ok(0),
+        Ok(v) if v.trim().is_empty() => Ok(0),
+        Ok(v) => {
+            v.trim()
+                .parse::<u16>()
+                .ok()
+                .filter(|&d| d <= 232)
+                .ok_or(RuntimeError::Environment {
+                    variable: "ROS_DOMAIN_ID",
+                    problem: format!("`{v}` is not a domain id in 0..=232"),
+                })
+        }
+    }
+}
+
+/// The ROS 2 default QoS: reliable, volatile, keep-last 10.
+pub fn ros_default_qos() -> QosProfile {
+    reliable_qos(10)
+}
+
+/// Reliable, volatile, keep-last `depth`.
+pub fn reliable_qos(depth: usize) -> QosProfile {
+    use ros2_client::qos::{Durability, History, Reliability, WhenFull};
+    QosProfile::publisher_default()
+        .reliability(Reliability::Reliable {
+            when_full: WhenFull::DEFAULT,
+        })
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth })
+}
+
+/// Reliable, transient-local, keep-last `depth` (latched, e.g. `/robot_description`).
+pub fn transient_local_qos(depth: usize) -> QosProfile {
+    use ros2_client::qos::Durability;
+    reliable_qos(depth).durability(Durability::TransientLocal)
+}
+
+/// One DDS participant per process-level context.
+pub fn make_context(domain_id: u16, network: &Network) -> Result<Context, RuntimeError> {
+    let mut builder = rustdds::DomainParticipantBuilder::new(domain_id);
+    match network {
+        Network::Loopback => {
+            builder = builder.with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)]);
+        }
+        Network::All => {}
+        Network::Only(addresses) => builder = builder.with_only_networks(addresses.clone()),
+    }
+    let participant = builder
+        .build()
+        .map_err(|e| RuntimeError::Dds(e.to_string()))?;
+    Context::from_domain_participant(participant).map_err(|e| RuntimeError::Dds(e.to_string()))
+}
+
+/// A running node: ros2-client node, resolved names and parameters, diagnostics publisher.
+pub struct CellNode {
+    pub node: Node,
+    pub names: NameResolver,
+    pub params: Params,
+    diagnostics: Publisher<DiagnosticArray>,
+    _context: Context,
+}
+
+impl CellNode {
+    /// Create the node `default_name` (subject to `__node`/`__ns` remaps) with its declared
+    /// parameters resolved from the ROS command line, on its own DDS participant.
+    pub fn start(
+        default_name: &str,
+        specs: &[ParamSpec],
+        ros_args: &RosArgs,
+    ) -> Result<CellNode, RuntimeError> {
+        let domain_id = domain_id_from_env()?;
+        let network = Network::from_env()?;
+        let context = make_context(domain_id, &network)?;
+        Self::start_in(context, default_name, specs, ros_args)
+    }
+
+    /// Like [`CellNode::start`] on a given context.
+    pub fn start_in(
+        context: Context,
+        default_name: &str,
+        specs: &[ParamSpec],
+        ros_args: &RosArgs,
+    ) -> Result<CellNode, RuntimeError> {
+        let node_name = ros_args.node_name(default_name);
+        let namespace = ros_args.namespace(default_name, "/");
+        let names = NameResolver::new(&node_name, &namespace, &ros_args.remaps)?;
+        let mut files = Vec::new();
+        for path in &ros_args.params_files {
+            let text = std::fs::read_to_string(path).map_err(|e| RuntimeError::ParamsFile {
+                path: path.clone(),
+                problem: e.to_string(),
+            })?;
+            files.push((path.clone(), text));
+        }
+        let params = Params::resolve(
+            specs,
+            &names.fully_qualified_node_name(),
+            &files,
+            &ros_args.params,
+        )?;
+        let mut options = NodeOptions::new()
+            .enable_rosout(ros_args.rosout_logs.unwrap_or(true))
+            .allow_undeclared_parameters(false)
+            .parameter_validator(Box::new(|name, _| {
+                Err(format!(
+                    "{name} is read at start-up: restart the node with --ros-args -p {name}:=..."
+                ))
+            }));
+        for (name, value) in params.iter() {
+            options = options.declare_parameter(name, to_ros_parameter(value));
+        }
+        let ros_node_name = NodeName::new(&namespace, &node_name)
+            .map_err(|e| RuntimeError::Dds(format!("{e:?}")))?;
+        let mut node = context
+            .new_node(ros_node_name, options)
+            .map_err(|e| RuntimeError::Dds(format!("{e:?}")))?;
+        let spinner = node
+            .spinner()
+            .map_err(|e| RuntimeError::Dds(format!("{e:?}")))?;
+        std::thread::Builder::new()
+            .name(format!("spin {node_name}"))
+            .spawn(move || futures::executor::block_on(spinner.spin()))
+            .map_err(|e| RuntimeError::Dds(e.to_string()))?;
+        let diagnostics_topic =
+            create_topic::<DiagnosticArray>(&mut node, &names, "/diagnostics", &ros_default_qos())?;
+        let diagnostics = node
+            .create_publisher(&diagnostics_topic, Some(ros_default_qos()))
+            .map_err(|e| RuntimeError::Dds(format!("{e:?}")))?;
+        Ok(CellNode {
+            node,
+            names,
+            params,
+            diagnostics,
+            _context: context,
+        })
+    }
+
+    /// Fully qualified node name, e.g. `/gcode_streamer`.
+    pub fn fully_qualified_name(&self) -> String {
+        self.names.fully_qualified_node_name()
+    }
+
+    /// A publisher on `topic` (expanded and remapped) with the given QoS.
+    pub fn publisher<T: RosMessage>(
+        &mut self,
+        topic: &str,
+        qos: &QosProfile,
+    ) -> Result<Publisher<T>, RuntimeError> {
+        let t = create_topic::<T>(&mut self.node, &self.names, topic, qos)?;
+        self.node
+            .create_publisher(&t, Some(qos.clone()))
+            .map_err(|e| RuntimeError::Dds(format!("publisher on {topic}: {e:?}")))
+    }
+
+    /// A subscription on `topic` (expanded and remapped) with the given QoS.
+    pub fn subscription<T: RosMessage>(
+        &mut self,
+        topic: &str,
+        qos: &QosProfile,
+    ) -> Result<Subscription<T>, RuntimeError> {
+        let t = create_topic::<T>(&mut self.node, &self.names, topic, qos)?;
+        self.node
+            .create_subscription(&t, Some(qos.clone()))
+            .map_err(|e| RuntimeError::Dds(format!("subscription on {topic}: {e:?}")))
+    }
+
+    /// Publish one diagnostic status for this node on `/diagnostics`.
+    pub fn diagnose(&self, level: u8, message: &str, values: &[(&str, String)]) {
+        let status = DiagnosticStatus {
+            level,
+            name: self.fully_qualified_name(),
+            message: message.to_string(),
+            hardware_id: "polar_cell".to_string(),
+            values: values
+                .iter()
+                .map(|(k, v)| KeyValue {
+                    key: k.to_string(),
+                    value: v.clone(),
+                })
+                .collect(),
+        };
+        let array = DiagnosticArray {
+            header: Header {
+                stamp: Time::now(),
+                frame_id: String::new(),
+            },
+            status: vec![status],
+        };
+        if let Err(e) = self.diagnostics.publish(array) {
+            tracing::warn!(
+                "{}: /diagnostics publish failed: {e:?}",
+                self.fully_qualified_name()
+            );
+        }
+    }
+
+    /// Log to `/rosout` (and through `tracing` to stderr).
+    pub fn log(&self, level: LogLevel, message: &str) {
+        ros2_client::rosout!(self.node, level, "{}", message);
+    }
+}
+
+fn create_topic<T: RosMessage>(
+    node: &mut Node,
+    names: &NameResolver,
+    topic: &str,
+    qos: &QosProfile,
+) -> Result<rustdds::Topic, RuntimeError> {
+    let resolved = names.resolve(topic)?;
+    let name =
+        Name::parse(&resolved).map_err(|e| RuntimeError::Dds(format!("{resolved}: {e:?}")))?;
+    node.create_topic(
+        &name,
+        MessageTypeName::new(T::TYPE.package, T::TYPE.name),
+        qos,
+    )
+    .map_err(|e| RuntimeError::Dds(format!("topic {resolved}: {e:?}")))
+}
+
+fn to_ros_parameter(v: &ParamValue) -> ParameterValue {
+    match v {
+        ParamValue::Bool(b) => ParameterValue::Boolean(*b),
+        ParamValue::Integer(i) => ParameterValue::Integer(*i),
+        ParamValue::Double(d) => ParameterValue::Double(*d),
+        ParamValue::String(s) => ParameterValue::String(s.clone()),
+        ParamValue::BoolArray(a) => ParameterValue::BooleanArray(a.clone()),
+        ParamValue::IntegerArray(a) => ParameterValue::IntegerArray(a.clone()),
+        ParamValue::DoubleArray(a) => ParameterValue::DoubleArray(a.clone()),
+        ParamValue::StringArray(a) => ParameterValue::StringArray(a.clone()),
+    }
+}
+
+/// Resolves when the process gets SIGINT or SIGTERM.
+pub async fn shutdown_signal() {
+    use tokio::signal::unix::{signal, SignalKind};
+    let mut term = match signal(SignalKind::terminate()) {
+        Ok(s) => s,
+        Err(_) => {
+            let _ = tokio::signal::ctrl_c().await;
+            return;
+        }
+    };
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => {}
+        _ = term.recv() => {}
+    }
+}
+
+/// Nanoseconds since the epoch, for bag log times and stamps.
+pub fn now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0)
+}

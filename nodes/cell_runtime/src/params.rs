@@ -1,0 +1,468 @@
+//! Typed, validated node parameters from defaults, `--params-file` YAML and `-p` overrides.
+//!
+//! Files use the ROS 2 layout: top-level keys are node selectors (`/**`, `/**/name`, the fully
+//! qualified name, or the bare name for a node in `/`), each with `ros__parameters`; nested
+//! maps become dotted names. Later sources win: defaults, then files in order, then `-p`.
+//! An unknown parameter, a value of the wrong type, or one outside its range is an error that
+//! names the parameter and where the value came from. An integer is accepted for a double
+//! parameter (it loses nothing); nothing else is coerced.
+
+use std::collections::BTreeMap;
+use std::fmt;
+
+use crate::args::ParamOverride;
+
+/// A parameter value, with ROS 2's parameter types.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ParamValue {
+    Bool(bool),
+    Integer(i64),
+    Double(f64),
+    String(String),
+    BoolArray(Vec<bool>),
+    IntegerArray(Vec<i64>),
+    DoubleArray(Vec<f64>),
+    StringArray(Vec<String>),
+}
+
+impl ParamValue {
+    pub fn type_name(&self) -> &'static str {
+        match self {
+            ParamValue::Bool(_) => "bool",
+            ParamValue::Integer(_) => "integer",
+            ParamValue::Double(_) => "double",
+            ParamValue::String(_) => "string",
+            ParamValue::BoolArray(_) => "bool array",
+            ParamValue::IntegerArray(_) => "integer array",
+            ParamValue::DoubleArray(_) => "double array",
+            ParamValue::StringArray(_) => "string array",
+        }
+    }
+}
+
+impl fmt::Display for ParamValue {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ParamValue::Bool(v) => write!(f, "{v}"),
+            ParamValue::Integer(v) => write!(f, "{v}"),
+            ParamValue::Double(v) => write!(f, "{v}"),
+            ParamValue::String(v) => write!(f, "{v:?}"),
+            ParamValue::BoolArray(v) => write!(f, "{v:?}"),
+            ParamValue::IntegerArray(v) => write!(f, "{v:?}"),
+            ParamValue::DoubleArray(v) => write!(f, "{v:?}"),
+            ParamValue::StringArray(v) => write!(f, "{v:?}"),
+        }
+    }
+}
+
+/// A declared parameter: name, default (which fixes the type), meaning, and numeric range.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ParamSpec {
+    pub name: &'static str,
+    pub default: ParamValue,
+    pub description: &'static str,
+    /// Inclusive bounds for numeric parameters (each element of numeric arrays).
+    pub range: Option<(f64, f64)>,
+}
+
+impl ParamSpec {
+    pub const fn new(name: &'static str, default: ParamValue, description: &'static str) -> Self {
+        ParamSpec {
+            name,
+            default,
+            description,
+            range: None,
+        }
+    }
+    pub const fn range(mut self, min: f64, max: f64) -> Self {
+        self.range = Some((min, max));
+        self
+    }
+}
+
+/// A parameter problem, naming the parameter and the source of the bad value.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ParamError {
+    #[error("{source_name}: unknown parameter `{name}` for node {node} (known: {known})")]
+    Unknown {
+        node: String,
+        name: String,
+        source_name: String,
+        known: String,
+    },
+    #[error("{source_name}: parameter `{name}` is {expected}, got {given} `{value}`")]
+    WrongType {
+        name: String,
+        expected: &'static str,
+        given: &'static str,
+        value: String,
+        source_name: String,
+    },
+    #[error("{source_name}: parameter `{name}` = {value} is outside [{min}, {max}]")]
+    OutOfRange {
+        name: String,
+        value: String,
+        min: f64,
+        max: f64,
+        source_name: String,
+    },
+    #[error("{source_name}: {message}")]
+    BadYaml {
+        source_name: String,
+        message: String,
+    },
+}
+
+/// The resolved parameters of one node.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Params {
+    values: BTreeMap<String, ParamValue>,
+}
+
+impl Params {
+    /// Resolve `specs` for the node `fully_qualified_name` from `(file name, YAML text)` pairs
+    /// and `-p` overrides.
+    pub fn resolve(
+        specs: &[ParamSpec],
+        fully_qualified_name: &str,
+        files: &[(String, String)],
+        overrides: &[ParamOverride],
+    ) -> Result<Params, ParamError> {
+        let mut values: BTreeMap<String, ParamValue> = specs
+            .iter()
+            .map(|s| (s.name.to_string(), s.default.clone()))
+            .collect();
+        let base_name = fully_qualified_name.rsplit('/').next().unwrap_or_default();
+        for (file, text) in files {
+            let doc: serde_yaml::Value =
+                serde_yaml::from_str(text).map_err(|e| ParamError::BadYaml {
+                    source_name: file.clone(),
+                    message: e.to_string(),
+                })?;
+            let Some(map) = doc.as_mapping() else {
+                if doc.is_null() {
+                    continue;
+                }
+                return Err(ParamError::BadYaml {
+                    source_name: file.clone(),
+                    message: "top level must be a map of node names".into(),
+                });
+            };
+            for (key, section) in map {
+                let selector = key.as_str().unwrap_or_default();
+                if !selector_matches(selector, fully_qualified_name) {
+                    continue;
+                }
+                let Some(params) = section.get("ros__parameters") else {
+                    return Err(ParamError::BadYaml {
+                        source_name: file.clone(),
+                        message: format!("`{selector}` has no `ros__parameters` map"),
+                    });
+                };
+                let mut flat = Vec::new();
+                flatten("", params, &mut flat);
+                for (name, value) in flat {
+                    let source_name = format!("{file} [{selector}]");
+                    set(
+                        specs,
+                        &mut values,
+                        fully_qualified_name,
+                        &name,
+                        &value,
+                        &source_name,
+                    )?;
+                }
+            }
+        }
+        for o in overrides {
+            if o.node.as_deref().is_some_and(|n| n != base_name) {
+                continue;
+            }
+            let value: serde_yaml::Value = serde_yaml::from_str(&o.value_yaml)
+                .unwrap_or_else(|_| serde_yaml::Value::String(o.value_yaml.clone()));
+            set(
+                specs,
+                &mut values,
+                fully_qualified_name,
+                &o.name,
+                &value,
+                &format!("-p {}:={}", o.name, o.value_yaml),
+            )?;
+        }
+        Ok(Params { values })
+    }
+
+    pub fn get(&self, name: &str) -> Option<&ParamValue> {
+        self.values.get(name)
+    }
+
+    /// Every parameter and its value, in name order.
+    pub fn iter(&self) -> impl Iterator<Item = (&String, &ParamValue)> {
+        self.values.iter()
+    }
+
+    /// Typed access; the spec list guarantees the type, so a mismatch is a programming error
+    /// reported as a default-free panic message naming the parameter.
+    pub fn f64(&self, name: &str) -> f64 {
+        match self.values.get(name) {
+            Some(ParamValue::Double(v)) => *v,
+            other => panic!("parameter {name} is not a declared double: {other:?}"),
+        }
+    }
+    pub fn i64(&self, name: &str) -> i64 {
+        match self.values.get(name) {
+            Some(ParamValue::Integer(v)) => *v,
+            other => panic!("parameter {name} is not a declared integer: {other:?}"),
+        }
+    }
+    pub fn bool(&self, name: &str) -> bool {
+        match self.values.get(name) {
+            Some(ParamValue::Bool(v)) => *v,
+            other => panic!("parameter {name} is not a declared bool: {other:?}"),
+        }
+    }
+    pub fn string(&self, name: &str) -> &str {
+        match self.values.get(name) {
+            Some(ParamValue::String(v)) => v,
+            other => panic!("parameter {name} is not a declared string: {other:?}"),
+        }
+    }
+    pub fn strings(&self, name: &str) -> &[String] {
+        match self.values.get(name) {
+            Some(ParamValue::StringArray(v)) => v,
+            other => panic!("parameter {name} is not a declared string array: {other:?}"),
+        }
+    }
+    pub fn f64s(&self, name: &str) -> &[f64] {
+        match self.values.get(name) {
+            Some(ParamValue::DoubleArray(v)) => v,
+            other => panic!("parameter {name} is not a declared double array: {other:?}"),
+        }
+    }
+}
+
+fn selector_matches(selector: &str, fqn: &str) -> bool {
+    let base = fqn.rsplit('/').next().unwrap_or_default();
+    selector == "/**"
+        || selector == fqn
+        || selector.strip_prefix("/**/").is_some_and(|s| s == base)
+        || (!selector.starts_with('/') && fqn == format!("/{selector}"))
+}
+
+fn flatten(prefix: &str, value: &serde_yaml::Value, out: &mut Vec<(String, serde_yaml::Value)>) {
+    match value.as_mapping() {
+        Some(map) => {
+            for (k, v) in map {
+                let key = k
+                    .as_str()
+                    .map(String::from)
+                    .unwrap_or_else(|| format!("{k:?}"));
+                let name = if prefix.is_empty() {
+                    key
+                } else {
+                    format!("{prefix}.{key}")
+                };
+                flatten(&name, v, out);
+            }
+        }
+        None => out.push((prefix.to_string(), value.clone())),
+    }
+}
+
+fn set(
+    specs: &[ParamSpec],
+    values: &mut BTreeMap<String, ParamValue>,
+    node: &str,
+    name: &str,
+    value: &serde_yaml::Value,
+    source_name: &str,
+) -> Result<(), ParamError> {
+    // ROS tools set these on every node; they are not ours to reject.
+    if name == "use_sim_time" || name.starts_with("qos_overrides.") {
+        return Ok(());
+    }
+    let spec = specs
+        .iter()
+        .find(|s| s.name == name)
+        .ok_or_else(|| ParamError::Unknown {
+            node: node.to_string(),
+            name: name.to_string(),
+            source_name: source_name.to_string(),
+            known: specs.iter().map(|s| s.name).collect::<Vec<_>>().join(", "),
+        })?;
+    let converted = convert(&spec.default, value).ok_or_else(|| ParamError::WrongType {
+        name: name.to_string(),
+        expected: spec.default.type_name(),
+        given: yaml_type(value),
+        value: serde_yaml::to_string(value)
+            .unwrap_or_default()
+            .trim()
+            .to_string(),
+        source_name: source_name.to_string(),
+    })?;
+    if let Some((min, max)) = spec.range {
+        let numbers: Vec<f64> = match &converted {
+            ParamValue::Integer(v) => vec![*v as f64],
+            ParamValue::Double(v) => vec![*v],
+            ParamValue::IntegerArray(v) => v.iter().map(|&x| x as f64).collect(),
+            ParamValue::DoubleArray(v) => v.clone(),
+            _ => vec![],
+        };
+        if numbers
+            .iter()
+            .any(|&x| !(min..=max).contains(&x) || x.is_nan())
+        {
+            return Err(ParamError::OutOfRange {
+                name: name.to_string(),
+                value: converted.to_string(),
+                min,
+                max,
+                source_name: source_name.to_string(),
+            });
+        }
+    }
+    values.insert(name.to_string(), converted);
+    Ok(())
+}
+
+fn yaml_type(v: &serde_yaml::Value) -> &'static str {
+    match v {
+        serde_yaml::Value::Null => "null",
+        serde_yaml::Value::Bool(_) => "bool",
+        serde_yaml::Value::Number(n) if n.is_f64() => "double",
+        serde_yaml::Value::Number(_) => "integer",
+        serde_yaml::Value::String(_) => "string",
+        serde_yaml::Value::Sequence(_) => "array",
+        serde_yaml::Value::Mapping(_) => "map",
+        serde_yaml::Value::Tagged(_) => "tagged value",
+    }
+}
+
+fn convert(like: &ParamValue, v: &serde_yaml::Value) -> Option<ParamValue> {
+    use serde_yaml::Value as Y;
+    let double = |v: &Y| match v {
+        Y::Number(n) => n.as_f64(),
+        _ => None,
+    };
+    let seq = |v: &Y| v.as_sequence().cloned();
+    Some(match like {
+        ParamValue::Bool(_) => ParamValue::Bool(v.as_bool()?),
+        ParamValue::Integer(_) => ParamValue::Integer(v.as_i64()?),
+        ParamValue::Double(_) => ParamValue::Double(double(v)?),
+        ParamValue::String(_) => ParamValue::String(v.as_str()?.to_string()),
+        ParamValue::BoolArray(_) => {
+            ParamValue::BoolArray(seq(v)?.iter().map(|x| x.as_bool()).collect::<Option<_>>()?)
+        }
+        ParamValue::IntegerArray(_) => {
+            ParamValue::IntegerArray(seq(v)?.iter().map(|x| x.as_i64()).collect::<Option<_>>()?)
+        }
+        ParamValue::DoubleArray(_) => {
+            ParamValue::DoubleArray(seq(v)?.iter().map(double).collect::<Option<_>>()?)
+        }
+        ParamValue::StringArray(_) => ParamValue::StringArray(
+            seq(v)?
+                .iter()
+                .map(|x| x.as_str().map(String::from))
+                .collect::<Option<_>>()?,
+        ),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn specs() -> Vec<ParamSpec> {
+        vec![
+            ParamSpec::new("window", ParamValue::Integer(64), "moves in flight").range(1.0, 1e6),
+            ParamSpec::new("rate_hz", ParamValue::Double(10.0), "publish rate").range(0.0, 1000.0),
+            ParamSpec::new("file", ParamValue::String(String::new()), "input"),
+            ParamSpec::new("consumers", ParamValue::StringArray(vec![]), "who acks"),
+            ParamSpec::new("limits.v", ParamValue::DoubleArray(vec![1.0]), "nested"),
+        ]
+    }
+
+    fn o(node: Option<&str>, name: &str, value: &str) -> ParamOverride {
+        ParamOverride {
+            node: node.map(String::from),
+            name: name.into(),
+            value_yaml: value.into(),
+        }
+    }
+
+    #[test]
+    fn files_then_overrides_with_selectors() {
+        let yaml = "
+/**:
+  ros__parameters:
+    rate_hz: 5
+    use_sim_time: false
+streamer:
+  ros__parameters:
+    window: 32
+    limits:
+      v: [1, 2.5]
+/other:
+  ros__parameters:
+    window: 7
+";
+        let files = vec![("p.yaml".to_string(), yaml.to_string())];
+        let p = Params::resolve(
+            &specs(),
+            "/streamer",
+            &files,
+            &[o(None, "file", "a b.gcode")],
+        )
+        .unwrap();
+        assert_eq!(p.f64("rate_hz"), 5.0, "integer accepted for double");
+        assert_eq!(p.i64("window"), 32);
+        assert_eq!(p.f64s("limits.v"), [1.0, 2.5]);
+        assert_eq!(p.string("file"), "a b.gcode");
+        let p = Params::resolve(
+            &specs(),
+            "/streamer",
+            &files,
+            &[
+                o(None, "window", "9"),
+                o(Some("elsewhere"), "window", "11"),
+                o(None, "consumers", "[/a, /b]"),
+            ],
+        )
+        .unwrap();
+        assert_eq!(p.i64("window"), 9);
+        assert_eq!(p.strings("consumers"), ["/a", "/b"]);
+        // `/**/name` selects by base name in any namespace.
+        let files = vec![(
+            "q.yaml".into(),
+            "/**/streamer:\n  ros__parameters:\n    window: 3\n".into(),
+        )];
+        assert_eq!(
+            Params::resolve(&specs(), "/ns/streamer", &files, &[])
+                .unwrap()
+                .i64("window"),
+            3
+        );
+    }
+
+    #[test]
+    fn errors_name_parameter_and_source() {
+        let e = Params::resolve(&specs(), "/s", &[], &[o(None, "windw", "3")]).unwrap_err();
+        assert!(matches!(&e, ParamError::Unknown { name, .. } if name == "windw"));
+        assert!(e.to_string().contains("-p windw:=3"), "{e}");
+        let e = Params::resolve(&specs(), "/s", &[], &[o(None, "window", "2.5")]).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "-p window:=2.5: parameter `window` is integer, got double `2.5`"
+        );
+        let e = Params::resolve(&specs(), "/s", &[], &[o(None, "window", "0")]).unwrap_err();
+        assert!(matches!(e, ParamError::OutOfRange { .. }), "{e}");
+        let files = vec![("bad.yaml".into(), "s:\n  window: 3\n".into())];
+        let e = Params::resolve(&specs(), "/s", &files, &[]).unwrap_err();
+        assert!(e.to_string().contains("ros__parameters"), "{e}");
+        let files = vec![("bad.yaml".into(), "s: [".into())];
+        assert!(matches!(
+            Params::resolve(&specs(), "/s", &files, &[]).unwrap_err(),
+            ParamError::BadYaml { .. }
+        ));
+    }
+}

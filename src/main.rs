@@ -1,1 +1,118 @@
-fn main() {}
+//! `polar-cell`: run the printing cell's nodes, and inspect or replay its bags.
+//!
+//! Everything after `--ros-args` is the ROS command line (`-p`, `--params-file`, `-r`), applied
+//! to every node this process starts; a global `-p name:=value` goes to the nodes that declare
+//! `name`, a node-prefixed one (`-p gcode_streamer:window:=64`) to that node only.
+
+mod bag_cmd;
+mod print_cmd;
+
+use std::path::PathBuf;
+
+use anyhow::bail;
+use cell_runtime::RosArgs;
+use clap::{Parser, Subcommand};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "polar-cell",
+    version,
+    about = "The polar printing cell: print, record, replay."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Print a G-code file through the cell's nodes over DDS, recording every topic.
+    Print {
+        /// The G-code file (`-` for stdin).
+        file: String,
+        /// Where to record the bag (a bare MCAP file, or a directory with --bag-dir).
+        #[arg(long, default_value = "print.mcap")]
+        bag: PathBuf,
+        /// Write a rosbag2 directory (MCAP + metadata.yaml) instead of a bare file.
+        #[arg(long)]
+        bag_dir: bool,
+        /// No progress bar (for logs and CI).
+        #[arg(long)]
+        no_progress: bool,
+    },
+    /// Parse a G-code file without DDS: counts, warnings, the first error.
+    Check { file: String },
+    /// Bag tools.
+    Bag {
+        #[command(subcommand)]
+        command: BagCommand,
+    },
+}
+
+#[derive(Subcommand, Debug)]
+enum BagCommand {
+    /// Topics, types, message counts and duration of a bag (file or directory).
+    Info { bag: PathBuf },
+    /// Republish a bag's messages over DDS with their original timing.
+    Play {
+        bag: PathBuf,
+        /// Speed factor on the original timing.
+        #[arg(long, default_value_t = 1.0)]
+        rate: f64,
+        /// As fast as possible (ignores --rate).
+        #[arg(long)]
+        fast: bool,
+        /// Only these topics (default: all).
+        #[arg(long, value_delimiter = ',')]
+        topics: Vec<String>,
+        /// Wait up to this many seconds for every topic to have a subscriber before playing.
+        #[arg(long, default_value_t = 0.0)]
+        wait_subscribers_s: f64,
+    },
+}
+
+fn split_ros_args() -> anyhow::Result<(Vec<String>, RosArgs)> {
+    let argv: Vec<String> = std::env::args().collect();
+    match argv.iter().position(|a| a == "--ros-args") {
+        Some(i) => {
+            let (ros, rest) = RosArgs::parse(&argv[i..])?;
+            if !rest.is_empty() {
+                bail!("unexpected arguments after --ros-args ... --: {rest:?}");
+            }
+            Ok((argv[..i].to_vec(), ros))
+        }
+        None => Ok((argv, RosArgs::default())),
+    }
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "warn,polar_cell=info,rustdds=error,rustdds::network::udp_listener=off,ros2_client=error".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let (argv, ros_args) = split_ros_args()?;
+    let cli = Cli::parse_from(argv);
+    match cli.command {
+        Command::Print {
+            file,
+            bag,
+            bag_dir,
+            no_progress,
+        } => print_cmd::print(&file, &bag, bag_dir, !no_progress, &ros_args).await,
+        Command::Check { file } => print_cmd::check(&file),
+        Command::Bag { command } => match command {
+            BagCommand::Info { bag } => bag_cmd::info(&bag),
+            BagCommand::Play {
+                bag,
+                rate,
+                fast,
+                topics,
+                wait_subscribers_s,
+            } => bag_cmd::play(&bag, rate, fast, &topics, wait_subscribers_s, &ros_args).await,
+        },
+    }
+}

@@ -46,3 +46,6 @@ pub enum BagError {
     #[error("bag has no summary section (was finish() called?)")]
     NoSummary,
 }
+
+#[cfg(feature = "node")]
+pub mod node;

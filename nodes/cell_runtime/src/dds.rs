@@ -166,13 +166,23 @@ impl CellNode {
             &files,
             &ros_args.params,
         )?;
+        // Parameters are read at start-up; the validator (which ros2-client also runs on the
+        // declarations) accepts exactly the resolved values and refuses any later change.
+        let declared: std::collections::BTreeMap<String, ParameterValue> = params
+            .iter()
+            .map(|(name, value)| (name.clone(), to_ros_parameter(value)))
+            .collect();
         let mut options = NodeOptions::new()
             .enable_rosout(ros_args.rosout_logs.unwrap_or(true))
             .allow_undeclared_parameters(false)
-            .parameter_validator(Box::new(|name, _| {
-                Err(format!(
-                    "{name} is read at start-up: restart the node with --ros-args -p {name}:=..."
-                ))
+            .parameter_validator(Box::new(move |name, value| {
+                if declared.get(name) == Some(value) {
+                    Ok(())
+                } else {
+                    Err(format!(
+                        "{name} is read at start-up: restart the node with --ros-args -p {name}:=..."
+                    ))
+                }
             }));
         for (name, value) in params.iter() {
             options = options.declare_parameter(name, to_ros_parameter(value));

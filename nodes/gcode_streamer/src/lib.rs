@@ -17,3 +17,6 @@ pub use error::{ErrorKind, GcodeError, Warning};
 pub use interp::{Interpreter, InterpreterOptions, LineOutput};
 pub use polar_cell_msgs::GcodeMove;
 pub use reader::{parse_all, Event, GcodeReader};
+
+#[cfg(feature = "node")]
+pub mod node;

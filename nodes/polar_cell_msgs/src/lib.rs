@@ -17,7 +17,7 @@ pub use types::*;
 
 /// A Rust type that mirrors a ROS 2 message definition.
 pub trait RosMessage:
-    serde::Serialize + serde::de::DeserializeOwned + Clone + std::fmt::Debug + Send + 'static
+    serde::Serialize + serde::de::DeserializeOwned + Clone + std::fmt::Debug + Send + Sync + 'static
 {
     /// The definition this type mirrors.
     const TYPE: &'static MsgType;

@@ -1,0 +1,521 @@
+//! The `bag_recorder` node: subscribes to a list of topics and writes a rosbag2 MCAP bag.
+//!
+//! Each topic gets a typed subscription (so the recorder shows up in the ROS graph with its
+//! readers, like `ros2 bag record`), and re-encodes what it takes to CDR: our types mirror the
+//! `.msg` files field by field, so the bytes are those on the wire. On `/gcode/moves` the
+//! recorder is also a flow-control consumer: it acknowledges only what it has written, so the
+//! bag holds every move exactly once and in order.
+
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{anyhow, bail, Context as _};
+use cell_runtime::{
+    now_ns, reliable_qos, transient_local_qos, CellNode, LogLevel, ParamSpec, ParamValue,
+};
+use gcode_streamer::flow::{AckTracker, Verdict};
+use polar_cell_msgs::{
+    cdr, Clock, DiagnosticArray, GcodeAck, GcodeMove, GcodeProgress, JointState, JointTrajectory,
+    Log, PoseStamped, RosMessage, ScrewCommand, StepSegment, StringMsg,
+};
+use ros2_client::{QosProfile, Subscription};
+use tokio::sync::{mpsc, watch};
+
+use crate::{metadata_yaml, BagWriter, ChannelId, Compression, QosRecord, WriterOptions};
+
+/// Default node name.
+pub const NODE_NAME: &str = "bag_recorder";
+
+/// The suite's topics, their types, and the QoS their publishers offer.
+pub const SUITE_TOPICS: &[(&str, &str)] = &[
+    ("/gcode/moves", "polar_cell_msgs/msg/GcodeMove"),
+    ("/gcode/progress", "polar_cell_msgs/msg/GcodeProgress"),
+    ("/gcode/ack", "polar_cell_msgs/msg/GcodeAck"),
+    ("/polar/trajectory", "trajectory_msgs/msg/JointTrajectory"),
+    ("/polar/steps", "polar_cell_msgs/msg/StepSegment"),
+    ("/joint_states", "sensor_msgs/msg/JointState"),
+    ("/screw/command", "polar_cell_msgs/msg/ScrewCommand"),
+    ("/mechanism/joint_states", "sensor_msgs/msg/JointState"),
+    ("/mechanism/tool_pose", "geometry_msgs/msg/PoseStamped"),
+    ("/robot_description", "std_msgs/msg/String"),
+    ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
+    ("/rosout", "rcl_interfaces/msg/Log"),
+];
+
+/// The node's parameters.
+pub fn param_specs() -> Vec<ParamSpec> {
+    vec![
+        ParamSpec::new(
+            "output",
+            ParamValue::String("cell.mcap".into()),
+            "bag file (or directory when bag_directory is true)",
+        ),
+        ParamSpec::new(
+            "bag_directory",
+            ParamValue::Bool(false),
+            "write a rosbag2 directory (MCAP file + metadata.yaml) instead of a bare file",
+        ),
+        ParamSpec::new(
+            "topics",
+            ParamValue::StringArray(SUITE_TOPICS.iter().map(|t| t.0.to_string()).collect()),
+            "topics to record: a suite topic name, or `name:package/msg/Type`",
+        ),
+        ParamSpec::new(
+            "compression",
+            ParamValue::String("zstd".into()),
+            "chunk compression: zstd or lz4",
+        ),
+        ParamSpec::new(
+            "chunk_size_bytes",
+            ParamValue::Integer(4 << 20),
+            "uncompressed bytes per chunk",
+        )
+        .range(1024.0, 1e9),
+        ParamSpec::new(
+            "acknowledge_moves",
+            ParamValue::Bool(true),
+            "act as a flow-control consumer of /gcode/moves",
+        ),
+    ]
+}
+
+/// What was recorded.
+#[derive(Debug, Clone)]
+pub struct RecordSummary {
+    pub path: PathBuf,
+    pub topics: Vec<(String, String, u64)>,
+    pub messages: u64,
+}
+
+type Item = (ChannelId, u64, u64, Vec<u8>);
+
+/// A running recorder; [`Recorder::stop`] drains, finishes the bag, and returns its summary.
+pub struct Recorder {
+    stop: watch::Sender<bool>,
+    taps: Vec<tokio::task::JoinHandle<()>>,
+    writer: std::thread::JoinHandle<anyhow::Result<RecordSummary>>,
+    _node: CellNode,
+}
+
+fn qos_for(topic: &str, type_name: &str) -> (QosProfile, QosRecord) {
+    if topic == "/robot_description" {
+        let q = QosRecord {
+            reliability: crate::Reliability::Reliable,
+            durability: crate::Durability::TransientLocal,
+            depth: 1,
+        };
+        return (transient_local_qos(1), q);
+    }
+    let depth = match type_name {
+        "polar_cell_msgs/msg/GcodeMove" | "trajectory_msgs/msg/JointTrajectory" => 10_000,
+        _ => 1000,
+    };
+    (reliable_qos(depth), QosRecord::ROS_DEFAULT)
+}
+
+fn parse_topic(entry: &str) -> anyhow::Result<(String, String)> {
+    if let Some((name, type_name)) = entry.split_once(':') {
+        return Ok((name.to_string(), type_name.to_string()));
+    }
+    SUITE_TOPICS
+        .iter()
+        .find(|t| t.0 == entry)
+        .map(|t| (t.0.to_string(), t.1.to_string()))
+        .ok_or_else(|| {
+            anyhow!("topic {entry}: not a suite topic; give its type as `{entry}:package/msg/Type`")
+        })
+}
+
+macro_rules! with_message_type {
+    ($type_name:expr, $f:ident ( $($arg:expr),* )) => {
+        match $type_name {
+            "polar_cell_msgs/msg/GcodeMove" => $f::<GcodeMove>($($arg),*),
+            "polar_cell_msgs/msg/GcodeProgress" => $f::<GcodeProgress>($($arg),*),
+            "polar_cell_msgs/msg/GcodeAck" => $f::<GcodeAck>($($arg),*),
+            "polar_cell_msgs/msg/StepSegment" => $f::<StepSegment>($($arg),*),
+            "polar_cell_msgs/msg/ScrewCommand" => $f::<ScrewCommand>($($arg),*),
+            "trajectory_msgs/msg/JointTrajectory" => $f::<JointTrajectory>($($arg),*),
+            "sensor_msgs/msg/JointState" => $f::<JointState>($($arg),*),
+            "geometry_msgs/msg/PoseStamped" => $f::<PoseStamped>($($arg),*),
+            "std_msgs/msg/String" => $f::<StringMsg>($($arg),*),
+            "diagnostic_msgs/msg/DiagnosticArray" => $f::<DiagnosticArray>($($arg),*),
+            "rcl_interfaces/msg/Log" => $f::<Log>($($arg),*),
+            "rosgraph_msgs/msg/Clock" => $f::<Clock>($($arg),*),
+            other => Err(anyhow!("cannot record type {other}: not one of the suite's message types")),
+        }
+    };
+}
+
+fn publish_time(info: &ros2_client::MessageInfo, fallback: u64) -> u64 {
+    info.source_timestamp()
+        .map(|t| t.to_nanos().max(0) as u64)
+        .unwrap_or(fallback)
+}
+
+fn forward<T: RosMessage>(
+    tx: &mpsc::UnboundedSender<Item>,
+    channel: ChannelId,
+    message: &T,
+    info: &ros2_client::MessageInfo,
+) -> bool {
+    let log_time = now_ns();
+    match cdr::encode(message) {
+        Ok(bytes) => tx
+            .send((channel, log_time, publish_time(info, log_time), bytes))
+            .is_ok(),
+        Err(e) => {
+            tracing::error!("re-encoding a {}: {e}", T::TYPE.full_name());
+            true
+        }
+    }
+}
+
+fn spawn_tap<T: RosMessage>(
+    node: &mut CellNode,
+    topic: &str,
+    qos: &QosProfile,
+    channel: ChannelId,
+    tx: mpsc::UnboundedSender<Item>,
+    mut stop: watch::Receiver<bool>,
+) -> anyhow::Result<tokio::task::JoinHandle<()>> {
+    let sub: Subscription<T> = node.subscription(topic, qos)?;
+    Ok(tokio::spawn(async move {
+        loop {
+            tokio::select! {
+                taken = sub.async_take() => match taken {
+                    Ok((m, info)) => if !forward(&tx, channel, &m, &info) { return },
+                    Err(e) => tracing::warn!("recorder: read error: {e:?}"),
+                },
+                _ = stop.changed() => {
+                    while let Ok(Some((m, info))) = sub.take() {
+                        forward(&tx, channel, &m, &info);
+                    }
+                    return;
+                }
+            }
+        }
+    }))
+}
+
+/// The flow-controlled tap on `/gcode/moves` (with `/gcode/progress`, which carries the
+/// resume point): writes each move once, in order, then acknowledges it.
+#[allow(clippy::too_many_arguments)]
+fn spawn_moves_consumer(
+    node: &mut CellNode,
+    moves_channel: ChannelId,
+    progress_channel: Option<ChannelId>,
+    ack_channel: Option<ChannelId>,
+    tx: mpsc::UnboundedSender<Item>,
+    mut stop: watch::Receiver<bool>,
+) -> anyhow::Result<tokio::task::JoinHandle<()>> {
+    let (moves_qos, _) = qos_for("/gcode/moves", GcodeMove::TYPE.full_name().as_str());
+    let moves: Subscription<GcodeMove> = node.subscription("/gcode/moves", &moves_qos)?;
+    let progress: Subscription<GcodeProgress> =
+        node.subscription("/gcode/progress", &reliable_qos(1000))?;
+    let acks = node.publisher::<GcodeAck>("/gcode/ack", &reliable_qos(1000))?;
+    let mut tracker = AckTracker::new(node.fully_qualified_name(), 64);
+    // DDS does not deliver a participant's own samples to itself, so the recorder's own
+    // acknowledgements are written to the bag here (other consumers' come through the tap).
+    let send_ack = move |ack: GcodeAck, tx: &mpsc::UnboundedSender<Item>| {
+        if let Some(channel) = ack_channel {
+            let t = now_ns();
+            if let Ok(bytes) = cdr::encode(&ack) {
+                let _ = tx.send((channel, t, t, bytes));
+            }
+        }
+        let _ = acks.publish(ack);
+    };
+    Ok(tokio::spawn(async move {
+        let mut tick = tokio::time::interval(Duration::from_millis(20));
+        let mut idle_ticks = 0u32;
+        loop {
+            tokio::select! {
+                taken = moves.async_take() => match taken {
+                    Ok((m, info)) => {
+                        idle_ticks = 0;
+                        if tracker.accept(m.sequence) == Verdict::Process
+                            && !forward(&tx, moves_channel, &m, &info)
+                        {
+                            return;
+                        }
+                        if let Some(ack) = tracker.ack_due(false) {
+                            send_ack(ack, &tx);
+                        }
+                    }
+                    Err(e) => tracing::warn!("recorder: /gcode/moves read error: {e:?}"),
+                },
+                taken = progress.async_take() => if let Ok((p, info)) = taken {
+                    tracker.on_progress(&p.consumers, &p.consumer_next_expected);
+                    if let Some(channel) = progress_channel {
+                        forward(&tx, channel, &p, &info);
+                    }
+                },
+                _ = tick.tick() => {
+                    idle_ticks += 1;
+                    if tracker.needs_hello() {
+                        send_ack(tracker.hello(), &tx);
+                    } else if idle_ticks >= 2 {
+                        // Idle: repeat the acknowledgement (recovers a lost one, reports gaps).
+                        if let Some(ack) = tracker.ack_due(true) {
+                            send_ack(ack, &tx);
+                        }
+                    }
+                },
+                _ = stop.changed() => {
+                    while let Ok(Some((p, info))) = progress.take() {
+                        if let Some(channel) = progress_channel {
+                            forward(&tx, channel, &p, &info);
+                        }
+                    }
+                    return;
+                }
+            }
+        }
+    }))
+}
+
+impl Recorder {
+    /// Open the bag and subscribe to every topic of the node's `topics` parameter.
+    pub fn start(mut node: CellNode) -> anyhow::Result<Recorder> {
+        let params = node.params.clone();
+        let compression = match params.string("compression") {
+            "zstd" => Compression::Zstd,
+            "lz4" => Compression::Lz4,
+            other => bail!("parameter compression: `{other}` is not zstd or lz4"),
+        };
+        let output = PathBuf::from(params.string("output"));
+        let directory = params.bool("bag_directory");
+        let file_path = if directory {
+            if output.exists() {
+                bail!("bag directory {} already exists", output.display());
+            }
+            std::fs::create_dir_all(&output)
+                .with_context(|| format!("creating {}", output.display()))?;
+            let stem = output
+                .file_name()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| "bag".into());
+            output.join(format!("{stem}_0.mcap"))
+        } else {
+            output.clone()
+        };
+        let file = File::create(&file_path)
+            .with_context(|| format!("creating bag {}", file_path.display()))?;
+        let options = WriterOptions {
+            compression,
+            chunk_size_bytes: params.i64("chunk_size_bytes") as u64,
+        };
+        let mut bag = BagWriter::new(BufWriter::with_capacity(1 << 20, file), &options)?;
+        let topics: Vec<(String, String)> = params
+            .strings("topics")
+            .iter()
+            .map(|t| parse_topic(t))
+            .collect::<anyhow::Result<_>>()?;
+        let acknowledge_moves = params.bool("acknowledge_moves");
+        let (tx, mut rx) = mpsc::unbounded_channel::<Item>();
+        let (stop, stop_rx) = watch::channel(false);
+        let mut taps = Vec::new();
+        let mut moves_channel = None;
+        let mut progress_channel = None;
+        let mut ack_channel = None;
+        for (topic, type_name) in &topics {
+            let msg_type = polar_cell_msgs::find(type_name)
+                .ok_or_else(|| anyhow!("topic {topic}: unknown message type {type_name}"))?;
+            let (qos, record) = qos_for(topic, type_name);
+            let channel = bag.add_topic(topic, msg_type, record)?;
+            match (topic.as_str(), acknowledge_moves) {
+                ("/gcode/moves", true) => moves_channel = Some(channel),
+                ("/gcode/progress", true) => progress_channel = Some(channel),
+                _ => {
+                    if topic == "/gcode/ack" {
+                        ack_channel = Some(channel);
+                    }
+                    let tap = with_message_type!(
+                        type_name.as_str(),
+                        spawn_tap(&mut node, topic, &qos, channel, tx.clone(), stop_rx.clone())
+                    )?;
+                    taps.push(tap);
+                }
+            }
+        }
+        if let Some(moves) = moves_channel {
+            taps.push(spawn_moves_consumer(
+                &mut node,
+                moves,
+                progress_channel,
+                ack_channel,
+                tx.clone(),
+                stop_rx.clone(),
+            )?);
+        } else if let Some(progress) = progress_channel {
+            taps.push(spawn_tap::<GcodeProgress>(
+                &mut node,
+                "/gcode/progress",
+                &reliable_qos(1000),
+                progress,
+                tx.clone(),
+                stop_rx.clone(),
+            )?);
+        }
+        drop(tx);
+        node.log(
+            LogLevel::Info,
+            &format!("recording {} topics to {}", topics.len(), output.display()),
+        );
+        let directory_path = directory.then(|| output.clone());
+        let writer = std::thread::Builder::new()
+            .name("bag writer".into())
+            .spawn(move || -> anyhow::Result<RecordSummary> {
+                while let Some((channel, log_time, publish_time, bytes)) = rx.blocking_recv() {
+                    bag.write(channel, log_time, publish_time, &bytes)?;
+                }
+                let messages = bag.message_count();
+                let (sink, topics) = bag.finish()?;
+                let file = sink
+                    .into_inner()
+                    .map_err(|e| anyhow!("flushing the bag: {e}"))?;
+                file.sync_all().context("syncing the bag")?;
+                if let Some(dir) = &directory_path {
+                    let name = file_path
+                        .file_name()
+                        .map(|n| n.to_string_lossy().into_owned())
+                        .unwrap_or_default();
+                    std::fs::write(
+                        dir.join("metadata.yaml"),
+                        metadata_yaml(&name, &topics, "jazzy"),
+                    )
+                    .context("writing metadata.yaml")?;
+                }
+                Ok(RecordSummary {
+                    path: directory_path.unwrap_or(file_path),
+                    topics: topics
+                        .into_iter()
+                        .map(|(t, ty, _, s)| (t, ty, s.message_count))
+                        .collect(),
+                    messages,
+                })
+            })?;
+        Ok(Recorder {
+            stop,
+            taps,
+            writer,
+            _node: node,
+        })
+    }
+
+    /// Fully qualified name of the recorder node (the flow-control consumer name).
+    pub fn node_name(&self) -> String {
+        self._node.fully_qualified_name()
+    }
+
+    /// Stop recording: take what the readers still hold, finish the bag, report.
+    pub async fn stop(self) -> anyhow::Result<RecordSummary> {
+        let _ = self.stop.send(true);
+        for tap in self.taps {
+            tap.await.context("recorder task")?;
+        }
+        tokio::task::spawn_blocking(move || self.writer.join())
+            .await?
+            .map_err(|_| anyhow!("bag writer thread panicked"))?
+    }
+}
+
+/// Run the recorder from its own command line until SIGINT/SIGTERM.
+pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
+    let (ros_args, rest) = cell_runtime::RosArgs::parse(&argv)?;
+    if !rest.is_empty() {
+        bail!("unexpected arguments {rest:?}: use --ros-args -p output:=FILE -p topics:=[...]");
+    }
+    let node = CellNode::start(NODE_NAME, &param_specs(), &ros_args)?;
+    let recorder = Recorder::start(node)?;
+    cell_runtime::shutdown_signal().await;
+    let summary = recorder.stop().await?;
+    print_summary(&summary);
+    Ok(())
+}
+
+/// Print a recording summary to stderr.
+pub fn print_summary(summary: &RecordSummary) {
+    eprintln!(
+        "bag {}: {} messages",
+        summary.path.display(),
+        summary.messages
+    );
+    for (topic, type_name, count) in &summary.topics {
+        eprintln!("  {topic:<28} {type_name:<40} {count}");
+    }
+}
+
+/// Where a bag's MCAP file is for a path that may be a bag directory.
+pub fn mcap_file_of(path: &Path) -> anyhow::Result<PathBuf> {
+    if path.is_dir() {
+        let mut files: Vec<PathBuf> = std::fs::read_dir(path)?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "mcap"))
+            .collect();
+        files.sort();
+        files
+            .into_iter()
+            .next()
+            .ok_or_else(|| anyhow!("{}: no .mcap file in the bag directory", path.display()))
+    } else {
+        Ok(path.to_path_buf())
+    }
+}
+
+/// A publisher that takes CDR bytes (as stored in a bag) for a type known at run time.
+pub trait CdrPublisher: Send {
+    /// Decode `cdr` (with its encapsulation header) and publish it.
+    fn publish_cdr(&self, cdr: &[u8]) -> anyhow::Result<()>;
+    /// Matched subscriptions right now.
+    fn subscription_count(&self, node: &CellNode) -> usize;
+}
+
+struct TypedPublisher<T: RosMessage>(ros2_client::Publisher<T>);
+
+impl<T: RosMessage> CdrPublisher for TypedPublisher<T> {
+    fn publish_cdr(&self, bytes: &[u8]) -> anyhow::Result<()> {
+        let message: T =
+            cdr::decode(bytes).with_context(|| format!("decoding a {}", T::TYPE.full_name()))?;
+        let mut pending = message;
+        // A full reliable send window: wait for acknowledgements and try again.
+        for _ in 0..1000 {
+            match self.0.publish(pending) {
+                Ok(()) => return Ok(()),
+                Err(ros2_client::ros2::WriteError::WouldBlock { data }) => {
+                    pending = data;
+                    std::thread::sleep(Duration::from_millis(1));
+                }
+                Err(e) => bail!("publishing a {}: {e:?}", T::TYPE.full_name()),
+            }
+        }
+        bail!(
+            "publishing a {}: no subscriber acknowledged for 1 s",
+            T::TYPE.full_name()
+        )
+    }
+
+    fn subscription_count(&self, node: &CellNode) -> usize {
+        self.0.get_subscription_count(&node.node)
+    }
+}
+
+fn make_typed_publisher<T: RosMessage>(
+    node: &mut CellNode,
+    topic: &str,
+    qos: &QosProfile,
+) -> anyhow::Result<Box<dyn CdrPublisher>> {
+    Ok(Box::new(TypedPublisher(node.publisher::<T>(topic, qos)?)))
+}
+
+/// A [`CdrPublisher`] for `type_name` on `topic`.
+pub fn cdr_publisher(
+    node: &mut CellNode,
+    topic: &str,
+    type_name: &str,
+    qos: &QosProfile,
+) -> anyhow::Result<Box<dyn CdrPublisher>> {
+    with_message_type!(type_name, make_typed_publisher(node, topic, qos))
+}

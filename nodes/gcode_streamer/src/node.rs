@@ -1,0 +1,335 @@
+//! The `gcode_streamer` node: reads a G-code file, publishes `/gcode/moves` under lossless flow
+//! control and `/gcode/progress`, listens on `/gcode/ack`.
+//!
+//! Parsing runs on its own thread and hands moves over a bounded channel, so a slow consumer
+//! back-pressures the parser (and memory stays bounded) through the send window.
+
+use std::io::BufRead;
+use std::sync::mpsc::{sync_channel, Receiver, TryRecvError};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context as _};
+use cell_runtime::{
+    now_ns, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, RosArgs,
+};
+use polar_cell_msgs::{DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, Time};
+
+use crate::flow::{SendWindow, WindowOptions};
+use crate::{Event, GcodeError, GcodeReader, InterpreterOptions};
+
+/// Default node name.
+pub const NODE_NAME: &str = "gcode_streamer";
+
+/// The node's parameters.
+pub fn param_specs() -> Vec<ParamSpec> {
+    vec![
+        ParamSpec::new(
+            "gcode_file",
+            ParamValue::String(String::new()),
+            "G-code file to stream (`-` for stdin)",
+        ),
+        ParamSpec::new(
+            "window",
+            ParamValue::Integer(4096),
+            "moves in flight before waiting for acknowledgements",
+        )
+        .range(1.0, 1e6),
+        ParamSpec::new(
+            "resend_after_s",
+            ParamValue::Double(0.5),
+            "resend from the oldest unacknowledged move after this long without progress",
+        )
+        .range(0.001, 3600.0),
+        ParamSpec::new(
+            "consumers",
+            ParamValue::StringArray(vec!["/bag_recorder".into()]),
+            "fully qualified names of the nodes whose acknowledgements gate the stream",
+        ),
+        ParamSpec::new(
+            "progress_period_s",
+            ParamValue::Double(0.1),
+            "period of /gcode/progress",
+        )
+        .range(0.001, 60.0),
+        ParamSpec::new(
+            "consumer_timeout_s",
+            ParamValue::Double(30.0),
+            "give up when a consumer has not announced itself after this long (0: wait forever)",
+        )
+        .range(0.0, 1e6),
+        ParamSpec::new(
+            "arc_tolerance_mm",
+            ParamValue::Double(0.002),
+            "largest distance between an arc and its chords",
+        )
+        .range(1e-6, 10.0),
+        ParamSpec::new(
+            "default_feedrate_mm_per_min",
+            ParamValue::Double(1500.0),
+            "feedrate before the file sets F",
+        )
+        .range(1e-3, 1e6),
+        ParamSpec::new(
+            "home_position_mm",
+            ParamValue::DoubleArray(vec![0.0, 0.0, 0.0]),
+            "machine position G28 homes to (x, y, z)",
+        ),
+    ]
+}
+
+/// What a finished stream reports.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StreamSummary {
+    pub moves: u64,
+    pub lines: u32,
+    pub bytes: u64,
+    pub warnings: u32,
+    pub resends: u64,
+    pub elapsed: Duration,
+}
+
+/// Interpreter options from the node's parameters.
+pub fn interpreter_options(params: &Params) -> anyhow::Result<InterpreterOptions> {
+    let home = params.f64s("home_position_mm");
+    if home.len() != 3 {
+        bail!(
+            "parameter home_position_mm needs 3 values (x, y, z), got {}",
+            home.len()
+        );
+    }
+    Ok(InterpreterOptions {
+        arc_tolerance_mm: params.f64("arc_tolerance_mm"),
+        default_feedrate_mm_per_min: params.f64("default_feedrate_mm_per_min"),
+        home_position_mm: [home[0], home[1], home[2]],
+        ..InterpreterOptions::default()
+    })
+}
+
+enum Parsed {
+    /// An event and how far the reader got (lines, bytes).
+    Event(Event, u32, u64),
+    Error(GcodeError),
+    Done {
+        lines: u32,
+        bytes: u64,
+    },
+}
+
+fn spawn_parser(
+    input: Box<dyn BufRead + Send>,
+    file_label: String,
+    options: InterpreterOptions,
+) -> Receiver<Parsed> {
+    let (tx, rx) = sync_channel(8192);
+    std::thread::Builder::new()
+        .name("gcode parser".into())
+        .spawn(move || {
+            let mut reader = GcodeReader::new(input, file_label, options);
+            while let Some(item) = reader.next() {
+                let message = match item {
+                    Ok(event) => Parsed::Event(event, reader.lines_read(), reader.bytes_read()),
+                    Err(e) => Parsed::Error(e),
+                };
+                let stop = matches!(message, Parsed::Error(_));
+                if tx.send(message).is_err() || stop {
+                    return;
+                }
+            }
+            let _ = tx.send(Parsed::Done {
+                lines: reader.lines_read(),
+                bytes: reader.bytes_read(),
+            });
+        })
+        .expect("spawning a thread");
+    rx
+}
+
+/// Stream `input` (labelled `file_label`, `bytes_total` long if known) until every move is
+/// acknowledged by every consumer. `on_progress` sees each progress report (for a UI).
+pub async fn stream(
+    node: &mut CellNode,
+    input: Box<dyn BufRead + Send>,
+    file_label: &str,
+    bytes_total: u64,
+    mut on_progress: impl FnMut(&GcodeProgress),
+) -> anyhow::Result<StreamSummary> {
+    let params = node.params.clone();
+    let window_size = params.i64("window") as usize;
+    let options = WindowOptions {
+        window: window_size,
+        resend_after: Duration::from_secs_f64(params.f64("resend_after_s")),
+    };
+    let consumers = params.strings("consumers").to_vec();
+    let progress_period = Duration::from_secs_f64(params.f64("progress_period_s"));
+    let consumer_timeout = params.f64("consumer_timeout_s");
+    let moves_pub =
+        node.publisher::<GcodeMove>("/gcode/moves", &reliable_qos(window_size.max(10)))?;
+    let progress_pub = node.publisher::<GcodeProgress>("/gcode/progress", &reliable_qos(10))?;
+    let acks = node.subscription::<GcodeAck>("/gcode/ack", &reliable_qos(1000))?;
+    let parsed = spawn_parser(input, file_label.to_string(), interpreter_options(&params)?);
+    let mut window = SendWindow::new(options, &consumers);
+    let start = Instant::now();
+    let mut progress = GcodeProgress {
+        file: file_label.to_string(),
+        bytes_total,
+        ..Default::default()
+    };
+    let mut eof = false;
+    let mut last_progress = Instant::now() - progress_period;
+    let mut consumers_announced = consumers.is_empty();
+    // A consumer that (re)announces itself needs its resume point from /gcode/progress now.
+    let mut progress_due = false;
+    node.log(
+        LogLevel::Info,
+        &format!("streaming {file_label} to {consumers:?} (window {window_size})"),
+    );
+    loop {
+        let now = start.elapsed();
+        // Acknowledgements.
+        while let Some((ack, _)) = acks.take().context("reading /gcode/ack")? {
+            progress_due |= ack.resume;
+            window.on_ack(&ack, now);
+        }
+        // Parser output into the window.
+        while window.has_room() && !eof {
+            match parsed.try_recv() {
+                Ok(Parsed::Event(event, lines, bytes)) => {
+                    progress.lines_read = lines;
+                    progress.bytes_read = bytes;
+                    match event {
+                        Event::Move(m) => window.push(m),
+                        Event::Warning(w) => {
+                            progress.warnings += 1;
+                            node.log(LogLevel::Warn, &format!("{file_label}: {w}"));
+                        }
+                    }
+                }
+                Ok(Parsed::Error(e)) => {
+                    node.diagnose(DiagnosticStatus::ERROR, &e.to_string(), &[]);
+                    return Err(e.into());
+                }
+                Ok(Parsed::Done { lines, bytes }) => {
+                    progress.lines_read = lines;
+                    progress.bytes_read = bytes;
+                    eof = true;
+                }
+                Err(TryRecvError::Empty) => break,
+                Err(TryRecvError::Disconnected) => bail!("G-code parser stopped unexpectedly"),
+            }
+        }
+        // Publish what the window allows.
+        let mut sent_any = false;
+        while let Some(m) = window.peek_next() {
+            match moves_pub.publish(m.clone()) {
+                Ok(()) => {
+                    window.mark_sent();
+                    sent_any = true;
+                }
+                Err(_) => break, // the DDS send window is full: come back after acks
+            }
+            if !consumers_announced {
+                consumers_announced = true;
+                node.log(LogLevel::Info, "every consumer announced itself");
+            }
+        }
+        progress.moves_published = progress
+            .moves_published
+            .max(window.acknowledged() + window.in_flight());
+        window.on_tick(start.elapsed());
+        let finished = eof && window.is_drained();
+        if progress_due || finished || last_progress.elapsed() >= progress_period {
+            progress_due = false;
+            last_progress = Instant::now();
+            progress.header = Header {
+                stamp: Time::from_nanos(now_ns() as i64),
+                frame_id: String::new(),
+            };
+            progress.moves_acknowledged = window.acknowledged();
+            let (names, next) = window.consumer_acks();
+            progress.consumers = names;
+            progress.consumer_next_expected = next;
+            progress.finished = finished;
+            on_progress(&progress);
+            progress_pub
+                .publish(progress.clone())
+                .map_err(|e| anyhow::anyhow!("publishing /gcode/progress: {e:?}"))?;
+        }
+        if finished {
+            let summary = StreamSummary {
+                moves: window.acknowledged(),
+                lines: progress.lines_read,
+                bytes: progress.bytes_read,
+                warnings: progress.warnings,
+                resends: window.resends(),
+                elapsed: start.elapsed(),
+            };
+            node.diagnose(
+                DiagnosticStatus::OK,
+                "stream finished",
+                &[
+                    ("moves", summary.moves.to_string()),
+                    ("warnings", summary.warnings.to_string()),
+                    ("resends", summary.resends.to_string()),
+                ],
+            );
+            return Ok(summary);
+        }
+        if !consumers_announced
+            && consumer_timeout > 0.0
+            && start.elapsed().as_secs_f64() > consumer_timeout
+        {
+            bail!(
+                "no announcement from consumer(s) {:?} within {consumer_timeout} s",
+                window.missing_consumers()
+            );
+        }
+        if !sent_any {
+            // Nothing to do until an acknowledgement arrives (or the parser catches up).
+            let wait = tokio::time::timeout(Duration::from_millis(2), acks.async_take()).await;
+            if let Ok(Ok((ack, _))) = wait {
+                progress_due |= ack.resume;
+                window.on_ack(&ack, start.elapsed());
+            }
+        } else {
+            tokio::task::yield_now().await;
+        }
+    }
+}
+
+/// Parse the node's own command line and run it to completion or shutdown.
+pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
+    let (ros_args, rest) = RosArgs::parse(&argv)?;
+    let mut node = CellNode::start(NODE_NAME, &param_specs(), &ros_args)?;
+    let path = match rest.as_slice() {
+        [] => node.params.string("gcode_file").to_string(),
+        [one] => one.clone(),
+        more => bail!("expected one G-code file, got {more:?}"),
+    };
+    if path.is_empty() {
+        bail!("no G-code file: give a path or -p gcode_file:=PATH (`-` for stdin)");
+    }
+    let (input, total): (Box<dyn BufRead + Send>, u64) = if path == "-" {
+        (Box::new(std::io::BufReader::new(std::io::stdin())), 0)
+    } else {
+        let file = std::fs::File::open(&path).with_context(|| format!("opening {path}"))?;
+        let total = file.metadata().map(|m| m.len()).unwrap_or(0);
+        (
+            Box::new(std::io::BufReader::with_capacity(1 << 16, file)),
+            total,
+        )
+    };
+    tokio::select! {
+        result = stream(&mut node, input, &path, total, |_| {}) => {
+            let s = result?;
+            eprintln!(
+                "{path}: {} moves from {} lines in {:.2} s ({} warnings, {} resends)",
+                s.moves, s.lines, s.elapsed.as_secs_f64(), s.warnings, s.resends
+            );
+            Ok(())
+        }
+        _ = cell_runtime::shutdown_signal() => {
+            eprintln!("interrupted");
+            Ok(())
+        }
+    }
+}

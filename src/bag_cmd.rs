@@ -1,0 +1,133 @@
+//! `polar-cell bag info|play`.
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context as _};
+use cell_bag::node::{cdr_publisher, mcap_file_of, CdrPublisher};
+use cell_bag::{read_bag, Durability};
+use cell_runtime::{reliable_qos, transient_local_qos, CellNode, RosArgs};
+
+fn map_bag(path: &Path) -> anyhow::Result<(std::path::PathBuf, memmap2::Mmap)> {
+    let file_path = mcap_file_of(path)?;
+    let file = std::fs::File::open(&file_path)
+        .with_context(|| format!("opening {}", file_path.display()))?;
+    // Safety: the bag is opened read-only and not modified while mapped by this process.
+    let map = unsafe { memmap2::Mmap::map(&file) }
+        .with_context(|| format!("mapping {}", file_path.display()))?;
+    Ok((file_path, map))
+}
+
+pub fn info(path: &Path) -> anyhow::Result<()> {
+    let (file_path, bytes) = map_bag(path)?;
+    let bag = read_bag(&bytes).with_context(|| format!("reading {}", file_path.display()))?;
+    let i = &bag.info;
+    println!("Files:             {}", file_path.display());
+    println!("Bag size:          {} bytes", bytes.len());
+    println!("Storage id:        mcap (profile {})", i.profile);
+    println!("Duration:          {:.9} s", i.duration_s());
+    println!("Start:             {} ns", i.start_ns);
+    println!("End:               {} ns", i.end_ns);
+    println!("Messages:          {}", i.message_count);
+    println!(
+        "Chunks:            {} ({})",
+        i.chunk_count,
+        i.compression.join(", ")
+    );
+    println!("Topic information:");
+    for t in &i.topics {
+        let qos = t
+            .qos
+            .map(|q| format!("{:?}/{:?}/depth {}", q.reliability, q.durability, q.depth))
+            .unwrap_or_else(|| "no QoS".into());
+        println!(
+            "  Topic: {} | Type: {} | Count: {} | Serialization Format: cdr | QoS: {}",
+            t.name, t.type_name, t.message_count, qos
+        );
+    }
+    Ok(())
+}
+
+pub async fn play(
+    path: &Path,
+    rate: f64,
+    fast: bool,
+    only_topics: &[String],
+    wait_subscribers_s: f64,
+    ros_args: &RosArgs,
+) -> anyhow::Result<()> {
+    if !(rate > 0.0) {
+        bail!("--rate must be > 0, got {rate}");
+    }
+    let (file_path, bytes) = map_bag(path)?;
+    let bag = read_bag(&bytes).with_context(|| format!("reading {}", file_path.display()))?;
+    let mut node = CellNode::start("bag_player", &[], ros_args)?;
+    let mut publishers: HashMap<String, Box<dyn CdrPublisher>> = HashMap::new();
+    for t in &bag.info.topics {
+        if !only_topics.is_empty() && !only_topics.contains(&t.name) {
+            continue;
+        }
+        // A deep history so a fast replay is not thinned by keep-last on the writer side.
+        let qos = match t.qos.map(|q| q.durability) {
+            Some(Durability::TransientLocal) => {
+                transient_local_qos(t.qos.map_or(1, |q| q.depth as usize))
+            }
+            _ => reliable_qos(10_000),
+        };
+        publishers.insert(
+            t.name.clone(),
+            cdr_publisher(&mut node, &t.name, &t.type_name, &qos)?,
+        );
+    }
+    if wait_subscribers_s > 0.0 {
+        let deadline = Instant::now() + Duration::from_secs_f64(wait_subscribers_s);
+        while publishers
+            .values()
+            .any(|p| p.subscription_count(&node) == 0)
+        {
+            if Instant::now() > deadline {
+                let missing: Vec<&String> = publishers
+                    .iter()
+                    .filter(|(_, p)| p.subscription_count(&node) == 0)
+                    .map(|(t, _)| t)
+                    .collect();
+                eprintln!(
+                    "no subscriber after {wait_subscribers_s} s on {missing:?}; playing anyway"
+                );
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+    let start = Instant::now();
+    let mut first_log_time = None;
+    let mut count = 0u64;
+    for message in bag.messages()? {
+        let message = message?;
+        let Some(publisher) = publishers.get(&message.topic) else {
+            continue;
+        };
+        let t0 = *first_log_time.get_or_insert(message.log_time_ns);
+        if !fast {
+            let offset = Duration::from_nanos(message.log_time_ns.saturating_sub(t0)).div_f64(rate);
+            let due = start + offset;
+            let now = Instant::now();
+            if due > now {
+                tokio::time::sleep(due - now).await;
+            }
+        }
+        publisher
+            .publish_cdr(&message.data)
+            .with_context(|| format!("{} message {}", message.topic, count))?;
+        count += 1;
+    }
+    // Give reliable retransmissions time to complete before the participant goes away.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    eprintln!(
+        "played {count} messages from {} in {:.3} s",
+        file_path.display(),
+        start.elapsed().as_secs_f64()
+    );
+    Ok(())
+}

@@ -1,0 +1,187 @@
+//! `polar-cell print`: every node of the cell in one process, each its own DDS participant,
+//! talking over loopback DDS (so `ros2 topic echo` on the same domain sees everything).
+
+use std::io::BufRead;
+use std::path::Path;
+use std::time::Duration;
+
+use anyhow::{bail, Context as _};
+use cell_bag::node::{print_summary, Recorder};
+use cell_runtime::args::ParamOverride;
+use cell_runtime::{CellNode, ParamSpec, RosArgs};
+use gcode_streamer::{Event, GcodeReader};
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// The ROS arguments for one node: global `-p` only where the node declares the parameter.
+fn args_for(
+    ros_args: &RosArgs,
+    node_name: &str,
+    specs: &[ParamSpec],
+    ours: Vec<ParamOverride>,
+) -> RosArgs {
+    let mut args = ros_args.clone();
+    let mut params = ours;
+    params.extend(
+        ros_args
+            .params
+            .iter()
+            .filter(|p| match &p.node {
+                Some(n) => n == node_name,
+                None => specs.iter().any(|s| s.name == p.name),
+            })
+            .cloned(),
+    );
+    args.params = params;
+    args
+}
+
+/// Every global `-p` must be declared by at least one node (unknown parameters are errors).
+fn check_global_params(ros_args: &RosArgs, all_specs: &[&[ParamSpec]]) -> anyhow::Result<()> {
+    for p in ros_args.params.iter().filter(|p| p.node.is_none()) {
+        if !all_specs
+            .iter()
+            .any(|specs| specs.iter().any(|s| s.name == p.name))
+        {
+            bail!(
+                "-p {}:={}: no node of this process declares `{}`",
+                p.name,
+                p.value_yaml,
+                p.name
+            );
+        }
+    }
+    Ok(())
+}
+
+fn param(name: &str, value_yaml: String) -> ParamOverride {
+    ParamOverride {
+        node: None,
+        name: name.to_string(),
+        value_yaml,
+    }
+}
+
+fn open_input(file: &str) -> anyhow::Result<(Box<dyn BufRead + Send>, u64)> {
+    if file == "-" {
+        return Ok((Box::new(std::io::BufReader::new(std::io::stdin())), 0));
+    }
+    let f = std::fs::File::open(file).with_context(|| format!("opening {file}"))?;
+    let total = f.metadata().map(|m| m.len()).unwrap_or(0);
+    Ok((
+        Box::new(std::io::BufReader::with_capacity(1 << 16, f)),
+        total,
+    ))
+}
+
+pub async fn print(
+    file: &str,
+    bag: &Path,
+    bag_dir: bool,
+    show_progress: bool,
+    ros_args: &RosArgs,
+) -> anyhow::Result<()> {
+    let recorder_specs = cell_bag::node::param_specs();
+    let streamer_specs = gcode_streamer::node::param_specs();
+    check_global_params(ros_args, &[&recorder_specs, &streamer_specs])?;
+    let (input, total) = open_input(file)?;
+
+    let recorder_node = CellNode::start(
+        cell_bag::node::NODE_NAME,
+        &recorder_specs,
+        &args_for(
+            ros_args,
+            cell_bag::node::NODE_NAME,
+            &recorder_specs,
+            vec![
+                param("output", format!("{:?}", bag.display().to_string())),
+                param("bag_directory", bag_dir.to_string()),
+            ],
+        ),
+    )?;
+    let recorder = Recorder::start(recorder_node)?;
+    let consumers = format!("[{:?}]", recorder.node_name());
+    let mut streamer = CellNode::start(
+        gcode_streamer::node::NODE_NAME,
+        &streamer_specs,
+        &args_for(
+            ros_args,
+            gcode_streamer::node::NODE_NAME,
+            &streamer_specs,
+            vec![param("consumers", consumers)],
+        ),
+    )?;
+
+    let bar = if show_progress {
+        let bar = ProgressBar::new(total.max(1));
+        bar.set_style(
+            ProgressStyle::with_template("{spinner} {bar:40} {percent:>3}% {msg}")
+                .expect("static template"),
+        );
+        bar
+    } else {
+        ProgressBar::hidden()
+    };
+    let outcome = tokio::select! {
+        r = gcode_streamer::node::stream(&mut streamer, input, file, total, |p| {
+            bar.set_position(p.bytes_read);
+            bar.set_message(format!(
+                "line {} · {} moves sent · {} acknowledged",
+                p.lines_read, p.moves_published, p.moves_acknowledged
+            ));
+        }) => Some(r),
+        _ = cell_runtime::shutdown_signal() => None,
+    };
+    bar.finish_and_clear();
+    // Let the last progress and diagnostics reach the recorder before it stops.
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let recorded = recorder.stop().await.context("finishing the bag")?;
+    match outcome {
+        None => {
+            eprintln!("interrupted; the bag was finished");
+            print_summary(&recorded);
+            Ok(())
+        }
+        Some(Err(e)) => {
+            print_summary(&recorded);
+            Err(e)
+        }
+        Some(Ok(s)) => {
+            let secs = s.elapsed.as_secs_f64();
+            eprintln!(
+                "{file}: {} moves from {} lines ({} bytes) in {:.3} s — {:.0} moves/s, {} warnings, {} resends",
+                s.moves,
+                s.lines,
+                s.bytes,
+                secs,
+                s.moves as f64 / secs.max(1e-9),
+                s.warnings,
+                s.resends
+            );
+            print_summary(&recorded);
+            Ok(())
+        }
+    }
+}
+
+/// `polar-cell check FILE`: the parser alone.
+pub fn check(file: &str) -> anyhow::Result<()> {
+    let (input, _) = open_input(file)?;
+    let mut reader = GcodeReader::new(input, file, Default::default());
+    let mut moves = 0u64;
+    let mut warnings = 0u64;
+    for event in reader.by_ref() {
+        match event? {
+            Event::Move(_) => moves += 1,
+            Event::Warning(w) => {
+                warnings += 1;
+                eprintln!("{file}: warning: {w}");
+            }
+        }
+    }
+    println!(
+        "{file}: {} lines, {} bytes, {moves} moves, {warnings} warnings",
+        reader.lines_read(),
+        reader.bytes_read()
+    );
+    Ok(())
+}

@@ -206,7 +206,6 @@ fn spawn_moves_consumer(
     node: &mut CellNode,
     moves_channel: ChannelId,
     progress_channel: Option<ChannelId>,
-    ack_channel: Option<ChannelId>,
     tx: mpsc::UnboundedSender<Item>,
     mut stop: watch::Receiver<bool>,
 ) -> anyhow::Result<tokio::task::JoinHandle<()>> {
@@ -216,17 +215,6 @@ fn spawn_moves_consumer(
         node.subscription("/gcode/progress", &reliable_qos(1000))?;
     let acks = node.publisher::<GcodeAck>("/gcode/ack", &reliable_qos(1000))?;
     let mut tracker = AckTracker::new(node.fully_qualified_name(), 64);
-    // DDS does not deliver a participant's own samples to itself, so the recorder's own
-    // acknowledgements are written to the bag here (other consumers' come through the tap).
-    let send_ack = move |ack: GcodeAck, tx: &mpsc::UnboundedSender<Item>| {
-        if let Some(channel) = ack_channel {
-            let t = now_ns();
-            if let Ok(bytes) = cdr::encode(&ack) {
-                let _ = tx.send((channel, t, t, bytes));
-            }
-        }
-        let _ = acks.publish(ack);
-    };
     Ok(tokio::spawn(async move {
         let mut tick = tokio::time::interval(Duration::from_millis(20));
         let mut idle_ticks = 0u32;
@@ -241,13 +229,18 @@ fn spawn_moves_consumer(
                             return;
                         }
                         if let Some(ack) = tracker.ack_due(false) {
-                            send_ack(ack, &tx);
+                            let _ = acks.publish(ack);
                         }
                     }
                     Err(e) => tracing::warn!("recorder: /gcode/moves read error: {e:?}"),
                 },
                 taken = progress.async_take() => if let Ok((p, info)) = taken {
-                    tracker.on_progress(&p.consumers, &p.consumer_next_expected);
+                    if tracker.on_progress(&p.consumers, &p.consumer_next_expected) {
+                        // Confirm the resume point: the streamer starts sending on this.
+                        if let Some(ack) = tracker.ack_due(true) {
+                            let _ = acks.publish(ack);
+                        }
+                    }
                     if let Some(channel) = progress_channel {
                         forward(&tx, channel, &p, &info);
                     }
@@ -255,11 +248,11 @@ fn spawn_moves_consumer(
                 _ = tick.tick() => {
                     idle_ticks += 1;
                     if tracker.needs_hello() {
-                        send_ack(tracker.hello(), &tx);
+                        let _ = acks.publish(tracker.hello());
                     } else if idle_ticks >= 2 {
                         // Idle: repeat the acknowledgement (recovers a lost one, reports gaps).
                         if let Some(ack) = tracker.ack_due(true) {
-                            send_ack(ack, &tx);
+                            let _ = acks.publish(ack);
                         }
                     }
                 },
@@ -319,7 +312,6 @@ impl Recorder {
         let mut taps = Vec::new();
         let mut moves_channel = None;
         let mut progress_channel = None;
-        let mut ack_channel = None;
         for (topic, type_name) in &topics {
             let msg_type = polar_cell_msgs::find(type_name)
                 .ok_or_else(|| anyhow!("topic {topic}: unknown message type {type_name}"))?;
@@ -329,9 +321,6 @@ impl Recorder {
                 ("/gcode/moves", true) => moves_channel = Some(channel),
                 ("/gcode/progress", true) => progress_channel = Some(channel),
                 _ => {
-                    if topic == "/gcode/ack" {
-                        ack_channel = Some(channel);
-                    }
                     let tap = with_message_type!(
                         type_name.as_str(),
                         spawn_tap(&mut node, topic, &qos, channel, tx.clone(), stop_rx.clone())
@@ -345,7 +334,6 @@ impl Recorder {
                 &mut node,
                 moves,
                 progress_channel,
-                ack_channel,
                 tx.clone(),
                 stop_rx.clone(),
             )?);

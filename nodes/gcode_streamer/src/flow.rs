@@ -7,8 +7,9 @@
 //! When acknowledgements stop advancing for `resend_after`, the streamer goes back to the
 //! oldest unacknowledged move and sends again. A consumer that (re)starts announces itself
 //! with `resume = true` and learns its resume point from the per-consumer acknowledgements in
-//! `/gcode/progress` ([`SendWindow::consumer_acks`]); the streamer resends everything after
-//! that point, so a restarted consumer loses and repeats nothing.
+//! `/gcode/progress` ([`SendWindow::consumer_acks`]), then confirms it with a plain
+//! acknowledgement; only then does the streamer send (again) everything after that point, so a
+//! restarted consumer loses and repeats nothing.
 
 use std::collections::VecDeque;
 use std::time::Duration;
@@ -39,6 +40,9 @@ struct ConsumerState {
     next_expected: u64,
     /// Has announced itself (a `resume` acknowledgement) since the streamer started.
     present: bool,
+    /// Has confirmed its resume point (a plain acknowledgement after its announcement); moves
+    /// sent before that could reach it before it knows which ones to keep.
+    ready: bool,
 }
 
 /// The streamer's side: a bounded buffer of unacknowledged moves.
@@ -68,6 +72,7 @@ impl SendWindow {
                     name: name.clone(),
                     next_expected: 0,
                     present: false,
+                    ready: false,
                 })
                 .collect(),
             last_progress: Duration::ZERO,
@@ -125,12 +130,16 @@ impl SendWindow {
         let sent_end = self.base + self.buffer.len() as u64;
         if ack.resume {
             c.present = true;
+            c.ready = false;
             // Everything after this consumer's last acknowledgement goes again.
             self.next_to_send = self.next_to_send.min(c.next_expected.max(self.base));
             self.last_progress = now;
-        } else if ack.next_expected > c.next_expected {
-            c.next_expected = ack.next_expected.min(sent_end);
-            self.last_progress = now;
+        } else {
+            c.ready |= c.present;
+            if ack.next_expected > c.next_expected {
+                c.next_expected = ack.next_expected.min(sent_end);
+                self.last_progress = now;
+            }
         }
         let new_base = self
             .consumers
@@ -175,7 +184,7 @@ impl SendWindow {
     }
 
     fn all_present(&self) -> bool {
-        self.consumers.iter().all(|c| c.present)
+        self.consumers.iter().all(|c| c.ready)
     }
 
     /// Each consumer's name and next expected sequence number, for `/gcode/progress`.
@@ -186,11 +195,11 @@ impl SendWindow {
             .unzip()
     }
 
-    /// Names of consumers that have not announced themselves yet.
+    /// Names of consumers that have not announced themselves and confirmed their resume point.
     pub fn missing_consumers(&self) -> Vec<&str> {
         self.consumers
             .iter()
-            .filter(|c| !c.present)
+            .filter(|c| !c.ready)
             .map(|c| c.name.as_str())
             .collect()
     }
@@ -248,7 +257,8 @@ impl AckTracker {
     }
 
     /// Learn the resume point from the streamer's progress report (consumer names and their
-    /// next expected sequence numbers). Returns true when it was learnt now.
+    /// next expected sequence numbers). Returns true when it was learnt now: then publish
+    /// `ack_due(true)` at once, which tells the streamer to start sending.
     pub fn on_progress(&mut self, consumers: &[String], next_expected: &[u64]) -> bool {
         if self.resume_point_known {
             return false;
@@ -339,8 +349,14 @@ mod tests {
             now += ms(1);
             if c.needs_hello() {
                 w.on_ack(&c.hello(), now);
+                assert!(
+                    w.peek_next().is_none(),
+                    "nothing is sent before the confirmation"
+                );
                 let (names, acks) = w.consumer_acks();
-                c.on_progress(&names, &acks);
+                if c.on_progress(&names, &acks) {
+                    w.on_ack(&c.ack_due(true).unwrap(), now);
+                }
             }
             while w.has_room() && queued < n {
                 w.push(mv(queued));
@@ -414,17 +430,23 @@ mod tests {
             w.push(mv(s));
         }
         assert!(!w.has_room());
-        w.on_ack(&AckTracker::new("/a", 1).hello(), ms(0));
-        assert!(w.next_to_send().is_none(), "/b has not announced itself");
-        assert_eq!(w.missing_consumers(), ["/b"]);
-        w.on_ack(&AckTracker::new("/b", 1).hello(), ms(0));
-        let sent: Vec<u64> = std::iter::from_fn(|| w.next_to_send().map(|m| m.sequence)).collect();
-        assert_eq!(sent, [0, 1, 2, 3]);
         let ack = |name: &str, n| GcodeAck {
             consumer: name.into(),
             next_expected: n,
             resume: false,
         };
+        w.on_ack(&AckTracker::new("/a", 1).hello(), ms(0));
+        w.on_ack(&ack("/a", 0), ms(0));
+        assert!(w.next_to_send().is_none(), "/b has not announced itself");
+        assert_eq!(w.missing_consumers(), ["/b"]);
+        w.on_ack(&AckTracker::new("/b", 1).hello(), ms(0));
+        assert!(
+            w.next_to_send().is_none(),
+            "/b has not confirmed its resume point"
+        );
+        w.on_ack(&ack("/b", 0), ms(0));
+        let sent: Vec<u64> = std::iter::from_fn(|| w.next_to_send().map(|m| m.sequence)).collect();
+        assert_eq!(sent, [0, 1, 2, 3]);
         w.on_ack(&ack("/a", 4), ms(1));
         assert_eq!(w.acknowledged(), 0, "/b still holds the window");
         w.on_ack(&ack("/b", 2), ms(2));

@@ -1,0 +1,76 @@
+"""Shared fixtures for the interop tests: our binaries, the fixtures, a Cyclone DDS config.
+
+These tests check our output with independent implementations (Cyclone DDS, mcap-ros2-support,
+rosbags). Run them inside a private network namespace (see .ci/run): DDS traffic stays there.
+"""
+
+import os
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+FIXTURES = ROOT.parent / "shared" / "fixtures" / "gcode"
+BIN_DIR = Path(os.environ.get("POLAR_CELL_BIN_DIR", ROOT / "target" / "release"))
+
+CYCLONE_LOOPBACK = """<CycloneDDS><Domain id="any">
+  <General><Interfaces><NetworkInterface name="lo"/></Interfaces>
+    <AllowMulticast>false</AllowMulticast></General>
+  <Discovery><Peers><Peer address="127.0.0.1"/></Peers>
+    <ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>60</MaxAutoParticipantIndex>
+  </Discovery>
+</Domain></CycloneDDS>"""
+
+os.environ.setdefault("CYCLONEDDS_URI", CYCLONE_LOOPBACK)
+
+
+def binary(name: str) -> Path:
+    path = BIN_DIR / name
+    if not path.exists():
+        pytest.fail(f"{path} is missing: build with `cargo build --release` first")
+    return path
+
+
+def run(args, timeout=120, **kwargs):
+    """Run a command, failing the test with its output if it fails."""
+    proc = subprocess.run(
+        [str(a) for a in args], capture_output=True, text=True, timeout=timeout, **kwargs
+    )
+    if proc.returncode != 0:
+        pytest.fail(f"{args} exited {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}")
+    return proc
+
+
+def gcode_motion_lines(path: Path):
+    """Independent reading of a fixture: (line number, words) of every G0/G1/G28/G92 line."""
+    out = []
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        code = line.split(";", 1)[0].strip()
+        m = re.match(r"^(G0|G1|G28|G92)(\s|$)", code)
+        if m:
+            words = dict(
+                (w[0], float(w[1:])) for w in code.split()[1:] if len(w) > 1
+            )
+            out.append((number, m.group(1), words))
+    return out
+
+
+@pytest.fixture(scope="session")
+def polar_cell():
+    return binary("polar-cell")
+
+
+@pytest.fixture(scope="session")
+def printed_bags(polar_cell, tmp_path_factory):
+    """Print both fixtures once, as a bare file and as a bag directory."""
+    out = tmp_path_factory.mktemp("bags")
+    bags = {}
+    for name in ("finger.gcode", "polartest.gcode"):
+        bare = out / f"{name}.mcap"
+        run([polar_cell, "print", FIXTURES / name, "--bag", bare, "--no-progress"])
+        directory = out / f"{name}_dir"
+        run([polar_cell, "print", FIXTURES / name, "--bag", directory, "--bag-dir", "--no-progress"])
+        bags[name] = (bare, directory)
+    return bags

@@ -1,0 +1,148 @@
+"""Bags written by `polar-cell print`, read by mcap-ros2-support and rosbags."""
+
+from collections import Counter
+
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+
+from conftest import FIXTURES, ROOT, gcode_motion_lines, run
+
+MSG_DIR = ROOT / "nodes" / "polar_cell_msgs" / "msg"
+
+
+def mcap_file(bag):
+    return bag if bag.is_file() else next(bag.glob("*.mcap"))
+
+
+def read_with_mcap_ros2(path):
+    """Decoded messages per topic, and the bag's statistics, via mcap-ros2-support."""
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        assert reader.get_header().profile == "ros2"
+        stats = {
+            summary.channels[cid].topic: count
+            for cid, count in summary.statistics.channel_message_counts.items()
+        }
+        decoded = {}
+        for schema, channel, message, ros_msg in reader.iter_decoded_messages():
+            assert schema.encoding == "ros2msg"
+            assert channel.message_encoding == "cdr"
+            assert message.data[:4] == b"\x00\x01\x00\x00"
+            decoded.setdefault(channel.topic, []).append(ros_msg)
+        return decoded, stats, summary
+
+
+def rosbags_typestore():
+    """Jazzy's standard types plus ours, registered from our .msg files."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types = {}
+    for msg in sorted(MSG_DIR.glob("*.msg")):
+        types.update(get_types_from_msg(msg.read_text(), f"polar_cell_msgs/msg/{msg.stem}"))
+    store.register(types)
+    return store
+
+
+def read_with_rosbags(path):
+    store = rosbags_typestore()
+    decoded = {}
+    with AnyReader([path], default_typestore=store) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        for connection, _timestamp, raw in reader.messages():
+            decoded.setdefault(connection.topic, []).append(
+                reader.deserialize(raw, connection.msgtype)
+            )
+    return decoded, counts
+
+
+@pytest.mark.parametrize("name", ["finger.gcode", "polartest.gcode"])
+def test_mcap_ros2_support_reads_every_message_with_expected_values(printed_bags, name):
+    for bag in printed_bags[name]:
+        decoded, stats, summary = read_with_mcap_ros2(mcap_file(bag))
+        for topic, count in stats.items():
+            assert len(decoded.get(topic, [])) == count, topic
+        assert sum(stats.values()) == summary.statistics.message_count
+        assert summary.chunk_indexes, "chunk indexes are written"
+        lines = gcode_motion_lines(FIXTURES / name)
+        moves = decoded["/gcode/moves"]
+        assert len(moves) == len(lines)
+        assert [m.sequence for m in moves] == list(range(len(lines)))
+        assert [m.source_line for m in moves] == [n for n, _, _ in lines]
+        kinds = {"G0": 0, "G1": 1, "G28": 5, "G92": 6}
+        assert [m.kind for m in moves] == [kinds[c] for _, c, _ in lines]
+        # X words are absolute mm (no G92 X in these files): x_m is X / 1000 exactly.
+        checked = 0
+        for m, (_, code, words) in zip(moves, lines):
+            if code in ("G0", "G1") and "X" in words:
+                assert m.x_m == words["X"] / 1000.0
+                checked += 1
+            if code in ("G0", "G1") and "F" in words:
+                assert m.feedrate_m_per_s == pytest.approx(words["F"] / 60000.0, rel=1e-15)
+        assert checked > 1000
+        progress = decoded["/gcode/progress"]
+        assert progress[-1].finished
+        assert progress[-1].moves_acknowledged == len(lines)
+        diag = decoded["/diagnostics"][-1].status[0]
+        assert diag.message == "stream finished"
+        assert {kv.key: kv.value for kv in diag.values}["moves"] == str(len(lines))
+
+
+@pytest.mark.parametrize("name", ["finger.gcode", "polartest.gcode"])
+def test_rosbags_reads_bare_file_and_directory_identically(printed_bags, name):
+    bare, directory = printed_bags[name]
+    per_form = []
+    for bag in (bare, directory):
+        decoded, counts = read_with_rosbags(bag)
+        for topic, count in counts.items():
+            assert len(decoded.get(topic, [])) == count, (bag, topic)
+        reference, stats, summary = read_with_mcap_ros2(mcap_file(bag))
+        # Statistics omit channels without messages; rosbags lists every channel.
+        assert set(counts) == {c.topic for c in summary.channels.values()}
+        assert counts == {t: stats.get(t, 0) for t in counts}
+        moves = decoded["/gcode/moves"]
+        assert [m.sequence for m in moves] == [m.sequence for m in reference["/gcode/moves"]]
+        assert [m.x_m for m in moves] == [m.x_m for m in reference["/gcode/moves"]]
+        per_form.append(Counter({t: len(v) for t, v in decoded.items()}))
+    assert per_form[0]["/gcode/moves"] == per_form[1]["/gcode/moves"]
+
+
+def test_metadata_yaml_matches_channels(printed_bags):
+    import yaml
+
+    _, directory = printed_bags["finger.gcode"]
+    info = yaml.safe_load((directory / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    _, stats, summary = read_with_mcap_ros2(mcap_file(directory))
+    listed = {
+        t["topic_metadata"]["name"]: t["message_count"] for t in info["topics_with_message_count"]
+    }
+    channels = {c.topic for c in summary.channels.values()}
+    assert set(listed) == channels
+    for topic in channels:
+        assert listed[topic] == stats.get(topic, 0)
+    assert info["message_count"] == summary.statistics.message_count
+    assert info["storage_identifier"] == "mcap"
+    assert info["relative_file_paths"] == [mcap_file(directory).name]
+
+
+def test_bag_info_reports_the_statistics(polar_cell, printed_bags):
+    bare, _ = printed_bags["polartest.gcode"]
+    out = run([polar_cell, "bag", "info", bare]).stdout
+    _, stats, _ = read_with_mcap_ros2(bare)
+    assert f"Topic: /gcode/moves | Type: polar_cell_msgs/msg/GcodeMove | Count: {stats['/gcode/moves']}" in out
+
+
+def test_malformed_gcode_is_a_precise_error_not_a_crash(polar_cell, tmp_path):
+    bad = tmp_path / "bad.gcode"
+    bad.write_text("G1 X1 Y1\nG1 X2 Y\n")
+    import subprocess
+
+    proc = subprocess.run(
+        [str(polar_cell), "print", str(bad), "--bag", str(tmp_path / "b.mcap"), "--no-progress"],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert proc.returncode == 1
+    assert "bad.gcode:2:8: expected a number after `Y`" in proc.stderr
+    assert "panicked" not in proc.stderr

@@ -187,10 +187,13 @@ impl SendWindow {
         self.consumers.iter().all(|c| c.ready)
     }
 
-    /// Each consumer's name and next expected sequence number, for `/gcode/progress`.
+    /// Each announced consumer's name and next expected sequence number, for
+    /// `/gcode/progress`. A consumer is listed only once its announcement arrived, so it never
+    /// learns (and confirms) a resume point before the streamer knows it is there.
     pub fn consumer_acks(&self) -> (Vec<String>, Vec<u64>) {
         self.consumers
             .iter()
+            .filter(|c| c.present)
             .map(|c| (c.name.clone(), c.next_expected))
             .unzip()
     }
@@ -435,7 +438,13 @@ mod tests {
             next_expected: n,
             resume: false,
         };
+        assert_eq!(
+            w.consumer_acks().0,
+            Vec::<String>::new(),
+            "nobody announced yet"
+        );
         w.on_ack(&AckTracker::new("/a", 1).hello(), ms(0));
+        assert_eq!(w.consumer_acks(), (vec!["/a".to_string()], vec![0]));
         w.on_ack(&ack("/a", 0), ms(0));
         assert!(w.next_to_send().is_none(), "/b has not announced itself");
         assert_eq!(w.missing_consumers(), ["/b"]);

@@ -1,0 +1,277 @@
+"""Our nodes against Cyclone DDS (PyPI cyclonedds): wire types, QoS, flow control, ROS graph.
+
+The Python peer here is a second, independent implementation of the flow-control consumer
+(announce, learn the resume point from /gcode/progress, confirm, acknowledge in order), so
+`polar-cell print` only finishes if Cyclone's acknowledgements reach our subscriber.
+"""
+
+import subprocess
+import time
+from dataclasses import dataclass
+
+import cyclonedds.idl.annotations as annotate
+import cyclonedds.idl.types as t
+from cyclonedds.core import Policy, Qos
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.idl import IdlStruct
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+from cyclonedds.util import duration
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from conftest import FIXTURES, binary, gcode_motion_lines
+
+
+@dataclass
+@annotate.final
+class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: t.int32
+    nanosec: t.uint32
+
+
+@dataclass
+@annotate.final
+class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time
+    frame_id: str
+
+
+@dataclass
+@annotate.final
+class GcodeMove(IdlStruct, typename="polar_cell_msgs::msg::dds_::GcodeMove_"):
+    sequence: t.uint64
+    source_line: t.uint32
+    kind: t.uint8
+    segment_index: t.uint32
+    segment_count: t.uint32
+    x_m: t.float64
+    y_m: t.float64
+    z_m: t.float64
+    e_m: t.float64
+    delta_e_m: t.float64
+    feedrate_m_per_s: t.float64
+    extrude: bool
+    dwell_s: t.float64
+    axes: t.uint8
+    tool: t.uint8
+
+
+@dataclass
+@annotate.final
+class GcodeAck(IdlStruct, typename="polar_cell_msgs::msg::dds_::GcodeAck_"):
+    consumer: str
+    next_expected: t.uint64
+    resume: bool
+
+
+@dataclass
+@annotate.final
+class GcodeProgress(IdlStruct, typename="polar_cell_msgs::msg::dds_::GcodeProgress_"):
+    header: Header
+    file: str
+    bytes_read: t.uint64
+    bytes_total: t.uint64
+    lines_read: t.uint32
+    moves_published: t.uint64
+    moves_acknowledged: t.uint64
+    warnings: t.uint32
+    consumers: t.sequence[str]
+    consumer_next_expected: t.sequence[t.uint64]
+    finished: bool
+
+
+@dataclass
+@annotate.final
+class KeyValue(IdlStruct, typename="diagnostic_msgs::msg::dds_::KeyValue_"):
+    key: str
+    value: str
+
+
+@dataclass
+@annotate.final
+class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticStatus_"):
+    level: t.uint8
+    name: str
+    message: str
+    hardware_id: str
+    values: t.sequence[KeyValue]
+
+
+@dataclass
+@annotate.final
+class DiagnosticArray(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticArray_"):
+    header: Header
+    status: t.sequence[DiagnosticStatus]
+
+
+@dataclass
+@annotate.final
+class Gid(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
+    data: t.array[t.uint8, 16]
+
+
+@dataclass
+@annotate.final
+class NodeEntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::NodeEntitiesInfo_"):
+    node_namespace: str
+    node_name: str
+    reader_gid_seq: t.sequence[Gid]
+    writer_gid_seq: t.sequence[Gid]
+
+
+@dataclass
+@annotate.final
+class ParticipantEntitiesInfo(
+    IdlStruct, typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"
+):
+    gid: Gid
+    node_entities_info_seq: t.sequence[NodeEntitiesInfo]
+
+
+def ros_qos(depth=1000, transient_local=False):
+    """ROS 2 default QoS (reliable, volatile unless latched), XCDR1 as ROS 2 uses."""
+    return Qos(
+        Policy.Reliability.Reliable(duration(seconds=1)),
+        Policy.Durability.TransientLocal if transient_local else Policy.Durability.Volatile,
+        Policy.History.KeepLast(depth),
+        Policy.DataRepresentation(use_cdrv0_representation=True),
+    )
+
+
+CONSUMER = "/cyclone_listener"
+
+
+def valid(samples, kind):
+    """Drop Cyclone's InvalidSample entries (disposals when a writer goes away)."""
+    return [s for s in samples if isinstance(s, kind)]
+
+
+def consume_moves(participant, deadline_s=90):
+    """Be a flow-control consumer until the stream is finished; return moves and diagnostics."""
+    moves_r = DataReader(participant, Topic(participant, "rt/gcode/moves", GcodeMove), qos=ros_qos(10000))
+    progress_r = DataReader(participant, Topic(participant, "rt/gcode/progress", GcodeProgress), qos=ros_qos())
+    diag_r = DataReader(participant, Topic(participant, "rt/diagnostics", DiagnosticArray), qos=ros_qos())
+    ack_w = DataWriter(participant, Topic(participant, "rt/gcode/ack", GcodeAck), qos=ros_qos())
+    next_expected = None
+    received, diagnostics = [], []
+    finished = False
+    last_ack = 0.0
+    deadline = time.monotonic() + deadline_s
+    while not finished and time.monotonic() < deadline:
+        for p in valid(progress_r.take(N=100), GcodeProgress):
+            if next_expected is None and CONSUMER in p.consumers:
+                next_expected = p.consumer_next_expected[p.consumers.index(CONSUMER)]
+                ack_w.write(GcodeAck(CONSUMER, next_expected, False))
+            finished |= p.finished
+        for m in valid(moves_r.take(N=1000), GcodeMove):
+            if next_expected is not None and m.sequence == next_expected:
+                received.append(m)
+                next_expected += 1
+        diagnostics.extend(valid(diag_r.take(N=100), DiagnosticArray))
+        now = time.monotonic()
+        if now - last_ack > 0.02:
+            last_ack = now
+            if next_expected is None:
+                ack_w.write(GcodeAck(CONSUMER, 0, True))
+            else:
+                ack_w.write(GcodeAck(CONSUMER, next_expected, False))
+        time.sleep(0.001)
+    time.sleep(0.3)
+    diagnostics.extend(valid(diag_r.take(N=100), DiagnosticArray))
+    return received, diagnostics, finished
+
+
+def test_cyclone_consumer_decodes_moves_and_its_acks_gate_the_stream(polar_cell, tmp_path):
+    name = "finger.gcode"
+    bag = tmp_path / "cyclone.mcap"
+    participant = DomainParticipant(0)
+    proc = subprocess.Popen(
+        [str(polar_cell), "print", str(FIXTURES / name), "--bag", str(bag), "--no-progress",
+         "--ros-args", "-p", f"gcode_streamer:consumers:=[/bag_recorder, {CONSUMER}]"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        received, diagnostics, finished = consume_moves(participant)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert finished, (len(received), err)
+    lines = gcode_motion_lines(FIXTURES / name)
+    assert [m.sequence for m in received] == list(range(len(lines)))
+    assert [m.source_line for m in received] == [n for n, _, _ in lines]
+    for m, (_, code, words) in zip(received, lines):
+        if code in ("G0", "G1") and "X" in words:
+            assert m.x_m == words["X"] / 1000.0
+        if code in ("G0", "G1") and "E" in words:
+            assert m.e_m == words["E"] / 1000.0
+    # A standard type decoded by Cyclone: the streamer's closing diagnostics.
+    statuses = [s for d in diagnostics for s in d.status if s.name == "/gcode_streamer"]
+    assert any(
+        s.message == "stream finished"
+        and {kv.key: kv.value for kv in s.values}["moves"] == str(len(lines))
+        for s in statuses
+    ), statuses
+    # Cyclone's acknowledgements reached our nodes (and the recorder recorded them).
+    with open(bag, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        acks = [
+            m for _, _, _, m in reader.iter_decoded_messages(topics=["/gcode/ack"])
+            if m.consumer == CONSUMER
+        ]
+    assert acks and max(a.next_expected for a in acks) == len(lines)
+
+
+def discovered_nodes(participant, seconds):
+    reader = DataReader(
+        participant,
+        Topic(participant, "ros_discovery_info", ParticipantEntitiesInfo),
+        qos=ros_qos(100, transient_local=True),
+    )
+    nodes = {}
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        for info in valid(reader.take(N=100), ParticipantEntitiesInfo):
+            for n in info.node_entities_info_seq:
+                nodes[(n.node_namespace, n.node_name)] = n
+        time.sleep(0.05)
+    return nodes
+
+
+def test_nodes_appear_in_ros_discovery_info_with_remapped_names(tmp_path):
+    streamer = binary("gcode_streamer")
+    participant = DomainParticipant(0)
+    proc = subprocess.Popen(
+        [str(streamer), str(FIXTURES / "finger.gcode"), "--ros-args",
+         "-r", "__ns:=/cell", "-r", "__node:=feeder",
+         "-p", "consumers:=[/nobody]", "-p", "consumer_timeout_s:=6.0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        nodes = discovered_nodes(participant, 4.0)
+    finally:
+        proc.kill()
+        proc.communicate()
+    assert ("/cell", "feeder") in nodes, sorted(nodes)
+    feeder = nodes[("/cell", "feeder")]
+    assert len(feeder.writer_gid_seq) >= 3  # moves, progress, diagnostics (+ rosout, params)
+    assert len(feeder.reader_gid_seq) >= 1  # acks
+
+
+def test_print_nodes_appear_under_their_default_names(polar_cell, tmp_path):
+    participant = DomainParticipant(0)
+    proc = subprocess.Popen(
+        [str(polar_cell), "print", str(FIXTURES / "finger.gcode"), "--bag", str(tmp_path / "x.mcap"),
+         "--no-progress", "--ros-args", "-p", "gcode_streamer:consumers:=[/bag_recorder, /absent]",
+         "-p", "consumer_timeout_s:=6.0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        nodes = discovered_nodes(participant, 4.0)
+    finally:
+        proc.kill()
+        proc.communicate()
+    assert ("/", "gcode_streamer") in nodes, sorted(nodes)
+    assert ("/", "bag_recorder") in nodes, sorted(nodes)

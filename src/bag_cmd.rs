@@ -57,7 +57,7 @@ pub async fn play(
     wait_subscribers_s: f64,
     ros_args: &RosArgs,
 ) -> anyhow::Result<()> {
-    if !(rate > 0.0) {
+    if rate.is_nan() || rate <= 0.0 {
         bail!("--rate must be > 0, got {rate}");
     }
     let (file_path, bytes) = map_bag(path)?;

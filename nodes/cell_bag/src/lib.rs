@@ -16,7 +16,7 @@ mod qos;
 mod reader;
 mod writer;
 
-pub use meta::{metadata_yaml, TopicStats};
+pub use meta::{metadata_yaml, RecordedTopic, TopicStats};
 pub use qos::{Durability, QosRecord, Reliability};
 pub use reader::{read_bag, BagContents, BagInfo, BagMessage, TopicInfo};
 pub use writer::{BagWriter, ChannelId, Compression, WriterOptions};

@@ -2,6 +2,15 @@
 
 use crate::qos::QosRecord;
 
+/// One recorded topic: what `metadata.yaml` lists for it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RecordedTopic {
+    pub topic: String,
+    pub type_name: String,
+    pub qos: QosRecord,
+    pub stats: TopicStats,
+}
+
 /// Count and time span of one topic's messages.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TopicStats {
@@ -24,15 +33,14 @@ impl TopicStats {
 
 /// `metadata.yaml` (rosbag2_bagfile_information, version 9) for a directory holding one MCAP
 /// file named `file_name`, with exactly the channels of the bag.
-pub fn metadata_yaml(
-    file_name: &str,
-    topics: &[(String, String, QosRecord, TopicStats)],
-    ros_distro: &str,
-) -> String {
-    let recorded: Vec<_> = topics.iter().filter(|t| t.3.message_count > 0).collect();
-    let start = recorded.iter().map(|t| t.3.first_ns).min().unwrap_or(0);
-    let end = recorded.iter().map(|t| t.3.last_ns).max().unwrap_or(0);
-    let count: u64 = topics.iter().map(|t| t.3.message_count).sum();
+pub fn metadata_yaml(file_name: &str, topics: &[RecordedTopic], ros_distro: &str) -> String {
+    let recorded: Vec<_> = topics
+        .iter()
+        .filter(|t| t.stats.message_count > 0)
+        .collect();
+    let start = recorded.iter().map(|t| t.stats.first_ns).min().unwrap_or(0);
+    let end = recorded.iter().map(|t| t.stats.last_ns).max().unwrap_or(0);
+    let count: u64 = topics.iter().map(|t| t.stats.message_count).sum();
     let duration = end.saturating_sub(start);
     let mut y = String::new();
     y.push_str("rosbag2_bagfile_information:\n");
@@ -44,7 +52,13 @@ pub fn metadata_yaml(
     ));
     y.push_str(&format!("  message_count: {count}\n"));
     y.push_str("  topics_with_message_count:\n");
-    for (name, type_name, qos, stats) in topics {
+    for RecordedTopic {
+        topic: name,
+        type_name,
+        qos,
+        stats,
+    } in topics
+    {
         y.push_str("    - topic_metadata:\n");
         y.push_str(&format!("        name: {}\n", yaml_string(name)));
         y.push_str(&format!("        type: {}\n", yaml_string(type_name)));
@@ -105,19 +119,15 @@ mod tests {
         b.record(150);
         b.record(400);
         b.record(300);
+        let topic = |name: &str, type_name: &str, stats| RecordedTopic {
+            topic: name.into(),
+            type_name: type_name.into(),
+            qos: QosRecord::ROS_DEFAULT,
+            stats,
+        };
         let topics = vec![
-            (
-                "/a".to_string(),
-                "std_msgs/msg/String".to_string(),
-                QosRecord::ROS_DEFAULT,
-                a,
-            ),
-            (
-                "/b".to_string(),
-                "sensor_msgs/msg/JointState".to_string(),
-                QosRecord::ROS_DEFAULT,
-                b,
-            ),
+            topic("/a", "std_msgs/msg/String", a),
+            topic("/b", "sensor_msgs/msg/JointState", b),
         ];
         let yaml = metadata_yaml("bag_0.mcap", &topics, "jazzy");
         let v: serde_yaml::Value = serde_yaml::from_str(&yaml).unwrap();

@@ -380,7 +380,7 @@ impl Recorder {
                     path: directory_path.unwrap_or(file_path),
                     topics: topics
                         .into_iter()
-                        .map(|(t, ty, _, s)| (t, ty, s.message_count))
+                        .map(|t| (t.topic, t.type_name, t.stats.message_count))
                         .collect(),
                     messages,
                 })

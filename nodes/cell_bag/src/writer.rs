@@ -6,7 +6,7 @@ use std::io::{Seek, Write};
 use mcap::records::MessageHeader;
 use polar_cell_msgs::{MsgType, RosMessage};
 
-use crate::meta::TopicStats;
+use crate::meta::{RecordedTopic, TopicStats};
 use crate::qos::QosRecord;
 use crate::BagError;
 
@@ -179,14 +179,19 @@ impl<W: Write + Seek> BagWriter<W> {
     }
 
     /// Write the summary and return the sink with per-topic statistics (for `metadata.yaml`).
-    pub fn finish(mut self) -> Result<(W, Vec<(String, String, QosRecord, TopicStats)>), BagError> {
+    pub fn finish(mut self) -> Result<(W, Vec<RecordedTopic>), BagError> {
         self.inner.finish()?;
         let mut topics: Vec<_> = self
             .channels
             .into_values()
-            .map(|c| (c.topic, c.type_name, c.qos, c.stats))
+            .map(|c| RecordedTopic {
+                topic: c.topic,
+                type_name: c.type_name,
+                qos: c.qos,
+                stats: c.stats,
+            })
             .collect();
-        topics.sort_by(|a, b| a.0.cmp(&b.0));
+        topics.sort_by(|a, b| a.topic.cmp(&b.topic));
         Ok((self.inner.into_inner(), topics))
     }
 }

@@ -56,7 +56,7 @@ fn write_sample(compression: Compression) -> Vec<u8> {
     );
     let (cursor, topics) = bag.finish().unwrap();
     assert_eq!(topics.len(), 2);
-    assert_eq!(topics[0].3.message_count, 1000);
+    assert_eq!(topics[0].stats.message_count, 1000);
     cursor.into_inner()
 }
 

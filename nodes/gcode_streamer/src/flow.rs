@@ -371,7 +371,7 @@ mod tests {
             }
             for seq in batch {
                 wire_count += 1;
-                if drop_every > 0 && wire_count % drop_every == 0 {
+                if drop_every > 0 && wire_count.is_multiple_of(drop_every) {
                     continue; // lost on the wire
                 }
                 if c.accept(seq) == Verdict::Process {

@@ -373,10 +373,10 @@ impl Interpreter {
             (b'G', 92) => {
                 let machine = self.machine_position_mm();
                 let mut mask = 0u8;
-                let all = !(0..4).any(|i| p.has(b"XYZE"[i]));
-                for a in 0..3 {
-                    if all || p.has(b"XYZ"[a]) {
-                        let value = p.get(b"XYZ"[a]).unwrap_or(0.0) * self.unit_mm;
+                let all = !b"XYZE".iter().any(|&letter| p.has(letter));
+                for (a, &letter) in b"XYZ".iter().enumerate() {
+                    if all || p.has(letter) {
+                        let value = p.get(letter).unwrap_or(0.0) * self.unit_mm;
                         self.logical_mm[a] = value;
                         self.offset_mm[a] = machine[a] - value;
                         mask |= 1 << a;

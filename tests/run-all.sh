@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# Every test of the suite: format, lints, Rust unit/integration tests, and the interop tests
+# against independent peers (Cyclone DDS, mcap-ros2-support, rosbags).
+#
+# DDS tests run inside a private network namespace (loopback only) so they never touch a real
+# network: as root, this script re-executes itself under `unshare -n`.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$(pwd)
+
+if [[ "${POLAR_CELL_NETNS:-}" != "1" ]]; then
+  # Tools and the Python peers first (network needed), then everything else offline.
+  cargo build --release --workspace --locked
+  if [[ ! -x .venv/bin/python ]]; then
+    python3 -m venv .venv
+  fi
+  .venv/bin/pip install --quiet --disable-pip-version-check -r tests/interop/requirements.txt
+  cargo test --workspace --locked --no-run --quiet
+  if [[ $(id -u) == 0 ]] && unshare -n true 2>/dev/null; then
+    exec env POLAR_CELL_NETNS=1 unshare -n "$0" "$@"
+  fi
+  echo "WARNING: cannot create a network namespace (needs root); DDS tests use the host's loopback" >&2
+  export POLAR_CELL_NETNS=host
+fi
+
+if [[ "${POLAR_CELL_NETNS}" == "1" ]]; then
+  ip link set lo up
+  ip link set lo multicast on
+fi
+
+echo "== cargo fmt"
+cargo fmt --all -- --check
+echo "== cargo clippy"
+cargo clippy --workspace --all-targets --locked --quiet -- -D warnings
+echo "== cargo test"
+cargo test --workspace --locked 2>&1 | tee /tmp/polar-cell-cargo-test.log | grep -E "^(test result|running|error|failures)|FAILED|panicked" || true
+if grep -qE "FAILED|error(\[|:)" /tmp/polar-cell-cargo-test.log || ! grep -q "test result" /tmp/polar-cell-cargo-test.log; then
+  cat /tmp/polar-cell-cargo-test.log
+  exit 1
+fi
+echo "== interop tests (Cyclone DDS, mcap-ros2-support, rosbags)"
+cd tests/interop
+POLAR_CELL_BIN_DIR="$root/target/release" "$root/.venv/bin/python" -m pytest -q -p no:cacheprovider

@@ -15,7 +15,7 @@ if [[ "${POLAR_CELL_NETNS:-}" != "1" ]]; then
     python3 -m venv .venv
   fi
   .venv/bin/pip install --quiet --disable-pip-version-check -r tests/interop/requirements.txt
-  cargo test --workspace --locked --no-run --quiet
+  cargo test --workspace --release --locked --no-run --quiet
   if [[ $(id -u) == 0 ]] && unshare -n true 2>/dev/null; then
     exec env POLAR_CELL_NETNS=1 unshare -n "$0" "$@"
   fi
@@ -33,7 +33,7 @@ cargo fmt --all -- --check
 echo "== cargo clippy"
 cargo clippy --workspace --all-targets --locked --quiet -- -D warnings
 echo "== cargo test"
-cargo test --workspace --locked 2>&1 | tee /tmp/polar-cell-cargo-test.log | grep -E "^(test result|running|error|failures)|FAILED|panicked" || true
+cargo test --workspace --release --locked 2>&1 | tee /tmp/polar-cell-cargo-test.log | grep -E "^(test result|running|error|failures)|FAILED|panicked" || true
 if grep -qE "FAILED|error(\[|:)" /tmp/polar-cell-cargo-test.log || ! grep -q "test result" /tmp/polar-cell-cargo-test.log; then
   cat /tmp/polar-cell-cargo-test.log
   exit 1

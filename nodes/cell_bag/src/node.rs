@@ -91,6 +91,9 @@ pub struct RecordSummary {
 
 type Item = (ChannelId, u64, u64, Vec<u8>);
 
+/// Messages queued for the bag writer thread at most.
+const WRITER_QUEUE: usize = 4096;
+
 /// A running recorder; [`Recorder::stop`] drains, finishes the bag, and returns its summary.
 pub struct Recorder {
     stop: watch::Sender<bool>,
@@ -154,8 +157,10 @@ fn publish_time(info: &ros2_client::MessageInfo, fallback: u64) -> u64 {
         .unwrap_or(fallback)
 }
 
-fn forward<T: RosMessage>(
-    tx: &mpsc::UnboundedSender<Item>,
+/// Hand a message to the bag writer, waiting while its queue is full: the back-pressure
+/// reaches the DDS readers and, on `/gcode/moves`, the streamer's window.
+async fn forward<T: RosMessage>(
+    tx: &mpsc::Sender<Item>,
     channel: ChannelId,
     message: &T,
     info: &ros2_client::MessageInfo,
@@ -164,6 +169,7 @@ fn forward<T: RosMessage>(
     match cdr::encode(message) {
         Ok(bytes) => tx
             .send((channel, log_time, publish_time(info, log_time), bytes))
+            .await
             .is_ok(),
         Err(e) => {
             tracing::error!("re-encoding a {}: {e}", T::TYPE.full_name());
@@ -177,7 +183,7 @@ fn spawn_tap<T: RosMessage>(
     topic: &str,
     qos: &QosProfile,
     channel: ChannelId,
-    tx: mpsc::UnboundedSender<Item>,
+    tx: mpsc::Sender<Item>,
     mut stop: watch::Receiver<bool>,
 ) -> anyhow::Result<tokio::task::JoinHandle<()>> {
     let sub: Subscription<T> = node.subscription(topic, qos)?;
@@ -185,12 +191,12 @@ fn spawn_tap<T: RosMessage>(
         loop {
             tokio::select! {
                 taken = sub.async_take() => match taken {
-                    Ok((m, info)) => if !forward(&tx, channel, &m, &info) { return },
+                    Ok((m, info)) => if !forward(&tx, channel, &m, &info).await { return },
                     Err(e) => tracing::warn!("recorder: read error: {e:?}"),
                 },
                 _ = stop.changed() => {
                     while let Ok(Some((m, info))) = sub.take() {
-                        forward(&tx, channel, &m, &info);
+                        forward(&tx, channel, &m, &info).await;
                     }
                     return;
                 }
@@ -206,7 +212,7 @@ fn spawn_moves_consumer(
     node: &mut CellNode,
     moves_channel: ChannelId,
     progress_channel: Option<ChannelId>,
-    tx: mpsc::UnboundedSender<Item>,
+    tx: mpsc::Sender<Item>,
     mut stop: watch::Receiver<bool>,
 ) -> anyhow::Result<tokio::task::JoinHandle<()>> {
     let (moves_qos, _) = qos_for("/gcode/moves", GcodeMove::TYPE.full_name().as_str());
@@ -224,7 +230,7 @@ fn spawn_moves_consumer(
                     Ok((m, info)) => {
                         idle_ticks = 0;
                         if tracker.accept(m.sequence) == Verdict::Process
-                            && !forward(&tx, moves_channel, &m, &info)
+                            && !forward(&tx, moves_channel, &m, &info).await
                         {
                             return;
                         }
@@ -242,7 +248,7 @@ fn spawn_moves_consumer(
                         }
                     }
                     if let Some(channel) = progress_channel {
-                        forward(&tx, channel, &p, &info);
+                        forward(&tx, channel, &p, &info).await;
                     }
                 },
                 _ = tick.tick() => {
@@ -259,7 +265,7 @@ fn spawn_moves_consumer(
                 _ = stop.changed() => {
                     while let Ok(Some((p, info))) = progress.take() {
                         if let Some(channel) = progress_channel {
-                            forward(&tx, channel, &p, &info);
+                            forward(&tx, channel, &p, &info).await;
                         }
                     }
                     return;
@@ -307,7 +313,7 @@ impl Recorder {
             .map(|t| parse_topic(t))
             .collect::<anyhow::Result<_>>()?;
         let acknowledge_moves = params.bool("acknowledge_moves");
-        let (tx, mut rx) = mpsc::unbounded_channel::<Item>();
+        let (tx, mut rx) = mpsc::channel::<Item>(WRITER_QUEUE);
         let (stop, stop_rx) = watch::channel(false);
         let mut taps = Vec::new();
         let mut moves_channel = None;

@@ -1,0 +1,130 @@
+//! `polar-cell print` end to end over DDS (run inside a private network namespace by
+//! tests/run-all.sh): every move reaches the bag exactly once and in order.
+
+use std::io::Write;
+use std::path::Path;
+use std::process::Command;
+
+use cell_bag::read_bag;
+use polar_cell_msgs::{cdr, GcodeMove};
+
+/// Tests run in parallel: each uses its own DDS domain so their nodes never meet.
+fn print(domain: u16, gcode: &Path, bag: &Path, extra: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .env("ROS_DOMAIN_ID", domain.to_string())
+        .arg("print")
+        .arg(gcode)
+        .arg("--bag")
+        .arg(bag)
+        .arg("--no-progress")
+        .args(extra)
+        .output()
+        .expect("running polar-cell");
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "polar-cell print failed:\n{stderr}");
+    stderr
+}
+
+/// Sequence numbers of `/gcode/moves` in file order, and the bag's count for the topic.
+fn recorded_moves(bag: &Path) -> (Vec<u64>, u64) {
+    let bytes = std::fs::read(bag).unwrap();
+    let contents = read_bag(&bytes).unwrap();
+    let count = contents
+        .info
+        .topics
+        .iter()
+        .find(|t| t.name == "/gcode/moves")
+        .map(|t| t.message_count)
+        .unwrap();
+    let mut seqs = Vec::new();
+    for m in contents.messages().unwrap() {
+        let m = m.unwrap();
+        if m.topic == "/gcode/moves" {
+            seqs.push(cdr::decode::<GcodeMove>(&m.data).unwrap().sequence);
+        }
+    }
+    (seqs, count)
+}
+
+#[test]
+fn a_million_moves_stream_with_zero_loss_in_order() {
+    const MOVES: u64 = 1_000_000;
+    let dir = std::env::temp_dir().join(format!("polar-cell-million-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let gcode = dir.join("million.gcode");
+    let mut f = std::io::BufWriter::new(std::fs::File::create(&gcode).unwrap());
+    for i in 0..MOVES {
+        let a = i as f64 * 0.01;
+        writeln!(
+            f,
+            "G1 X{:.3} Y{:.3} E{:.4} F3000",
+            30.0 * a.cos(),
+            30.0 * a.sin(),
+            i as f64 * 0.01
+        )
+        .unwrap();
+    }
+    drop(f);
+    let bag = dir.join("million.mcap");
+    let log = print(41, &gcode, &bag, &[]);
+    let (seqs, count) = recorded_moves(&bag);
+    std::fs::remove_dir_all(&dir).ok();
+    assert_eq!(count, MOVES, "{log}");
+    assert_eq!(seqs.len() as u64, MOVES);
+    assert!(
+        seqs.iter().enumerate().all(|(i, &s)| s == i as u64),
+        "out of order or duplicated"
+    );
+}
+
+#[test]
+fn small_window_forces_flow_control_and_still_loses_nothing() {
+    let fixture =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/polartest.gcode");
+    let dir = std::env::temp_dir().join(format!("polar-cell-window-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let bag = dir.join("w.mcap");
+    let log = print(42, &fixture, &bag, &["--ros-args", "-p", "window:=3"]);
+    let (seqs, count) = recorded_moves(&bag);
+    std::fs::remove_dir_all(&dir).ok();
+    assert_eq!(count, 1766, "{log}");
+    assert_eq!(seqs, (0..1766).collect::<Vec<u64>>());
+}
+
+#[test]
+fn unknown_parameter_is_an_error_that_names_it() {
+    let fixture =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .env("ROS_DOMAIN_ID", "43")
+        .args([
+            "print",
+            fixture.to_str().unwrap(),
+            "--bag",
+            "/dev/null",
+            "--no-progress",
+        ])
+        .args(["--ros-args", "-p", "windw:=3"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("windw"), "{stderr}");
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .env("ROS_DOMAIN_ID", "43")
+        .args([
+            "print",
+            fixture.to_str().unwrap(),
+            "--bag",
+            "/dev/null",
+            "--no-progress",
+        ])
+        .args(["--ros-args", "-p", "gcode_streamer:window:=many"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("parameter `window` is integer, got string `many`"),
+        "{stderr}"
+    );
+}

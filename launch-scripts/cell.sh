@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Start each node of the cell as its own process, parameters from params/cell.yaml.
+#   launch-scripts/cell.sh FILE.gcode [BAG.mcap]
+# Binaries come from target/release (build with `cargo build --release --workspace`) or from
+# $POLAR_CELL_BIN_DIR. Extra ROS arguments for every node can go in $POLAR_CELL_ROS_ARGS.
+set -euo pipefail
+here=$(cd "$(dirname "$0")" && pwd)
+bin=${POLAR_CELL_BIN_DIR:-$here/../target/release}
+params=$here/params/cell.yaml
+if [[ $# -lt 1 ]]; then
+  echo "usage: $0 FILE.gcode [BAG.mcap]" >&2
+  exit 2
+fi
+gcode=$1
+bag=${2:-cell.mcap}
+for b in bag_recorder gcode_streamer; do
+  [[ -x $bin/$b ]] || { echo "$bin/$b missing: cargo build --release --workspace" >&2; exit 1; }
+done
+# shellcheck disable=SC2086
+"$bin/bag_recorder" --ros-args --params-file "$params" -p "output:=$bag" ${POLAR_CELL_ROS_ARGS:-} &
+recorder=$!
+stop_recorder() { kill -INT "$recorder" 2>/dev/null || true; wait "$recorder"; }
+trap stop_recorder EXIT
+# shellcheck disable=SC2086
+"$bin/gcode_streamer" "$gcode" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-}
+sleep 0.3 # the last progress and diagnostics reach the recorder

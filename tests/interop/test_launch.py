@@ -1,0 +1,36 @@
+"""The launch scripts start the same nodes with the same parameters as `polar-cell print`."""
+
+import re
+import xml.etree.ElementTree as ET
+
+from mcap.reader import make_reader
+
+from conftest import BIN_DIR, FIXTURES, ROOT, gcode_motion_lines, run
+
+LAUNCH = ROOT / "launch-scripts"
+
+
+def test_cell_sh_prints_a_fixture_with_one_process_per_node(tmp_path):
+    bag = tmp_path / "cell.mcap"
+    run([LAUNCH / "cell.sh", FIXTURES / "polartest.gcode", bag], env={
+        "POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin",
+    })
+    with open(bag, "rb") as f:
+        summary = make_reader(f).get_summary()
+    counts = {
+        summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()
+    }
+    assert counts["/gcode/moves"] == len(gcode_motion_lines(FIXTURES / "polartest.gcode"))
+
+
+def test_launch_xml_names_existing_binaries_and_parameter_file():
+    root = ET.parse(LAUNCH / "cell.launch.xml").getroot()
+    args = {a.get("name"): a.get("default") for a in root.iter("arg")}
+    assert set(args) == {"gcode_file", "bag", "bin_dir", "params"}
+    commands = [e.get("cmd") for e in root.iter("executable")]
+    assert len(commands) == 2
+    for cmd in commands:
+        binary = re.match(r"\$\(var bin_dir\)/(\S+)", cmd).group(1)
+        assert (BIN_DIR / binary).exists(), binary
+        assert "--params-file $(var params)" in cmd
+    assert (LAUNCH / args["params"].replace("$(dirname)/", "")).exists()

@@ -232,9 +232,9 @@ fn parse_unsigned(line: &[u8], start: usize) -> Option<(u64, usize)> {
 }
 
 /// Parse `[+-]digits[.digits]` or `[+-].digits` starting at `start`; returns the value and the
-/// index after it. Up to 15 significant digits the result is exact to the last bit (an integer
-/// mantissa divided by an exact power of ten rounds once), so it equals `str::parse::<f64>`;
-/// longer numbers take `str::parse`.
+/// index after it. When the digits form an integer mantissa below 2^53 with at most 22
+/// fraction digits, the result is the mantissa divided by an exact power of ten, which rounds
+/// once and so equals `str::parse::<f64>` to the last bit; anything longer takes `str::parse`.
 pub(crate) fn parse_number(line: &[u8], start: usize) -> Option<(f64, usize)> {
     let mut i = start;
     let negative = match line.get(i) {
@@ -248,43 +248,42 @@ pub(crate) fn parse_number(line: &[u8], start: usize) -> Option<(f64, usize)> {
         }
         _ => false,
     };
+    let digits_start = i;
     let mut mantissa: u64 = 0;
-    let mut digits = 0u32;
-    let mut frac_digits = 0u32;
-    let mut seen_dot = false;
-    let mut any_digit = false;
-    while i < line.len() {
-        let b = line[i];
-        if b.is_ascii_digit() {
-            any_digit = true;
-            if mantissa != 0 || b != b'0' {
-                digits += 1;
-            }
-            if digits <= 19 {
-                mantissa = mantissa * 10 + (b - b'0') as u64;
-            }
-            if seen_dot {
-                frac_digits += 1;
-            }
-            i += 1;
-        } else if b == b'.' && !seen_dot {
-            seen_dot = true;
-            i += 1;
-        } else {
+    while let Some(&b) = line.get(i) {
+        let d = b.wrapping_sub(b'0');
+        if d > 9 {
             break;
         }
+        mantissa = mantissa.wrapping_mul(10).wrapping_add(d as u64);
+        i += 1;
     }
-    if !any_digit {
+    let int_digits = i - digits_start;
+    let mut frac_digits = 0;
+    if line.get(i) == Some(&b'.') {
+        i += 1;
+        let frac_start = i;
+        while let Some(&b) = line.get(i) {
+            let d = b.wrapping_sub(b'0');
+            if d > 9 {
+                break;
+            }
+            mantissa = mantissa.wrapping_mul(10).wrapping_add(d as u64);
+            i += 1;
+        }
+        frac_digits = i - frac_start;
+    }
+    if int_digits + frac_digits == 0 {
         return None;
     }
-    let value = if digits <= 15 && frac_digits <= 22 {
-        mantissa as f64 / POW10[frac_digits as usize]
-    } else {
-        let s = std::str::from_utf8(&line[start..i]).ok()?;
-        let s = s.strip_suffix('.').unwrap_or(s);
-        return s.parse::<f64>().ok().map(|v| (v, i));
-    };
-    Some((if negative { -value } else { value }, i))
+    // 19 digits cannot overflow u64; below 2^53 the mantissa is exact in f64.
+    if int_digits + frac_digits <= 19 && mantissa < (1u64 << 53) && frac_digits <= 22 {
+        let value = mantissa as f64 / POW10[frac_digits];
+        return Some((if negative { -value } else { value }, i));
+    }
+    let s = std::str::from_utf8(&line[start..i]).ok()?;
+    let s = s.strip_suffix('.').unwrap_or(s);
+    s.parse::<f64>().ok().map(|v| (v, i))
 }
 
 const POW10: [f64; 23] = [

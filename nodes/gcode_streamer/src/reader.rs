@@ -1,7 +1,9 @@
 //! Incremental reading: one line at a time from any `BufRead`, so memory does not grow with the
 //! file's length (only with its longest line, which is capped).
+//!
+//! Lines that lie whole in the reader's buffer are interpreted in place, without a copy; only a
+//! line split across two buffer fills is assembled in a side buffer.
 
-use std::collections::VecDeque;
 use std::io::BufRead;
 
 use polar_cell_msgs::GcodeMove;
@@ -24,9 +26,12 @@ pub struct GcodeReader<R> {
     input: R,
     interpreter: Interpreter,
     file: String,
-    line_buf: Vec<u8>,
-    pending: VecDeque<Event>,
+    /// A line split across buffer fills, assembled here.
+    partial: Vec<u8>,
+    /// The current line's output, served warnings first, then moves.
     output: LineOutput,
+    next_warning: usize,
+    next_move: usize,
     line_number: u32,
     bytes_read: u64,
     finished: bool,
@@ -39,9 +44,10 @@ impl<R: BufRead> GcodeReader<R> {
             input,
             interpreter: Interpreter::new(file.clone(), options),
             file,
-            line_buf: Vec::with_capacity(256),
-            pending: VecDeque::new(),
+            partial: Vec::new(),
             output: LineOutput::default(),
+            next_warning: 0,
+            next_move: 0,
             line_number: 0,
             bytes_read: 0,
             finished: false,
@@ -58,51 +64,109 @@ impl<R: BufRead> GcodeReader<R> {
         self.bytes_read
     }
 
-    /// Read lines until at least one event is pending or input ends.
+    fn io_error(&self, e: std::io::Error) -> GcodeError {
+        GcodeError {
+            file: self.file.clone(),
+            line: self.line_number + 1,
+            column: 0,
+            kind: ErrorKind::Io(e.to_string()),
+        }
+    }
+
+    fn too_long(&mut self) -> GcodeError {
+        self.finished = true;
+        GcodeError {
+            file: self.file.clone(),
+            line: self.line_number + 1,
+            column: MAX_LINE_BYTES as u32,
+            kind: ErrorKind::LineTooLong {
+                limit: MAX_LINE_BYTES,
+            },
+        }
+    }
+
+    /// Interpret lines until the current line produced output or input ends.
     fn fill(&mut self) -> Result<(), GcodeError> {
-        while self.pending.is_empty() && !self.finished {
-            self.line_buf.clear();
-            let n = std::io::Read::take(&mut self.input, MAX_LINE_BYTES as u64 + 1)
-                .read_until(b'\n', &mut self.line_buf)
-                .map_err(|e| GcodeError {
-                    file: self.file.clone(),
-                    line: self.line_number + 1,
-                    column: 0,
-                    kind: ErrorKind::Io(e.to_string()),
-                })?;
-            if n == 0 {
+        while !self.has_pending() && !self.finished {
+            self.output.moves.clear();
+            self.output.warnings.clear();
+            self.next_warning = 0;
+            self.next_move = 0;
+            let buf = match self.input.fill_buf() {
+                Ok(buf) => buf,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => return Err(self.io_error(e)),
+            };
+            if buf.is_empty() {
                 self.finished = true;
+                if self.partial.is_empty() {
+                    break;
+                }
+                // Last line without a terminator.
+                self.line_number += 1;
+                let line = std::mem::take(&mut self.partial);
+                self.interpreter
+                    .feed_line(self.line_number, &line, &mut self.output)?;
                 break;
             }
-            self.bytes_read += n as u64;
-            self.line_number += 1;
-            let line = match self.line_buf.strip_suffix(b"\n") {
-                Some(l) => l,
-                None if n > MAX_LINE_BYTES => {
-                    self.finished = true;
-                    return Err(GcodeError {
-                        file: self.file.clone(),
-                        line: self.line_number,
-                        column: MAX_LINE_BYTES as u32,
-                        kind: ErrorKind::LineTooLong {
-                            limit: MAX_LINE_BYTES,
-                        },
-                    });
+            let (consumed, result) = match memchr::memchr(b'\n', buf) {
+                Some(end) if self.partial.is_empty() => {
+                    self.line_number += 1;
+                    let line = &buf[..end];
+                    if line.len() > MAX_LINE_BYTES {
+                        (end + 1, Err(()))
+                    } else {
+                        let r =
+                            self.interpreter
+                                .feed_line(self.line_number, line, &mut self.output);
+                        (end + 1, Ok(r))
+                    }
                 }
-                None => &self.line_buf[..],
+                Some(end) => {
+                    self.line_number += 1;
+                    self.partial.extend_from_slice(&buf[..end]);
+                    if self.partial.len() > MAX_LINE_BYTES {
+                        (end + 1, Err(()))
+                    } else {
+                        let r = self.interpreter.feed_line(
+                            self.line_number,
+                            &self.partial,
+                            &mut self.output,
+                        );
+                        self.partial.clear();
+                        (end + 1, Ok(r))
+                    }
+                }
+                None => {
+                    self.partial.extend_from_slice(buf);
+                    let n = buf.len();
+                    if self.partial.len() > MAX_LINE_BYTES {
+                        (n, Err(()))
+                    } else {
+                        (n, Ok(Ok(())))
+                    }
+                }
             };
-            self.interpreter
-                .feed_line(self.line_number, line, &mut self.output)
-                .inspect_err(|_| {
+            self.input.consume(consumed);
+            self.bytes_read += consumed as u64;
+            match result {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => {
                     self.output.moves.clear();
                     self.output.warnings.clear();
-                })?;
-            self.pending
-                .extend(self.output.warnings.drain(..).map(Event::Warning));
-            self.pending
-                .extend(self.output.moves.drain(..).map(Event::Move));
+                    return Err(e);
+                }
+                Err(()) => {
+                    self.line_number = self.line_number.saturating_sub(1);
+                    return Err(self.too_long());
+                }
+            }
         }
         Ok(())
+    }
+
+    fn has_pending(&self) -> bool {
+        self.next_warning < self.output.warnings.len() || self.next_move < self.output.moves.len()
     }
 }
 
@@ -113,7 +177,22 @@ impl<R: BufRead> Iterator for GcodeReader<R> {
         if let Err(e) = self.fill() {
             return Some(Err(e));
         }
-        self.pending.pop_front().map(Ok)
+        if let Some(w) = self.output.warnings.get_mut(self.next_warning) {
+            self.next_warning += 1;
+            return Some(Ok(Event::Warning(std::mem::replace(
+                w,
+                Warning {
+                    line: 0,
+                    column: 0,
+                    message: String::new(),
+                },
+            ))));
+        }
+        if let Some(m) = self.output.moves.get_mut(self.next_move) {
+            self.next_move += 1;
+            return Some(Ok(Event::Move(std::mem::take(m))));
+        }
+        None
     }
 }
 
@@ -132,4 +211,52 @@ pub fn parse_all(
         }
     }
     Ok((moves, warnings))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A reader whose buffer holds only a few bytes, so lines straddle buffer fills.
+    #[test]
+    fn lines_split_across_buffer_fills_parse_the_same() {
+        let src = b"G1 X1.5 Y2\nG1 X3 ; comment\n\nG92 E0\nG1 X4 E1";
+        let whole = parse_all(src, "w", InterpreterOptions::default()).unwrap();
+        for capacity in 1..8 {
+            let reader = std::io::BufReader::with_capacity(capacity, &src[..]);
+            let mut moves = Vec::new();
+            for e in GcodeReader::new(reader, "w", InterpreterOptions::default()) {
+                if let Event::Move(m) = e.unwrap() {
+                    moves.push(m);
+                }
+            }
+            assert_eq!(moves, whole.0, "capacity {capacity}");
+        }
+        let mut r = GcodeReader::new(&src[..], "w", InterpreterOptions::default());
+        assert_eq!(r.by_ref().count(), 4);
+        assert_eq!(r.lines_read(), 5);
+        assert_eq!(r.bytes_read(), src.len() as u64);
+    }
+
+    #[test]
+    fn too_long_lines_are_errors_whether_buffered_or_not() {
+        let long = vec![b' '; MAX_LINE_BYTES + 10];
+        let mut with_newline = long.clone();
+        with_newline.push(b'\n');
+        for src in [&long, &with_newline] {
+            for capacity in [1024, 1 << 20] {
+                let reader = std::io::BufReader::with_capacity(capacity, &src[..]);
+                let err = GcodeReader::new(reader, "l", InterpreterOptions::default())
+                    .find_map(|e| e.err())
+                    .unwrap();
+                assert_eq!(
+                    err.kind,
+                    ErrorKind::LineTooLong {
+                        limit: MAX_LINE_BYTES
+                    }
+                );
+                assert_eq!(err.line, 1);
+            }
+        }
+    }
 }

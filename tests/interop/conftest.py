@@ -74,3 +74,17 @@ def printed_bags(polar_cell, tmp_path_factory):
         run([polar_cell, "print", FIXTURES / name, "--bag", directory, "--bag-dir", "--no-progress"])
         bags[name] = (bare, directory)
     return bags
+
+
+def assert_readable_by_independent_readers(bag: Path):
+    """mcap-ros2-support and rosbags decode every message; counts equal the bag's statistics."""
+    from test_bags import mcap_file, read_with_mcap_ros2, read_with_rosbags
+
+    decoded, stats, summary = read_with_mcap_ros2(mcap_file(bag))
+    for topic in {c.topic for c in summary.channels.values()}:
+        assert len(decoded.get(topic, [])) == stats.get(topic, 0), (bag, topic)
+    by_rosbags, counts = read_with_rosbags(bag)
+    assert counts == {t: stats.get(t, 0) for t in counts}, bag
+    for topic, count in counts.items():
+        assert len(by_rosbags.get(topic, [])) == count, (bag, topic)
+    return decoded

@@ -5,6 +5,7 @@ The Python peer here is a second, independent implementation of the flow-control
 `polar-cell print` only finishes if Cyclone's acknowledgements reach our subscriber.
 """
 
+import signal
 import subprocess
 import time
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ from cyclonedds.util import duration
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from conftest import FIXTURES, binary, gcode_motion_lines
+from conftest import FIXTURES, assert_readable_by_independent_readers, binary, gcode_motion_lines
 
 
 @dataclass
@@ -214,6 +215,7 @@ def test_cyclone_consumer_decodes_moves_and_its_acks_gate_the_stream(polar_cell,
         and {kv.key: kv.value for kv in s.values}["moves"] == str(len(lines))
         for s in statuses
     ), statuses
+    assert_readable_by_independent_readers(bag)
     # Cyclone's acknowledgements reached our nodes (and the recorder recorded them).
     with open(bag, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
@@ -265,13 +267,17 @@ def test_print_nodes_appear_under_their_default_names(polar_cell, tmp_path):
     proc = subprocess.Popen(
         [str(polar_cell), "print", str(FIXTURES / "finger.gcode"), "--bag", str(tmp_path / "x.mcap"),
          "--no-progress", "--ros-args", "-p", "gcode_streamer:consumers:=[/bag_recorder, /absent]",
-         "-p", "consumer_timeout_s:=6.0"],
+         "-p", "consumer_timeout_s:=60.0"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
         nodes = discovered_nodes(participant, 4.0)
     finally:
-        proc.kill()
-        proc.communicate()
+        # SIGINT: the nodes shut down cleanly and the bag is finished.
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "interrupted; the bag was finished" in err
+    assert_readable_by_independent_readers(tmp_path / "x.mcap")
     assert ("/", "gcode_streamer") in nodes, sorted(nodes)
     assert ("/", "bag_recorder") in nodes, sorted(nodes)

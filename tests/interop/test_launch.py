@@ -5,7 +5,7 @@ import xml.etree.ElementTree as ET
 
 from mcap.reader import make_reader
 
-from conftest import BIN_DIR, FIXTURES, ROOT, gcode_motion_lines, run
+from conftest import BIN_DIR, FIXTURES, ROOT, assert_readable_by_independent_readers, gcode_motion_lines, run
 
 LAUNCH = ROOT / "launch-scripts"
 
@@ -15,6 +15,7 @@ def test_cell_sh_prints_a_fixture_with_one_process_per_node(tmp_path):
     run([LAUNCH / "cell.sh", FIXTURES / "polartest.gcode", bag], env={
         "POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin",
     })
+    assert_readable_by_independent_readers(bag)
     with open(bag, "rb") as f:
         summary = make_reader(f).get_summary()
     counts = {

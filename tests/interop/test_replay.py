@@ -11,7 +11,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from mcap.reader import make_reader
 
-from conftest import FIXTURES, binary, gcode_motion_lines, run
+from conftest import FIXTURES, assert_readable_by_independent_readers, binary, gcode_motion_lines, run
 from test_dds import GcodeAck, GcodeMove, GcodeProgress, ros_qos, valid
 
 
@@ -37,6 +37,7 @@ def test_record_play_rerecord_is_identical(polar_cell, printed_bags, tmp_path):
         recorder.send_signal(signal.SIGINT)
         _, err = recorder.communicate(timeout=30)
     assert recorder.returncode == 0, err
+    assert_readable_by_independent_readers(rerecorded)
     before = raw_messages(original)
     after = raw_messages(rerecorded)
 
@@ -130,6 +131,7 @@ def test_restarted_consumer_resumes_without_loss_or_duplicates(polar_cell, tmp_p
     finally:
         proc.kill()
     assert proc.returncode == 0, err
+    assert_readable_by_independent_readers(tmp_path / "r.mcap")
     total = len(gcode_motion_lines(FIXTURES / name))
     assert crashed_with_uncommitted >= 1
     acknowledged = len(first_committed)

@@ -12,7 +12,11 @@ use polar_cell_msgs::GcodeMove;
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    let count: u64 = std::env::args().nth(1).map(|a| a.parse()).transpose()?.unwrap_or(200_000);
+    let count: u64 = std::env::args()
+        .nth(1)
+        .map(|a| a.parse())
+        .transpose()?
+        .unwrap_or(200_000);
     let args = RosArgs::default();
     let mut sender = CellNode::start("raw_sender", &[], &args)?;
     let mut receiver = CellNode::start("raw_receiver", &[], &args)?;

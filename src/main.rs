@@ -87,13 +87,7 @@ fn split_ros_args() -> anyhow::Result<(Vec<String>, RosArgs)> {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| "warn,polar_cell=info,rustdds=error,rustdds::network::udp_listener=off,ros2_client=error".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    cell_runtime::init_logging("warn,polar_cell=info");
     let (argv, ros_args) = split_ros_args()?;
     let cli = Cli::parse_from(argv);
     match cli.command {

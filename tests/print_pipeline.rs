@@ -91,38 +91,30 @@ fn small_window_forces_flow_control_and_still_loses_nothing() {
     assert_eq!(seqs, (0..1766).collect::<Vec<u64>>());
 }
 
-#[test]
-fn unknown_parameter_is_an_error_that_names_it() {
+/// Stderr of a `print` of finger.gcode with these ROS arguments that must fail.
+fn failing_print(ros_args: &[&str]) -> String {
     let fixture =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
     let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
         .env("ROS_DOMAIN_ID", "43")
-        .args([
-            "print",
-            fixture.to_str().unwrap(),
-            "--bag",
-            "/dev/null",
-            "--no-progress",
-        ])
-        .args(["--ros-args", "-p", "windw:=3"])
+        .arg("print")
+        .arg(&fixture)
+        .args(["--bag", "/dev/null", "--no-progress", "--ros-args"])
+        .args(ros_args)
         .output()
         .unwrap();
     assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(stderr.contains("windw"), "{stderr}");
-    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
-        .env("ROS_DOMAIN_ID", "43")
-        .args([
-            "print",
-            fixture.to_str().unwrap(),
-            "--bag",
-            "/dev/null",
-            "--no-progress",
-        ])
-        .args(["--ros-args", "-p", "gcode_streamer:window:=many"])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+#[test]
+fn unknown_parameter_is_an_error_that_names_it() {
+    let stderr = failing_print(&["-p", "windw:=3"]);
+    assert!(
+        stderr.contains("-p windw:=3: no node of this process declares `windw`"),
+        "{stderr}"
+    );
+    let stderr = failing_print(&["-p", "gcode_streamer:window:=many"]);
     assert!(
         stderr.contains("parameter `window` is integer, got string `many`"),
         "{stderr}"

@@ -18,6 +18,22 @@ pub use names::{NameError, NameResolver};
 pub use params::{ParamError, ParamSpec, ParamValue, Params};
 pub use ros2_client::ros2::LogLevel;
 
+/// Log to stderr through `tracing`, filtered by `RUST_LOG` or else `default_filter`. RustDDS's
+/// own warnings are errors-only by default, and its multicast-join complaints on a loopback
+/// without multicast are silenced.
+pub fn init_logging(default_filter: &str) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+        format!(
+            "{default_filter},rustdds=error,rustdds::network::udp_listener=off,ros2_client=error"
+        )
+        .into()
+    });
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .init();
+}
+
 /// Why a node could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum RuntimeError {

@@ -248,30 +248,15 @@ pub(crate) fn parse_number(line: &[u8], start: usize) -> Option<(f64, usize)> {
         }
         _ => false,
     };
-    let digits_start = i;
-    let mut mantissa: u64 = 0;
-    while let Some(&b) = line.get(i) {
-        let d = b.wrapping_sub(b'0');
-        if d > 9 {
-            break;
-        }
-        mantissa = mantissa.wrapping_mul(10).wrapping_add(d as u64);
-        i += 1;
-    }
-    let int_digits = i - digits_start;
+    let (after_int, mut mantissa) = accumulate_digits(line, i, 0);
+    let int_digits = after_int - i;
+    i = after_int;
     let mut frac_digits = 0;
     if line.get(i) == Some(&b'.') {
-        i += 1;
-        let frac_start = i;
-        while let Some(&b) = line.get(i) {
-            let d = b.wrapping_sub(b'0');
-            if d > 9 {
-                break;
-            }
-            mantissa = mantissa.wrapping_mul(10).wrapping_add(d as u64);
-            i += 1;
-        }
-        frac_digits = i - frac_start;
+        let (after_frac, m) = accumulate_digits(line, i + 1, mantissa);
+        frac_digits = after_frac - (i + 1);
+        mantissa = m;
+        i = after_frac;
     }
     if int_digits + frac_digits == 0 {
         return None;
@@ -284,6 +269,20 @@ pub(crate) fn parse_number(line: &[u8], start: usize) -> Option<(f64, usize)> {
     let s = std::str::from_utf8(&line[start..i]).ok()?;
     let s = s.strip_suffix('.').unwrap_or(s);
     s.parse::<f64>().ok().map(|v| (v, i))
+}
+
+/// Append the decimal digits starting at `i` to `mantissa` (wrapping: callers check the digit
+/// count); returns the index after the digits and the new mantissa.
+fn accumulate_digits(line: &[u8], mut i: usize, mut mantissa: u64) -> (usize, u64) {
+    while let Some(&b) = line.get(i) {
+        let d = b.wrapping_sub(b'0');
+        if d > 9 {
+            break;
+        }
+        mantissa = mantissa.wrapping_mul(10).wrapping_add(d as u64);
+        i += 1;
+    }
+    (i, mantissa)
 }
 
 const POW10: [f64; 23] = [

@@ -311,6 +311,7 @@ pub struct StepSegment {
     pub accelerate_steps: u32,
     pub cruise_steps: u32,
     pub decelerate_steps: u32,
+    pub duration_s: f64,
 }
 ros_message!(StepSegment => schema::STEP_SEGMENT);
 

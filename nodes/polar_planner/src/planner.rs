@@ -1,0 +1,780 @@
+//! The lookahead planner: `GcodeMove`s in, timed joint trajectories out.
+//!
+//! Each move becomes one or more blocks: a *path* block (a line, split into nodes), a *fixed*
+//! block (a rotation of the bed at the centre, a dwell, an extruder-only move — the stage is at
+//! rest before and after), or a *marker* (no motion: G92). Path blocks queue up to the
+//! lookahead; their speeds are planned together so corners are taken without stopping, with
+//! the queue always able to stop at its end. When the queue is full its first half is
+//! emitted; a fixed block flushes everything before it.
+//!
+//! At the centre θ is undefined. A line whose support passes within `center_radius` of the
+//! centre (inside the segment) is taken through the centre itself — the path then deviates
+//! from the commanded line by at most that radius. Without negative radii the stage stops at
+//! the centre, the bed turns by π, and the arm goes on; with them the arm crosses the centre
+//! with θ held. A move starting at the centre first turns the bed to the move's heading.
+
+use std::collections::VecDeque;
+
+use polar_cell_msgs::GcodeMove;
+
+use crate::path::{continuous_theta, subdivide, Joints, Line, PathNode};
+use crate::timing::{plan_speeds, JointLimits, SpeedLimits, SpeedNode};
+
+/// Joint order everywhere: bed, arm, z.
+pub const JOINT_NAMES: [&str; 3] = ["bed_theta", "arm_r", "z"];
+
+/// Planner settings; defaults match `urdf/polar_cell.urdf`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlannerOptions {
+    /// Largest distance of the executed joint path from the commanded line (m).
+    pub path_tolerance_m: f64,
+    /// Lines passing closer than this to the centre are taken through it (m).
+    pub center_radius_m: f64,
+    /// Let the arm cross the centre with a negative radius instead of turning the bed.
+    pub allow_negative_r: bool,
+    /// Limits of `bed_theta`, `arm_r`, `z`.
+    pub joints: [JointLimits; 3],
+    /// Tangential acceleration of the tool (m/s²).
+    pub max_tool_acceleration_m_per_s2: f64,
+    /// Nodes at least this close along a line, so the speed profile is sampled finely (m).
+    pub max_node_spacing_m: f64,
+    /// Path blocks planned together.
+    pub lookahead_blocks: usize,
+    /// Speed of G28 homing moves (m/s).
+    pub homing_speed_m_per_s: f64,
+    /// Fraction of each acceleration limit the planner uses (the rest covers the variation of
+    /// the path's curvature between nodes).
+    pub acceleration_safety: f64,
+    /// Joint position at start-up.
+    pub initial_joints: Joints,
+}
+
+impl Default for PlannerOptions {
+    fn default() -> Self {
+        PlannerOptions {
+            path_tolerance_m: 5e-6,
+            center_radius_m: 1e-6,
+            allow_negative_r: false,
+            joints: [
+                JointLimits {
+                    velocity: 6.0,
+                    acceleration: 40.0,
+                    velocity_jump: 0.1,
+                    position: None,
+                },
+                JointLimits {
+                    velocity: 0.2,
+                    acceleration: 3.0,
+                    velocity_jump: 0.01,
+                    position: Some((0.0, 0.15)),
+                },
+                JointLimits {
+                    velocity: 0.02,
+                    acceleration: 0.5,
+                    velocity_jump: 0.002,
+                    position: Some((0.0, 0.3)),
+                },
+            ],
+            max_tool_acceleration_m_per_s2: 3.0,
+            max_node_spacing_m: 0.002,
+            lookahead_blocks: 64,
+            homing_speed_m_per_s: 0.05,
+            acceleration_safety: 0.9,
+            initial_joints: [0.0, 0.0, 0.0],
+        }
+    }
+}
+
+/// A planned instant: joints, their rates, and the Cartesian tool speed.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct TrajPoint {
+    /// Plan time (s from the start of planning).
+    pub t: f64,
+    pub q: Joints,
+    pub qd: Joints,
+    pub qdd: Joints,
+    /// True Cartesian tool speed |ṗ| (m/s), from the planned path speed.
+    pub tool_speed: f64,
+}
+
+/// The plan of one `GcodeMove`.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct PlannedMove {
+    pub sequence: u64,
+    pub source_line: u32,
+    pub kind: u8,
+    /// Commanded Cartesian length (m) and extruder change (m) of the move.
+    pub length_m: f64,
+    pub delta_e_m: f64,
+    pub extrude: bool,
+    /// At least one point; consecutive points with a path between them; a corner between two
+    /// moves repeats the time with the velocity jump.
+    pub points: Vec<TrajPoint>,
+}
+
+impl PlannedMove {
+    pub fn start_time(&self) -> f64 {
+        self.points.first().map_or(0.0, |p| p.t)
+    }
+    pub fn end_time(&self) -> f64 {
+        self.points.last().map_or(0.0, |p| p.t)
+    }
+}
+
+/// Why a move cannot be planned.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PlanError {
+    #[error(
+        "move {sequence} (line {line}): {joint} would reach {value:.6}, outside [{min}, {max}]"
+    )]
+    OutOfRange {
+        sequence: u64,
+        line: u32,
+        joint: &'static str,
+        value: f64,
+        min: f64,
+        max: f64,
+    },
+    #[error("move {sequence} (line {line}): feedrate {feed} m/s is not positive")]
+    BadFeedrate { sequence: u64, line: u32, feed: f64 },
+    #[error("invalid planner option: {0}")]
+    Options(String),
+}
+
+#[derive(Clone, Debug)]
+enum BlockKind {
+    Path {
+        feed: f64,
+        nodes: Vec<PathNode>,
+        /// Where |θ'| = |c|/|p|² peaks (closest approach to the centre) and its value; the
+        /// nodes around it are capped with it so the bed's speed holds between nodes too.
+        theta_rate_peak: Option<(f64, f64)>,
+    },
+    /// Precomputed points relative to the block start (t from 0), at rest at both ends.
+    Fixed {
+        points: Vec<TrajPoint>,
+    },
+    Marker,
+}
+
+#[derive(Clone, Debug)]
+struct Block {
+    kind: BlockKind,
+    /// Index into the pending moves.
+    sequence: u64,
+    last_of_move: bool,
+}
+
+/// The streaming planner. Feed moves with [`Planner::push`], finish with [`Planner::flush`].
+pub struct Planner {
+    options: PlannerOptions,
+    limits: SpeedLimits,
+    /// Joints at the end of everything queued.
+    q_end: Joints,
+    /// Cartesian position at the end of everything queued.
+    p_end: [f64; 3],
+    queue: VecDeque<Block>,
+    /// Moves whose blocks are queued or partly emitted, in order.
+    moves: VecDeque<PlannedMove>,
+    /// Plan time and state at the head of the queue.
+    t_head: f64,
+    v2_head: f64,
+    scratch_s: Vec<f64>,
+    scratch_nodes: Vec<SpeedNode>,
+    scratch_v2: Vec<f64>,
+    path_blocks_queued: usize,
+    /// The last emitted point: a marker is an instant of the motion going on there.
+    last_emitted: TrajPoint,
+}
+
+impl Planner {
+    pub fn new(options: PlannerOptions) -> Result<Self, PlanError> {
+        let o = &options;
+        if o.path_tolerance_m.is_nan()
+            || o.path_tolerance_m <= 0.0
+            || o.center_radius_m.is_nan()
+            || o.center_radius_m < 0.0
+        {
+            return Err(PlanError::Options(
+                "path_tolerance_m must be > 0, center_radius_m >= 0".into(),
+            ));
+        }
+        if o.center_radius_m > o.path_tolerance_m {
+            return Err(PlanError::Options(format!(
+                "center_radius_m ({}) must not exceed path_tolerance_m ({}): the detour through the centre would leave the tolerance",
+                o.center_radius_m, o.path_tolerance_m
+            )));
+        }
+        if o.joints
+            .iter()
+            .any(|j| !(j.velocity > 0.0 && j.acceleration > 0.0 && j.velocity_jump >= 0.0))
+        {
+            return Err(PlanError::Options(
+                "joint velocity and acceleration limits must be > 0".into(),
+            ));
+        }
+        if !(o.acceleration_safety > 0.0 && o.acceleration_safety <= 1.0) || o.lookahead_blocks < 2
+        {
+            return Err(PlanError::Options(
+                "acceleration_safety in (0, 1], lookahead_blocks >= 2".into(),
+            ));
+        }
+        let safety = o.acceleration_safety;
+        let limits = SpeedLimits {
+            joint_velocity: [
+                o.joints[0].velocity,
+                o.joints[1].velocity,
+                o.joints[2].velocity,
+            ],
+            joint_acceleration: [
+                o.joints[0].acceleration * safety,
+                o.joints[1].acceleration * safety,
+                o.joints[2].acceleration * safety,
+            ],
+            tool_acceleration: o.max_tool_acceleration_m_per_s2,
+        };
+        let q0 = o.initial_joints;
+        Ok(Planner {
+            limits,
+            q_end: q0,
+            p_end: crate::path::forward(q0),
+            options,
+            queue: VecDeque::new(),
+            moves: VecDeque::new(),
+            t_head: 0.0,
+            v2_head: 0.0,
+            scratch_s: Vec::new(),
+            scratch_nodes: Vec::new(),
+            scratch_v2: Vec::new(),
+            path_blocks_queued: 0,
+            last_emitted: TrajPoint {
+                q: q0,
+                ..TrajPoint::default()
+            },
+        })
+    }
+
+    pub fn options(&self) -> &PlannerOptions {
+        &self.options
+    }
+
+    /// Plan time at which everything emitted so far ends.
+    pub fn time_emitted(&self) -> f64 {
+        self.t_head
+    }
+
+    /// Queue one move; finished plans are appended to `out` in move order.
+    pub fn push(&mut self, m: &GcodeMove, out: &mut Vec<PlannedMove>) -> Result<(), PlanError> {
+        let target = [m.x_m, m.y_m, m.z_m];
+        let length = crate::path::dist3(self.p_end, target);
+        self.moves.push_back(PlannedMove {
+            sequence: m.sequence,
+            source_line: m.source_line,
+            kind: m.kind,
+            length_m: length,
+            delta_e_m: m.delta_e_m,
+            extrude: m.extrude,
+            points: Vec::new(),
+        });
+        let seq = m.sequence;
+        match m.kind {
+            GcodeMove::KIND_DWELL => {
+                self.push_fixed(seq, self.rest_points(m.dwell_s.max(0.0)), true, out);
+            }
+            GcodeMove::KIND_SET_POSITION => self.push_block(
+                Block {
+                    kind: BlockKind::Marker,
+                    sequence: seq,
+                    last_of_move: true,
+                },
+                out,
+            ),
+            _ => {
+                let feed = if m.kind == GcodeMove::KIND_HOME {
+                    self.options.homing_speed_m_per_s
+                } else {
+                    m.feedrate_m_per_s
+                };
+                if feed.is_nan() || feed <= 0.0 {
+                    self.moves.pop_back();
+                    return Err(PlanError::BadFeedrate {
+                        sequence: seq,
+                        line: m.source_line,
+                        feed,
+                    });
+                }
+                if let Err(e) = self.check_range(m, target) {
+                    self.moves.pop_back();
+                    return Err(e);
+                }
+                if length == 0.0 {
+                    if m.delta_e_m != 0.0 {
+                        // Extruder only (retract, prime): the stage rests for the E motion.
+                        let duration = m.delta_e_m.abs() / feed;
+                        self.push_fixed(seq, self.rest_points(duration), true, out);
+                    } else {
+                        self.push_block(
+                            Block {
+                                kind: BlockKind::Marker,
+                                sequence: seq,
+                                last_of_move: true,
+                            },
+                            out,
+                        );
+                    }
+                } else {
+                    self.push_line(seq, target, feed, out);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Plan and emit everything queued, ending at rest.
+    pub fn flush(&mut self, out: &mut Vec<PlannedMove>) {
+        let n = self.queue.len();
+        self.emit(n, out);
+    }
+
+    fn check_range(&self, m: &GcodeMove, target: [f64; 3]) -> Result<(), PlanError> {
+        let r = target[0].hypot(target[1]);
+        for (j, value) in [(1usize, r), (2usize, target[2])] {
+            if let Some((min, max)) = self.options.joints[j].position {
+                let min_allowed = if j == 1 && self.options.allow_negative_r {
+                    -max
+                } else {
+                    min
+                };
+                let v = if j == 1 && self.options.allow_negative_r {
+                    r
+                } else {
+                    value
+                };
+                if v < min_allowed - 1e-12 || v > max + 1e-12 {
+                    return Err(PlanError::OutOfRange {
+                        sequence: m.sequence,
+                        line: m.source_line,
+                        joint: JOINT_NAMES[j],
+                        value: v,
+                        min: min_allowed,
+                        max,
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn rest_points(&self, duration: f64) -> Vec<TrajPoint> {
+        let p = TrajPoint {
+            t: 0.0,
+            q: self.q_end,
+            ..TrajPoint::default()
+        };
+        vec![p, TrajPoint { t: duration, ..p }]
+    }
+
+    /// A time-optimal turn of the bed by `delta` at rest elsewhere (trapezoid in θ).
+    fn rotation_points(&self, delta: f64) -> Vec<TrajPoint> {
+        let limits = &self.options.joints[0];
+        let (w, a) = (
+            limits.velocity,
+            limits.acceleration * self.options.acceleration_safety,
+        );
+        let dist = delta.abs();
+        let sign = delta.signum();
+        let q0 = self.q_end;
+        let at = |t: f64, theta: f64, w: f64, acc: f64| TrajPoint {
+            t,
+            q: [q0[0] + sign * theta, q0[1], q0[2]],
+            qd: [sign * w, 0.0, 0.0],
+            qdd: [sign * acc, 0.0, 0.0],
+            tool_speed: q0[1].abs() * w,
+        };
+        let t_acc = w / a;
+        if a * t_acc * t_acc >= dist {
+            let t1 = (dist / a).sqrt();
+            vec![
+                at(0.0, 0.0, 0.0, a),
+                at(t1, 0.5 * dist, a * t1, -a),
+                at(2.0 * t1, dist, 0.0, -a),
+            ]
+        } else {
+            let d_acc = 0.5 * a * t_acc * t_acc;
+            let t_cruise = (dist - 2.0 * d_acc) / w;
+            vec![
+                at(0.0, 0.0, 0.0, a),
+                at(t_acc, d_acc, w, 0.0),
+                at(t_acc + t_cruise, dist - d_acc, w, -a),
+                at(2.0 * t_acc + t_cruise, dist, 0.0, -a),
+            ]
+        }
+    }
+
+    fn push_fixed(
+        &mut self,
+        seq: u64,
+        points: Vec<TrajPoint>,
+        last: bool,
+        out: &mut Vec<PlannedMove>,
+    ) {
+        // Everything before must come to rest: plan and emit it, then the fixed block.
+        self.flush(out);
+        if let Some(p) = points.last() {
+            self.q_end = p.q;
+        }
+        self.queue.push_back(Block {
+            kind: BlockKind::Fixed { points },
+            sequence: seq,
+            last_of_move: last,
+        });
+        self.flush(out);
+    }
+
+    fn push_block(&mut self, block: Block, out: &mut Vec<PlannedMove>) {
+        if matches!(block.kind, BlockKind::Path { .. }) {
+            self.path_blocks_queued += 1;
+        }
+        self.queue.push_back(block);
+        if self.path_blocks_queued >= self.options.lookahead_blocks {
+            // Emit the first half; the rest stays to be joined smoothly with what follows.
+            let mut paths = 0;
+            let mut count = 0;
+            for b in &self.queue {
+                count += 1;
+                if matches!(b.kind, BlockKind::Path { .. }) {
+                    paths += 1;
+                    if paths >= self.options.lookahead_blocks / 2 {
+                        break;
+                    }
+                }
+            }
+            self.emit(count, out);
+        }
+    }
+
+    fn push_line(&mut self, seq: u64, target: [f64; 3], feed: f64, out: &mut Vec<PlannedMove>) {
+        let a = self.p_end;
+        let ab = [target[0] - a[0], target[1] - a[1], target[2] - a[2]];
+        let xy_len2 = ab[0] * ab[0] + ab[1] * ab[1];
+        let r_a = self.q_end[1];
+        let at_centre = a[0].hypot(a[1]) <= 1e-12;
+        if xy_len2 == 0.0 {
+            // z only.
+            self.push_path(
+                seq,
+                target,
+                feed,
+                true,
+                self.q_end[1].signum_or_one(),
+                true,
+                out,
+            );
+            return;
+        }
+        // Distance from the centre to the line's support, and where the closest point lies.
+        let cross = a[0] * ab[1] - a[1] * ab[0];
+        let d = cross.abs() / xy_len2.sqrt();
+        let t_closest = -(a[0] * ab[0] + a[1] * ab[1]) / xy_len2;
+        let through = d <= self.options.center_radius_m;
+        if at_centre {
+            // Leaving the centre: point the arm at the target first (θ is free at r = 0).
+            let reference = self.q_end[0];
+            let (theta, sign) = self.heading_from_centre(target, reference);
+            let delta = theta - reference;
+            if delta != 0.0 {
+                let rotation = self.rotation_points(delta);
+                self.push_fixed(seq, rotation, false, out);
+            }
+            self.q_end[0] = theta;
+            self.q_end[1] = 0.0;
+            self.push_path(seq, target, feed, true, sign, true, out);
+            return;
+        }
+        if through && t_closest > 0.0 && t_closest < 1.0 {
+            // Through the centre: in to the centre (radial), then out.
+            let centre = [0.0, 0.0, a[2] + ab[2] * t_closest];
+            let sign_in = r_a.signum_or_one();
+            self.push_path(seq, centre, feed, true, sign_in, false, out);
+            if self.options.allow_negative_r {
+                // Cross with θ held, up to the residual angle of a near miss (turned at rest).
+                let theta_out = continuous_theta(target[0], target[1], self.q_end[0], -sign_in);
+                let delta = theta_out - self.q_end[0];
+                if delta.abs() > 1e-12 {
+                    let rotation = self.rotation_points(delta);
+                    self.push_fixed(seq, rotation, false, out);
+                    self.q_end[0] = theta_out;
+                }
+                self.push_path(seq, target, feed, true, -sign_in, true, out);
+            } else {
+                let theta_out = continuous_theta(
+                    target[0],
+                    target[1],
+                    self.q_end[0] + std::f64::consts::PI,
+                    1.0,
+                );
+                let rotation = self.rotation_points(theta_out - self.q_end[0]);
+                self.push_fixed(seq, rotation, false, out);
+                self.q_end[0] = theta_out;
+                self.push_path(seq, target, feed, true, 1.0, true, out);
+            }
+            return;
+        }
+        let radial = d <= 1e-15 * (1.0 + xy_len2.sqrt());
+        let sign = r_a.signum_or_one();
+        self.push_path(seq, target, feed, radial, sign, true, out);
+    }
+
+    /// θ and the sign of r for leaving the centre towards `target`, nearest to `reference`.
+    fn heading_from_centre(&self, target: [f64; 3], reference: f64) -> (f64, f64) {
+        let positive = continuous_theta(target[0], target[1], reference, 1.0);
+        if !self.options.allow_negative_r {
+            return (positive, 1.0);
+        }
+        let negative = continuous_theta(target[0], target[1], reference, -1.0);
+        if (negative - reference).abs() < (positive - reference).abs() {
+            (negative, -1.0)
+        } else {
+            (positive, 1.0)
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn push_path(
+        &mut self,
+        seq: u64,
+        target: [f64; 3],
+        feed: f64,
+        radial: bool,
+        sign: f64,
+        last: bool,
+        out: &mut Vec<PlannedMove>,
+    ) {
+        let a = self.p_end;
+        let mut q_a = self.q_end;
+        if !radial {
+            // Continuity: θ of the actual start point nearest to the current θ.
+            q_a[0] = continuous_theta(sign * a[0], sign * a[1], q_a[0], 1.0);
+        }
+        let line = Line {
+            a,
+            b: target,
+            q_a,
+            sign,
+            radial,
+        };
+        let length = line.length();
+        let spacing = self.options.max_node_spacing_m.min(length / 2.0);
+        subdivide(
+            &line,
+            self.options.path_tolerance_m,
+            spacing,
+            &mut self.scratch_s,
+        );
+        let nodes: Vec<PathNode> = self.scratch_s.iter().map(|&s| line.node(s)).collect();
+        let mut q_b = nodes.last().map_or(q_a, |n| n.q);
+        if radial && target[0].hypot(target[1]) <= 1e-12 {
+            q_b[1] = 0.0; // land exactly on the centre
+        }
+        let theta_rate_peak = (!radial).then(|| {
+            let u = [(target[0] - a[0]) / length, (target[1] - a[1]) / length];
+            let uu = u[0] * u[0] + u[1] * u[1];
+            let s_star = -(a[0] * u[0] + a[1] * u[1]) / uu;
+            let closest = [a[0] + u[0] * s_star, a[1] + u[1] * s_star];
+            let c = a[0] * u[1] - a[1] * u[0];
+            (
+                s_star,
+                c.abs() / (closest[0] * closest[0] + closest[1] * closest[1]),
+            )
+        });
+        self.q_end = q_b;
+        self.p_end = target;
+        self.push_block(
+            Block {
+                kind: BlockKind::Path {
+                    feed,
+                    nodes,
+                    theta_rate_peak,
+                },
+                sequence: seq,
+                last_of_move: last,
+            },
+            out,
+        );
+    }
+
+    /// Plan the first `count` blocks (with the whole queue as lookahead) and emit them.
+    fn emit(&mut self, count: usize, out: &mut Vec<PlannedMove>) {
+        if count == 0 {
+            return;
+        }
+        // Speed nodes of the leading run of path blocks (up to the first non-path block).
+        let run_end = self
+            .queue
+            .iter()
+            .position(|b| !matches!(b.kind, BlockKind::Path { .. } | BlockKind::Marker))
+            .unwrap_or(self.queue.len());
+        self.scratch_nodes.clear();
+        let mut previous_dq: Option<Joints> = None;
+        for block in self.queue.iter().take(run_end) {
+            let BlockKind::Path {
+                nodes,
+                feed,
+                theta_rate_peak,
+            } = &block.kind
+            else {
+                continue;
+            };
+            for (k, n) in nodes.iter().enumerate() {
+                // Joint rates per unit path length bound over both adjacent pieces: v² is
+                // linear and q' monotonic between nodes, so q'·v then stays within the limit
+                // inside the pieces too.
+                let mut envelope = n.dq.map(f64::abs);
+                for m in [k.checked_sub(1).map(|i| &nodes[i]), nodes.get(k + 1)]
+                    .into_iter()
+                    .flatten()
+                {
+                    for j in 0..3 {
+                        envelope[j] = envelope[j].max(m.dq[j].abs());
+                    }
+                }
+                let mut vmax2 = self.limits.vmax2(&envelope, &n.ddq, *feed);
+                if let Some((s_star, rate)) = *theta_rate_peak {
+                    let before = if k > 0 { nodes[k - 1].s } else { n.s };
+                    let after = nodes.get(k + 1).map_or(n.s, |m| m.s);
+                    if before <= s_star && s_star <= after && rate > 0.0 {
+                        vmax2 = vmax2.min((self.limits.joint_velocity[0] / rate).powi(2));
+                    }
+                }
+                let ds = if k == 0 { 0.0 } else { n.s - nodes[k - 1].s };
+                if k == 0 {
+                    if let Some(dq_in) = previous_dq {
+                        // Corner: every joint's velocity jump within its limit.
+                        for j in 0..3 {
+                            let jump = (n.dq[j] - dq_in[j]).abs();
+                            if jump > 1e-15 {
+                                vmax2 = vmax2
+                                    .min((self.options.joints[j].velocity_jump / jump).powi(2));
+                            }
+                        }
+                        if let Some(last) = self.scratch_nodes.last_mut() {
+                            last.vmax2 = last.vmax2.min(vmax2);
+                        }
+                    }
+                }
+                self.scratch_nodes.push(SpeedNode {
+                    ds,
+                    dq: n.dq,
+                    ddq: n.ddq,
+                    vmax2,
+                });
+            }
+            previous_dq = nodes.last().map(|n| n.dq);
+        }
+        let mut v2 = std::mem::take(&mut self.scratch_v2);
+        plan_speeds(&self.scratch_nodes, self.v2_head, &self.limits, &mut v2);
+        // Walk the blocks to emit, turning node speeds into timed points.
+        let mut node_index = 0;
+        for _ in 0..count {
+            let Some(block) = self.queue.pop_front() else {
+                break;
+            };
+            let move_index = self
+                .moves
+                .iter()
+                .position(|m| m.sequence == block.sequence)
+                .expect("every queued block has its move");
+            let mut points = Vec::new();
+            match &block.kind {
+                BlockKind::Path { nodes, .. } => {
+                    self.path_blocks_queued -= 1;
+                    let mut t = self.t_head;
+                    for (k, n) in nodes.iter().enumerate() {
+                        let i = node_index + k;
+                        let v = v2[i].max(0.0).sqrt();
+                        if k > 0 {
+                            let v_prev = v2[i - 1].max(0.0).sqrt();
+                            let ds = n.s - nodes[k - 1].s;
+                            if v + v_prev > 0.0 {
+                                t += 2.0 * ds / (v + v_prev);
+                            }
+                        }
+                        // Acceleration of the piece leaving the node (entering, at the end).
+                        let a = if k + 1 < nodes.len() {
+                            (v2[i + 1] - v2[i]) / (2.0 * (nodes[k + 1].s - n.s))
+                        } else if k > 0 {
+                            (v2[i] - v2[i - 1]) / (2.0 * (n.s - nodes[k - 1].s))
+                        } else {
+                            0.0
+                        };
+                        let v_sq = v * v;
+                        points.push(TrajPoint {
+                            t,
+                            q: n.q,
+                            qd: [n.dq[0] * v, n.dq[1] * v, n.dq[2] * v],
+                            qdd: [
+                                n.ddq[0] * v_sq + n.dq[0] * a,
+                                n.ddq[1] * v_sq + n.dq[1] * a,
+                                n.ddq[2] * v_sq + n.dq[2] * a,
+                            ],
+                            tool_speed: v,
+                        });
+                    }
+                    node_index += nodes.len();
+                    self.t_head = t;
+                    self.v2_head = v2.get(node_index - 1).copied().unwrap_or(0.0);
+                }
+                BlockKind::Fixed { points: fixed } => {
+                    for p in fixed {
+                        points.push(TrajPoint {
+                            t: self.t_head + p.t,
+                            ..*p
+                        });
+                    }
+                    self.t_head = points.last().map_or(self.t_head, |p| p.t);
+                    self.v2_head = 0.0;
+                }
+                BlockKind::Marker => {
+                    points.push(TrajPoint {
+                        t: self.t_head,
+                        ..self.last_emitted
+                    });
+                }
+            }
+            if let Some(p) = points.last() {
+                self.last_emitted = *p;
+            }
+            self.moves[move_index].points.extend(points);
+            if block.last_of_move {
+                // Moves complete in order (blocks are queued in move order).
+                while let Some(front) = self.moves.front() {
+                    if front.sequence > block.sequence {
+                        break;
+                    }
+                    out.push(self.moves.pop_front().expect("front exists"));
+                }
+            }
+        }
+        // What remains was planned against this lookahead; the speeds of the first remaining
+        // node are fixed by what was emitted.
+        if node_index > 0 && self.queue.is_empty() {
+            self.v2_head = 0.0;
+        }
+        self.scratch_v2 = v2;
+    }
+}
+
+trait SignumOrOne {
+    fn signum_or_one(self) -> f64;
+}
+
+impl SignumOrOne for f64 {
+    /// The sign of a radius, taking 0 as positive.
+    fn signum_or_one(self) -> f64 {
+        if self < 0.0 {
+            -1.0
+        } else {
+            1.0
+        }
+    }
+}

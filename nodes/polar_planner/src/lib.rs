@@ -5,7 +5,8 @@
 //! * [`timing`] — speed planning under joint velocity/acceleration limits;
 //! * [`planner`] — the lookahead planner (centre handling, corners, dwells);
 //! * [`steps`] — corrected Leib ramp and seed-001 pulse distribution, and their decoder;
-//! * [`check`] — independent checks of a plan: path deviation and limits.
+//! * [`check`] — independent checks of a plan: path deviation and limits;
+//! * [`urdf`] — the joint limits from the printer's URDF.
 //!
 //! Pure: no DDS, no files. The node (feature `node`) wires it to topics.
 
@@ -17,6 +18,7 @@ pub mod path;
 pub mod planner;
 pub mod steps;
 pub mod timing;
+pub mod urdf;
 
 pub use planner::{PlanError, PlannedMove, Planner, PlannerOptions, TrajPoint, JOINT_NAMES};
 pub use timing::JointLimits;

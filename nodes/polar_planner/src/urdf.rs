@@ -80,7 +80,7 @@ pub fn joint_limits(text: &str) -> Result<[JointLimits; 3], UrdfError> {
             velocity_jump: 0.0,
             position: match kind {
                 urdf_rs::JointType::Prismatic => {
-                    if !(l.lower < l.upper) {
+                    if l.lower.is_nan() || l.upper.is_nan() || l.lower >= l.upper {
                         return Err(UrdfError::Mismatch {
                             joint: name,
                             expected: "lower < upper".into(),

@@ -82,7 +82,11 @@ pub async fn print(
 ) -> anyhow::Result<()> {
     let recorder_specs = cell_bag::node::param_specs();
     let streamer_specs = gcode_streamer::node::param_specs();
-    check_global_params(ros_args, &[&recorder_specs, &streamer_specs])?;
+    let planner_specs = polar_planner::node::param_specs();
+    check_global_params(
+        ros_args,
+        &[&recorder_specs, &streamer_specs, &planner_specs],
+    )?;
     let (input, total) = open_input(file)?;
 
     let recorder_node = CellNode::start(
@@ -99,7 +103,25 @@ pub async fn print(
         ),
     )?;
     let recorder = Recorder::start(recorder_node)?;
-    let consumers = format!("[{:?}]", recorder.node_name());
+    let mut planner_node = CellNode::start(
+        polar_planner::node::NODE_NAME,
+        &planner_specs,
+        &args_for(
+            ros_args,
+            polar_planner::node::NODE_NAME,
+            &planner_specs,
+            vec![],
+        ),
+    )?;
+    let consumers = format!(
+        "[{:?}, {:?}]",
+        recorder.node_name(),
+        planner_node.fully_qualified_name()
+    );
+    let planner = tokio::spawn(async move {
+        let result = polar_planner::node::run(&mut planner_node).await;
+        (planner_node, result)
+    });
     let mut streamer = CellNode::start(
         gcode_streamer::node::NODE_NAME,
         &streamer_specs,
@@ -121,7 +143,13 @@ pub async fn print(
     } else {
         ProgressBar::hidden()
     };
+    let mut planner = planner;
     let outcome = tokio::select! {
+        finished = &mut planner => Some(match finished {
+            Ok((_, Err(e))) => Err(e.context("polar_planner")),
+            Ok((_, Ok(()))) => Err(anyhow::anyhow!("polar_planner stopped")),
+            Err(e) => Err(anyhow::anyhow!("polar_planner task: {e}")),
+        }),
         r = gcode_streamer::node::stream(&mut streamer, input, file, total, |p| {
             bar.set_position(p.bytes_read);
             bar.set_message(format!(
@@ -134,6 +162,7 @@ pub async fn print(
     bar.finish_and_clear();
     // Let the last progress and diagnostics reach the recorder before it stops.
     tokio::time::sleep(Duration::from_millis(300)).await;
+    planner.abort();
     let recorded = recorder.stop().await.context("finishing the bag")?;
     match outcome {
         None => {

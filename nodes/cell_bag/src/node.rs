@@ -102,7 +102,7 @@ pub struct Recorder {
     _node: CellNode,
 }
 
-fn qos_for(topic: &str, type_name: &str) -> (QosProfile, QosRecord) {
+fn qos_for(topic: &str) -> (QosProfile, QosRecord) {
     if topic == "/robot_description" {
         let q = QosRecord {
             reliability: crate::Reliability::Reliable,
@@ -111,11 +111,9 @@ fn qos_for(topic: &str, type_name: &str) -> (QosProfile, QosRecord) {
         };
         return (transient_local_qos(1), q);
     }
-    let depth = match type_name {
-        "polar_cell_msgs/msg/GcodeMove" | "trajectory_msgs/msg/JointTrajectory" => 10_000,
-        _ => 1000,
-    };
-    (reliable_qos(depth), QosRecord::ROS_DEFAULT)
+    // Deep reader histories: a keep-last reader drops its oldest samples when the recorder
+    // lags (its writer queue full), and only flow-controlled topics are resent.
+    (reliable_qos(100_000), QosRecord::ROS_DEFAULT)
 }
 
 fn parse_topic(entry: &str) -> anyhow::Result<(String, String)> {
@@ -215,7 +213,7 @@ fn spawn_moves_consumer(
     tx: mpsc::Sender<Item>,
     mut stop: watch::Receiver<bool>,
 ) -> anyhow::Result<tokio::task::JoinHandle<()>> {
-    let (moves_qos, _) = qos_for("/gcode/moves", GcodeMove::TYPE.full_name().as_str());
+    let (moves_qos, _) = qos_for("/gcode/moves");
     let moves: Subscription<GcodeMove> = node.subscription("/gcode/moves", &moves_qos)?;
     let progress: Subscription<GcodeProgress> =
         node.subscription("/gcode/progress", &reliable_qos(1000))?;
@@ -321,7 +319,7 @@ impl Recorder {
         for (topic, type_name) in &topics {
             let msg_type = polar_cell_msgs::find(type_name)
                 .ok_or_else(|| anyhow!("topic {topic}: unknown message type {type_name}"))?;
-            let (qos, record) = qos_for(topic, type_name);
+            let (qos, record) = qos_for(topic);
             let channel = bag.add_topic(topic, msg_type, record)?;
             match (topic.as_str(), acknowledge_moves) {
                 ("/gcode/moves", true) => moves_channel = Some(channel),

@@ -312,6 +312,23 @@ impl AckTracker {
         })
     }
 
+    /// Acknowledge everything before `processed_until` — for consumers that finish a move
+    /// later than they receive it (a planner's lookahead): only finished moves are
+    /// acknowledged, so a restart resumes with the unfinished ones. Never beyond what was
+    /// received.
+    pub fn ack_processed(&mut self, processed_until: u64) -> Option<GcodeAck> {
+        if !self.resume_point_known {
+            return None;
+        }
+        let next_expected = processed_until.min(self.next_expected).max(self.last_acked);
+        self.last_acked = next_expected;
+        Some(GcodeAck {
+            consumer: self.consumer.clone(),
+            next_expected,
+            resume: false,
+        })
+    }
+
     /// Sequence number of the next move this consumer will process.
     pub fn next_expected(&self) -> u64 {
         self.next_expected
@@ -486,5 +503,19 @@ mod tests {
         assert_eq!(t.accept(2), Verdict::Process);
         assert_eq!(t.accept(3), Verdict::Process);
         assert_eq!(t.ack_due(false).unwrap().next_expected, 4);
+        // A consumer that finished only two of them acknowledges two; never more than received.
+        let mut t = AckTracker::new("/p", 8);
+        assert_eq!(t.ack_processed(5), None, "resume point unknown");
+        t.on_progress(&["/p".into()], &[10]);
+        for s in 10..15 {
+            assert_eq!(t.accept(s), Verdict::Process);
+        }
+        assert_eq!(t.ack_processed(12).unwrap().next_expected, 12);
+        assert_eq!(t.ack_processed(99).unwrap().next_expected, 15);
+        assert_eq!(
+            t.ack_processed(11).unwrap().next_expected,
+            15,
+            "never goes back"
+        );
     }
 }

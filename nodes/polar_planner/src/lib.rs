@@ -22,3 +22,6 @@ pub mod urdf;
 
 pub use planner::{PlanError, PlannedMove, Planner, PlannerOptions, TrajPoint, JOINT_NAMES};
 pub use timing::JointLimits;
+
+#[cfg(feature = "node")]
+pub mod node;

@@ -1,0 +1,304 @@
+//! The `polar_planner` node: `/gcode/moves` in (as a flow-control consumer), `/polar/trajectory`,
+//! `/polar/steps` and `/joint_states` out.
+//!
+//! A move is acknowledged only once its plan is published, so a restarted planner resumes
+//! with nothing lost. The lookahead queue is flushed (planned to a stop) when no move arrived
+//! for `idle_flush_s` — as firmware planners do — which also ends a stream.
+//!
+//! Times: plan time `t` (s) maps to stamps `plan_epoch_ns + t`; the epoch is the wall clock at
+//! the first move unless `plan_epoch_ns` is set (replays and golden files use 0). Joint
+//! states are samples of the plan every `joint_state_period_s` of plan time, published as the
+//! plan is made (the machine itself would run them later). The Cartesian tool speed is exact
+//! from the published joint velocities: `v = √(ṙ² + r²θ̇² + ż²)`.
+
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, Context as _};
+use cell_runtime::{now_ns, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params};
+use gcode_streamer::flow::{AckTracker, Verdict};
+use polar_cell_msgs::{
+    DiagnosticStatus, Duration as RosDuration, GcodeAck, GcodeMove, GcodeProgress, Header,
+    JointState, JointTrajectory, JointTrajectoryPoint, StepSegment, Time,
+};
+
+use crate::steps::{StepGenerator, StepOptions};
+use crate::{PlannedMove, Planner, PlannerOptions, JOINT_NAMES};
+
+/// Default node name.
+pub const NODE_NAME: &str = "polar_planner";
+
+/// The node's parameters (defaults: the shipped URDF and [`PlannerOptions::default`]).
+pub fn param_specs() -> Vec<ParamSpec> {
+    let d = PlannerOptions::default();
+    let s = StepOptions::default();
+    vec![
+        ParamSpec::new("urdf_file", ParamValue::String(String::new()), "URDF with the joint limits (empty: the shipped urdf/polar_cell.urdf)"),
+        ParamSpec::new("path_tolerance_m", ParamValue::Double(d.path_tolerance_m), "largest distance of the executed path from the commanded lines").range(1e-9, 1e-2),
+        ParamSpec::new("center_radius_m", ParamValue::Double(d.center_radius_m), "lines passing closer to the centre go through it").range(0.0, 1e-2),
+        ParamSpec::new("allow_negative_r", ParamValue::Bool(d.allow_negative_r), "cross the centre with a negative radius instead of turning the bed"),
+        ParamSpec::new("joint_accelerations", ParamValue::DoubleArray(d.joints.iter().map(|j| j.acceleration).collect()), "bed (rad/s²), arm (m/s²), z (m/s²) acceleration limits"),
+        ParamSpec::new("velocity_jumps", ParamValue::DoubleArray(d.joints.iter().map(|j| j.velocity_jump).collect()), "largest velocity change at a corner: bed (rad/s), arm, z (m/s)"),
+        ParamSpec::new("max_tool_acceleration_m_per_s2", ParamValue::Double(d.max_tool_acceleration_m_per_s2), "tangential tool acceleration").range(1e-6, 1e3),
+        ParamSpec::new("max_node_spacing_m", ParamValue::Double(d.max_node_spacing_m), "trajectory points at least this close along a line").range(1e-6, 1.0),
+        ParamSpec::new("lookahead_blocks", ParamValue::Integer(d.lookahead_blocks as i64), "path blocks planned together").range(2.0, 1e5),
+        ParamSpec::new("homing_speed_m_per_s", ParamValue::Double(d.homing_speed_m_per_s), "speed of G28 moves").range(1e-6, 10.0),
+        ParamSpec::new("acceleration_safety", ParamValue::Double(d.acceleration_safety), "fraction of the acceleration limits planned with").range(0.01, 1.0),
+        ParamSpec::new("steps_per_unit", ParamValue::DoubleArray(s.steps_per_unit.to_vec()), "steps per rad (bed), per m (arm), per m (z)"),
+        ParamSpec::new("step_timer_hz", ParamValue::Double(s.timer_hz), "step timer frequency").range(1.0, 1e9),
+        ParamSpec::new("publish_steps", ParamValue::Bool(true), "publish /polar/steps"),
+        ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of /joint_states samples (0: none)").range(0.0, 10.0),
+        ParamSpec::new("plan_epoch_ns", ParamValue::Integer(-1), "stamp of plan time 0 (-1: wall clock at the first move)"),
+        ParamSpec::new("idle_flush_s", ParamValue::Double(0.05), "plan the queue to a stop when no move came for this long").range(0.001, 60.0),
+        ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves (false: accept moves in sequence order, e.g. from a bag)"),
+    ]
+}
+
+fn three(params: &Params, name: &str) -> anyhow::Result<[f64; 3]> {
+    let v = params.f64s(name);
+    if v.len() != 3 || v.iter().any(|x| !x.is_finite() || *x < 0.0) {
+        anyhow::bail!(
+            "parameter {name} needs 3 finite non-negative values (bed, arm, z), got {v:?}"
+        );
+    }
+    Ok([v[0], v[1], v[2]])
+}
+
+/// Planner and step options from the node's parameters and the URDF.
+pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, StepOptions)> {
+    let urdf_text = match params.string("urdf_file") {
+        "" => crate::urdf::POLAR_CELL_URDF.to_string(),
+        path => std::fs::read_to_string(path).with_context(|| format!("reading URDF {path}"))?,
+    };
+    let mut joints = crate::urdf::joint_limits(&urdf_text).context("URDF")?;
+    let accelerations = three(params, "joint_accelerations")?;
+    let jumps = three(params, "velocity_jumps")?;
+    for j in 0..3 {
+        joints[j].acceleration = accelerations[j];
+        joints[j].velocity_jump = jumps[j];
+    }
+    let options = PlannerOptions {
+        path_tolerance_m: params.f64("path_tolerance_m"),
+        center_radius_m: params.f64("center_radius_m"),
+        allow_negative_r: params.bool("allow_negative_r"),
+        joints,
+        max_tool_acceleration_m_per_s2: params.f64("max_tool_acceleration_m_per_s2"),
+        max_node_spacing_m: params.f64("max_node_spacing_m"),
+        lookahead_blocks: params.i64("lookahead_blocks") as usize,
+        homing_speed_m_per_s: params.f64("homing_speed_m_per_s"),
+        acceleration_safety: params.f64("acceleration_safety"),
+        initial_joints: [0.0; 3],
+    };
+    let steps = StepOptions {
+        steps_per_unit: three(params, "steps_per_unit")?,
+        timer_hz: params.f64("step_timer_hz"),
+    };
+    Ok((options, steps))
+}
+
+fn stamp(epoch_ns: i64, t: f64) -> Time {
+    Time::from_nanos(epoch_ns + (t * 1e9).round() as i64)
+}
+
+/// The `/polar/trajectory` message of one planned move.
+pub fn trajectory_message(plan: &PlannedMove, epoch_ns: i64) -> JointTrajectory {
+    let t0 = plan.start_time();
+    JointTrajectory {
+        header: Header {
+            stamp: stamp(epoch_ns, t0),
+            frame_id: "base_link".into(),
+        },
+        joint_names: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+        points: plan
+            .points
+            .iter()
+            .map(|p| JointTrajectoryPoint {
+                positions: p.q.to_vec(),
+                velocities: p.qd.to_vec(),
+                accelerations: p.qdd.to_vec(),
+                effort: vec![],
+                time_from_start: RosDuration::from_secs_f64(p.t - t0),
+            })
+            .collect(),
+    }
+}
+
+/// Joint states sampled from plans every `period` of plan time, continuing from `next_t`.
+pub fn sample_joint_states(
+    plan: &PlannedMove,
+    period: f64,
+    next_t: &mut f64,
+    epoch_ns: i64,
+    out: &mut Vec<JointState>,
+) {
+    if period <= 0.0 {
+        return;
+    }
+    for w in plan.points.windows(2) {
+        let (a, b) = (&w[0], &w[1]);
+        while *next_t <= b.t && b.t > a.t {
+            if *next_t >= a.t {
+                let f = (*next_t - a.t) / (b.t - a.t);
+                let lerp = |x: [f64; 3], y: [f64; 3]| -> Vec<f64> {
+                    (0..3).map(|j| x[j] + (y[j] - x[j]) * f).collect()
+                };
+                out.push(JointState {
+                    header: Header {
+                        stamp: stamp(epoch_ns, *next_t),
+                        frame_id: String::new(),
+                    },
+                    name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+                    position: lerp(a.q, b.q),
+                    velocity: lerp(a.qd, b.qd),
+                    effort: vec![],
+                });
+            }
+            *next_t += period;
+        }
+    }
+}
+
+/// Run the planner on `node` until shutdown (or forever in a graph).
+pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
+    let params = node.params.clone();
+    let (options, step_options) = options_from_params(&params)?;
+    let mut planner = Planner::new(options).map_err(|e| anyhow!("{e}"))?;
+    let mut steps = StepGenerator::new(step_options, [0.0; 3]);
+    let acknowledge = params.bool("acknowledge_moves");
+    let publish_steps = params.bool("publish_steps");
+    let js_period = params.f64("joint_state_period_s");
+    let idle_flush = Duration::from_secs_f64(params.f64("idle_flush_s"));
+    let mut epoch_ns = params.i64("plan_epoch_ns");
+    let moves_sub = node.subscription::<GcodeMove>("/gcode/moves", &reliable_qos(10_000))?;
+    let progress_sub =
+        node.subscription::<GcodeProgress>("/gcode/progress", &reliable_qos(1000))?;
+    let acks = node.publisher::<GcodeAck>("/gcode/ack", &reliable_qos(1000))?;
+    let trajectory_pub =
+        node.publisher::<JointTrajectory>("/polar/trajectory", &reliable_qos(10_000))?;
+    let steps_pub = node.publisher::<StepSegment>("/polar/steps", &reliable_qos(10_000))?;
+    let joint_states_pub = node.publisher::<JointState>("/joint_states", &reliable_qos(10_000))?;
+    let mut tracker = AckTracker::new(node.fully_qualified_name(), 64);
+    // Without acknowledgements, accept moves from sequence 0 on (a bag's first move).
+    let mut expected_without_acks = 0u64;
+    let mut planned = Vec::new();
+    let mut segments = Vec::new();
+    let mut states = Vec::new();
+    let mut next_state_t = 0.0;
+    // Sequence after the last move whose plan is published (what may be acknowledged).
+    let mut planned_until = 0u64;
+    let mut pending = 0usize;
+    let mut last_diagnostics = Instant::now();
+    let mut last_move = Instant::now();
+    let mut tick = tokio::time::interval(Duration::from_millis(10));
+    let (mut moves_planned, mut plan_time) = (0u64, 0.0f64);
+    node.log(LogLevel::Info, "planning /gcode/moves");
+    loop {
+        tokio::select! {
+            taken = moves_sub.async_take() => {
+                let (m, _) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
+                let accept = if acknowledge {
+                    tracker.accept(m.sequence) == Verdict::Process
+                } else if m.sequence == expected_without_acks {
+                    expected_without_acks += 1;
+                    true
+                } else {
+                    false
+                };
+                if accept {
+                    if epoch_ns < 0 {
+                        epoch_ns = now_ns() as i64;
+                    }
+                    last_move = Instant::now();
+                    pending += 1;
+                    if let Err(e) = planner.push(&m, &mut planned) {
+                        node.diagnose(DiagnosticStatus::ERROR, &e.to_string(), &[]);
+                        return Err(anyhow!("{e}"));
+                    }
+                }
+            }
+            taken = progress_sub.async_take() => {
+                if let Ok((p, _)) = taken {
+                    if acknowledge && tracker.on_progress(&p.consumers, &p.consumer_next_expected) {
+                        if let Some(ack) = tracker.ack_due(true) {
+                            let _ = acks.publish(ack);
+                        }
+                    }
+                }
+            }
+            _ = tick.tick() => {
+                if pending > 0 && last_move.elapsed() >= idle_flush {
+                    planner.flush(&mut planned);
+                }
+                if acknowledge {
+                    // Announce until the resume point is known; then repeat the acknowledgement
+                    // (recovers a lost one).
+                    let ack = if tracker.needs_hello() {
+                        Some(tracker.hello())
+                    } else {
+                        tracker.ack_processed(planned_until)
+                    };
+                    if let Some(ack) = ack {
+                        let _ = acks.publish(ack);
+                    }
+                }
+            }
+            _ = cell_runtime::shutdown_signal() => return Ok(()),
+        }
+        if planned.is_empty() {
+            continue;
+        }
+        for plan in planned.drain(..) {
+            trajectory_pub
+                .publish(trajectory_message(&plan, epoch_ns))
+                .map_err(|e| anyhow!("/polar/trajectory: {e:?}"))?;
+            if publish_steps {
+                segments.clear();
+                steps.segments(&plan, &mut segments);
+                for mut s in segments.drain(..) {
+                    s.header.stamp = stamp(epoch_ns, plan.start_time());
+                    steps_pub
+                        .publish(s)
+                        .map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
+                }
+            }
+            sample_joint_states(&plan, js_period, &mut next_state_t, epoch_ns, &mut states);
+            for s in states.drain(..) {
+                joint_states_pub
+                    .publish(s)
+                    .map_err(|e| anyhow!("/joint_states: {e:?}"))?;
+            }
+            planned_until = plan.sequence + 1;
+            moves_planned += 1;
+            plan_time = plan.end_time();
+            pending = pending.saturating_sub(1);
+        }
+        // Acknowledge what is planned and published; the lookahead queue is not.
+        if acknowledge {
+            if let Some(ack) = tracker.ack_processed(planned_until) {
+                let _ = acks.publish(ack);
+            }
+        }
+        if last_diagnostics.elapsed() >= Duration::from_secs(1) {
+            last_diagnostics = Instant::now();
+            node.diagnose(
+                DiagnosticStatus::OK,
+                "planning",
+                &[
+                    ("moves_planned", moves_planned.to_string()),
+                    ("plan_time_s", format!("{plan_time:.3}")),
+                ],
+            );
+        }
+    }
+}
+
+/// Run the node from its own command line until SIGINT/SIGTERM.
+pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
+    let (ros_args, rest) = cell_runtime::RosArgs::parse(&argv)?;
+    if !rest.is_empty() {
+        anyhow::bail!(
+            "unexpected arguments {rest:?}: parameters go after --ros-args -p name:=value"
+        );
+    }
+    let mut node = CellNode::start(NODE_NAME, &param_specs(), &ros_args)?;
+    run(&mut node).await
+}

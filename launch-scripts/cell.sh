@@ -13,14 +13,22 @@ if [[ $# -lt 1 ]]; then
 fi
 gcode=$1
 bag=${2:-cell.mcap}
-for b in bag_recorder gcode_streamer; do
+for b in bag_recorder polar_planner gcode_streamer; do
   [[ -x $bin/$b ]] || { echo "$bin/$b missing: cargo build --release --workspace" >&2; exit 1; }
 done
 # shellcheck disable=SC2086
 "$bin/bag_recorder" --ros-args --params-file "$params" -p "output:=$bag" ${POLAR_CELL_ROS_ARGS:-} &
 recorder=$!
-stop_recorder() { kill -INT "$recorder" 2>/dev/null || true; wait "$recorder"; }
-trap stop_recorder EXIT
+# shellcheck disable=SC2086
+"$bin/polar_planner" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &
+planner=$!
+stop_nodes() {
+  kill -INT "$planner" 2>/dev/null || true
+  wait "$planner" || true
+  kill -INT "$recorder" 2>/dev/null || true
+  wait "$recorder"
+}
+trap stop_nodes EXIT
 # shellcheck disable=SC2086
 "$bin/gcode_streamer" "$gcode" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-}
 sleep 0.3 # the last progress and diagnostics reach the recorder

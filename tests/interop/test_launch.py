@@ -21,7 +21,9 @@ def test_cell_sh_prints_a_fixture_with_one_process_per_node(tmp_path):
     counts = {
         summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()
     }
-    assert counts["/gcode/moves"] == len(gcode_motion_lines(FIXTURES / "polartest.gcode"))
+    expected = len(gcode_motion_lines(FIXTURES / "polartest.gcode"))
+    assert counts["/gcode/moves"] == expected
+    assert counts["/polar/trajectory"] == expected, "the planner ran as its own process" 
 
 
 def test_launch_xml_names_existing_binaries_and_parameter_file():
@@ -29,7 +31,7 @@ def test_launch_xml_names_existing_binaries_and_parameter_file():
     args = {a.get("name"): a.get("default") for a in root.iter("arg")}
     assert set(args) == {"gcode_file", "bag", "bin_dir", "params"}
     commands = [e.get("cmd") for e in root.iter("executable")]
-    assert len(commands) == 2
+    assert len(commands) == 3
     for cmd in commands:
         binary = re.match(r"\$\(var bin_dir\)/(\S+)", cmd).group(1)
         assert (BIN_DIR / binary).exists(), binary

@@ -42,7 +42,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         .range(0.001, 3600.0),
         ParamSpec::new(
             "consumers",
-            ParamValue::StringArray(vec!["/bag_recorder".into()]),
+            ParamValue::StringArray(vec!["/polar_planner".into()]),
             "fully qualified names of the nodes whose acknowledgements gate the stream",
         ),
         ParamSpec::new(

@@ -437,14 +437,16 @@ impl Planner {
         }
         self.queue.push_back(block);
         if self.path_blocks_queued >= self.options.lookahead_blocks {
-            // Emit the first half; the rest stays to be joined smoothly with what follows.
+            // Emit the first three quarters; the rest stays to be joined smoothly with what
+            // follows (and keeps the stop at the end of the queue reachable).
+            let emit_paths = (self.options.lookahead_blocks * 3 / 4).max(1);
             let mut paths = 0;
             let mut count = 0;
             for b in &self.queue {
                 count += 1;
                 if matches!(b.kind, BlockKind::Path { .. }) {
                     paths += 1;
-                    if paths >= self.options.lookahead_blocks / 2 {
+                    if paths >= emit_paths {
                         break;
                     }
                 }

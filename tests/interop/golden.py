@@ -1,0 +1,58 @@
+"""Golden replay of the planner: a recorded /gcode/moves bag is played into a planner node
+(plan time 0 = stamp 0, acknowledgements off) and its /polar/trajectory is recorded.
+
+    python tests/interop/golden.py   # regenerate tests/golden/ (run in a network namespace)
+"""
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from conftest import BIN_DIR, FIXTURES, run  # noqa: E402
+
+GOLDEN = HERE.parent / "golden"
+MOVES_BAG = GOLDEN / "polartest_moves.mcap"
+TRAJECTORY_BAG = GOLDEN / "polartest_trajectory.mcap"
+
+
+def record_moves(out: Path):
+    """The input: /gcode/moves of polartest.gcode, as `polar-cell print` records it."""
+    run([BIN_DIR / "polar-cell", "print", FIXTURES / "polartest.gcode", "--bag", out, "--no-progress",
+         "--ros-args", "-p", "bag_recorder:topics:=[/gcode/moves]"])
+
+
+def replay_plan(moves_bag: Path, out: Path):
+    """Play `moves_bag` into a planner node and record its /polar/trajectory to `out`."""
+    planner = subprocess.Popen(
+        [str(BIN_DIR / "polar_planner"), "--ros-args", "-p", "plan_epoch_ns:=0",
+         "-p", "acknowledge_moves:=false", "-p", "publish_steps:=false",
+         "-p", "joint_state_period_s:=0.0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    recorder = subprocess.Popen(
+        [str(BIN_DIR / "bag_recorder"), "--ros-args", "-p", f"output:={out}",
+         "-p", "topics:=[/polar/trajectory]", "-p", "acknowledge_moves:=false"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        time.sleep(1.0)  # both subscribed before anything is played
+        run([BIN_DIR / "polar-cell", "bag", "play", moves_bag, "--fast", "--wait-subscribers-s", "15",
+             "--topics", "/gcode/moves"])
+        time.sleep(1.0)  # the planner flushes its lookahead when input stops
+    finally:
+        for proc in (planner, recorder):
+            proc.send_signal(signal.SIGINT)
+        errors = [proc.communicate(timeout=30)[1] for proc in (planner, recorder)]
+    if recorder.returncode != 0:
+        raise RuntimeError(f"bag_recorder failed: {errors[1]}")
+
+
+if __name__ == "__main__":
+    GOLDEN.mkdir(exist_ok=True)
+    record_moves(MOVES_BAG)
+    replay_plan(MOVES_BAG, TRAJECTORY_BAG)
+    print(f"wrote {MOVES_BAG} and {TRAJECTORY_BAG}")

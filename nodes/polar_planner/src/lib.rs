@@ -14,6 +14,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod check;
+pub mod messages;
 pub mod path;
 pub mod planner;
 pub mod steps;

@@ -17,8 +17,8 @@ use anyhow::{anyhow, Context as _};
 use cell_runtime::{now_ns, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params};
 use gcode_streamer::flow::{AckTracker, Verdict};
 use polar_cell_msgs::{
-    DiagnosticStatus, Duration as RosDuration, GcodeAck, GcodeMove, GcodeProgress, Header,
-    JointState, JointTrajectory, JointTrajectoryPoint, StepSegment, Time,
+    DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory,
+    StepSegment,
 };
 
 use crate::steps::{StepGenerator, StepOptions};
@@ -50,6 +50,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("plan_epoch_ns", ParamValue::Integer(-1), "stamp of plan time 0 (-1: wall clock at the first move)"),
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.05), "plan the queue to a stop when no move came for this long").range(0.001, 60.0),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves (false: accept moves in sequence order, e.g. from a bag)"),
+        ParamSpec::new("pin_open_dwell_s", ParamValue::Double(0.0), "rest before each extruding move after a non-extruding one, for the extruder pin (screw_driver's stop strategy; 0: none)").range(0.0, 60.0),
     ]
 }
 
@@ -87,6 +88,7 @@ pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, S
         homing_speed_m_per_s: params.f64("homing_speed_m_per_s"),
         acceleration_safety: params.f64("acceleration_safety"),
         initial_joints: [0.0; 3],
+        pin_open_dwell_s: params.f64("pin_open_dwell_s"),
     };
     let steps = StepOptions {
         steps_per_unit: three(params, "steps_per_unit")?,
@@ -95,32 +97,7 @@ pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, S
     Ok((options, steps))
 }
 
-fn stamp(epoch_ns: i64, t: f64) -> Time {
-    Time::from_nanos(epoch_ns + (t * 1e9).round() as i64)
-}
-
-/// The `/polar/trajectory` message of one planned move.
-pub fn trajectory_message(plan: &PlannedMove, epoch_ns: i64) -> JointTrajectory {
-    let t0 = plan.start_time();
-    JointTrajectory {
-        header: Header {
-            stamp: stamp(epoch_ns, t0),
-            frame_id: "base_link".into(),
-        },
-        joint_names: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
-        points: plan
-            .points
-            .iter()
-            .map(|p| JointTrajectoryPoint {
-                positions: p.q.to_vec(),
-                velocities: p.qd.to_vec(),
-                accelerations: p.qdd.to_vec(),
-                effort: vec![],
-                time_from_start: RosDuration::from_secs_f64(p.t - t0),
-            })
-            .collect(),
-    }
-}
+use crate::messages::{stamp, trajectory_message};
 
 /// Joint states sampled from plans every `period` of plan time, continuing from `next_t`.
 pub fn sample_joint_states(

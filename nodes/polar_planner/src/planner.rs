@@ -47,6 +47,9 @@ pub struct PlannerOptions {
     pub acceleration_safety: f64,
     /// Joint position at start-up.
     pub initial_joints: Joints,
+    /// Rest this long before each extruding move that follows a non-extruding one, for the
+    /// extruder's pin to open (screw_driver's `stop` strategy; 0: never).
+    pub pin_open_dwell_s: f64,
 }
 
 impl Default for PlannerOptions {
@@ -81,6 +84,7 @@ impl Default for PlannerOptions {
             homing_speed_m_per_s: 0.05,
             acceleration_safety: 0.9,
             initial_joints: [0.0, 0.0, 0.0],
+            pin_open_dwell_s: 0.0,
         }
     }
 }
@@ -185,6 +189,8 @@ pub struct Planner {
     path_blocks_queued: usize,
     /// The last emitted point: a marker is an instant of the motion going on there.
     last_emitted: TrajPoint,
+    /// Whether the last motion move fed material (for the pin dwell).
+    previous_extruding: bool,
 }
 
 impl Planner {
@@ -251,6 +257,7 @@ impl Planner {
                 q: q0,
                 ..TrajPoint::default()
             },
+            previous_extruding: false,
         })
     }
 
@@ -277,6 +284,24 @@ impl Planner {
             points: Vec::new(),
         });
         let seq = m.sequence;
+        let moves_or_feeds = matches!(
+            m.kind,
+            GcodeMove::KIND_RAPID
+                | GcodeMove::KIND_LINEAR
+                | GcodeMove::KIND_ARC_CW
+                | GcodeMove::KIND_ARC_CCW
+        );
+        if moves_or_feeds
+            && m.extrude
+            && !self.previous_extruding
+            && self.options.pin_open_dwell_s > 0.0
+        {
+            let rest = self.rest_points(self.options.pin_open_dwell_s);
+            self.push_fixed(seq, rest, false, out);
+        }
+        if moves_or_feeds {
+            self.previous_extruding = m.extrude;
+        }
         match m.kind {
             GcodeMove::KIND_DWELL => {
                 self.push_fixed(seq, self.rest_points(m.dwell_s.max(0.0)), true, out);

@@ -75,7 +75,11 @@ impl KaiserDesign {
                 } else {
                     (omega_c * m).sin() / (PI * m)
                 };
-                let x = if n > 1 { 2.0 * m / (n as f64 - 1.0) } else { 0.0 };
+                let x = if n > 1 {
+                    2.0 * m / (n as f64 - 1.0)
+                } else {
+                    0.0
+                };
                 let window = bessel_i0(self.alpha * (1.0 - x * x).max(0.0).sqrt()) / i0_alpha;
                 ideal * window
             })
@@ -137,8 +141,16 @@ mod tests {
     #[test]
     fn bessel_i0_matches_published_values() {
         assert_eq!(bessel_i0(0.0), 1.0);
-        for (x, value) in [(1.0, 1.2660658777520082), (2.0, 2.2795853023360673), (6.0, 67.23440697647797)] {
-            assert!((bessel_i0(x) - value).abs() <= 4.0 * f64::EPSILON * value, "{x}: {}", bessel_i0(x));
+        for (x, value) in [
+            (1.0, 1.2660658777520082),
+            (2.0, 2.2795853023360673),
+            (6.0, 67.23440697647797),
+        ] {
+            assert!(
+                (bessel_i0(x) - value).abs() <= 4.0 * f64::EPSILON * value,
+                "{x}: {}",
+                bessel_i0(x)
+            );
         }
         // Series identity: I0 is even and increasing.
         assert_eq!(bessel_i0(-3.0), bessel_i0(3.0));
@@ -163,7 +175,11 @@ mod tests {
                 .map(|k| magnitude(&h, design.omega_p * k as f64 / 100.0))
                 .fold(0.0f64, |m, g| m.max((g - 1.0).abs()));
             let delta = 10f64.powf(-stop / 20.0);
-            assert!(pass <= 1.2 * delta, "{} taps: pass-band ripple {pass}, δ {delta}", design.taps);
+            assert!(
+                pass <= 1.2 * delta,
+                "{} taps: pass-band ripple {pass}, δ {delta}",
+                design.taps
+            );
         }
     }
 
@@ -182,7 +198,9 @@ mod tests {
     fn zero_phase_filtering_has_no_delay_and_keeps_constants() {
         let h = FILTER_1.taps();
         let constant = vec![7.0; 100];
-        assert!(filter_zero_phase(&constant, &h).iter().all(|v| (v - 7.0).abs() < 1e-12));
+        assert!(filter_zero_phase(&constant, &h)
+            .iter()
+            .all(|v| (v - 7.0).abs() < 1e-12));
         // A slow sine passes without shift: peak stays at the same sample.
         let x: Vec<f64> = (0..400).map(|i| (i as f64 * 0.02).sin()).collect();
         let y = filter_zero_phase(&x, &h);

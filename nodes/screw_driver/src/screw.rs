@@ -1,0 +1,438 @@
+//! Screw rpm and pin commands from moves and their planned timing.
+//!
+//! * Pin: open while a move feeds material (ΔE > 0), closed otherwise (travel, retraction).
+//!   The pin needs `pin_open_delay_s` before material flows (seed 000 §5.3):
+//!   - [`PinStrategy::Stop`]: the planner rests the stage for the delay at the start of each
+//!     extruding move that follows a non-extruding one; the pin opens when that rest begins;
+//!   - [`PinStrategy::Lookahead`]: the pin opens the delay before the extruding move starts to
+//!     move, from the planned timeline, so the stage never stops.
+//! * rpm, [`RpmModel::Radius`]: seed 000 eq. (9), `SNW = γ·F·r·ΔE/√(Δx²+Δy²)` in the seed's
+//!   units (F mm/min, r mm at the middle of the move, ΔE and Δx, Δy mm), constant while the
+//!   move moves.
+//! * rpm, [`RpmModel::PolarSpeed`]: eq. (8) done right: `rpm(t) = 60·v(t)·(ΔE/ΔS)/e_rev` with
+//!   the planner's exact tool speed `v(t)` (linear in time between trajectory points, as the
+//!   plan accelerates uniformly along the path), `ΔS` the move's length and `e_rev` the
+//!   filament length one screw revolution feeds. Integrated over a move this feeds exactly
+//!   the move's ΔE.
+//!
+//! Commands are breakpoints with linear interpolation of rpm between them (first-order hold),
+//! which reproduces the linear speed profile exactly. With smoothing, rpm is first averaged
+//! exactly over a uniform grid, filtered without delay, and held per grid interval.
+
+use crate::fir::filter_zero_phase;
+
+/// How rpm follows the plan.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RpmModel {
+    /// Seed eq. (9) with its calibration constant γ.
+    Radius { gamma: f64 },
+    /// Exact tool speed; `e_per_rev_m` of filament-equivalent per revolution.
+    PolarSpeed { e_per_rev_m: f64 },
+}
+
+/// How the pin's opening delay is absorbed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PinStrategy {
+    Stop,
+    Lookahead,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScrewOptions {
+    pub model: RpmModel,
+    pub pin_open_delay_s: f64,
+    pub strategy: PinStrategy,
+    pub max_rpm: f64,
+    /// Largest rpm change per second; 0: unlimited. Where it would be exceeded the command is
+    /// lowered, so rpm steps (between moves of different ΔE/ΔS) become ramps that feed less.
+    pub max_rpm_per_s: f64,
+    /// Zero-phase FIR taps applied on a uniform grid of `smoothing_period_s`; `None`: off.
+    pub smoothing: Option<Vec<f64>>,
+    pub smoothing_period_s: f64,
+}
+
+impl Default for ScrewOptions {
+    fn default() -> Self {
+        ScrewOptions {
+            model: RpmModel::PolarSpeed { e_per_rev_m: 0.002 },
+            pin_open_delay_s: 0.25,
+            strategy: PinStrategy::Lookahead,
+            max_rpm: 300.0,
+            max_rpm_per_s: 0.0,
+            smoothing: None,
+            smoothing_period_s: 0.001,
+        }
+    }
+}
+
+/// A move with its planned timing, as the screw needs it.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct TimedMove {
+    pub sequence: u64,
+    pub source_line: u32,
+    pub extrude: bool,
+    pub delta_e_m: f64,
+    /// 3-D length and xy length of the commanded segment (m).
+    pub length_m: f64,
+    pub length_xy_m: f64,
+    pub feedrate_m_per_s: f64,
+    /// Distance from the centre of the segment's midpoint (m).
+    pub mid_radius_m: f64,
+    /// Planned times (s) and tool speeds (m/s) at the trajectory points.
+    pub t: Vec<f64>,
+    pub speed: Vec<f64>,
+    /// When the stage starts moving for this move (after a pin rest, say).
+    pub motion_start_s: f64,
+}
+
+impl TimedMove {
+    /// From a move, where it starts (the previous move's target), and its planned
+    /// `JointTrajectory` (joints `bed_theta`, `arm_r`, `z`): the tool speed at each point is
+    /// exact from the joint velocities, `√(ṙ² + r²θ̇² + ż²)`.
+    pub fn from_trajectory(
+        m: &polar_cell_msgs::GcodeMove,
+        from: [f64; 3],
+        trajectory: &polar_cell_msgs::JointTrajectory,
+    ) -> TimedMove {
+        let t0 = trajectory.header.stamp.as_nanos() as f64 * 1e-9;
+        let mut t = Vec::with_capacity(trajectory.points.len());
+        let mut speed = Vec::with_capacity(trajectory.points.len());
+        let mut motion_start_s = f64::NAN;
+        for p in &trajectory.points {
+            let time = t0 + p.time_from_start.as_secs_f64();
+            let (q, qd) = (&p.positions, &p.velocities);
+            let v = if q.len() == 3 && qd.len() == 3 {
+                (qd[1] * qd[1] + (q[1] * qd[0]).powi(2) + qd[2] * qd[2]).sqrt()
+            } else {
+                0.0
+            };
+            t.push(time);
+            speed.push(v);
+        }
+        // Motion starts at the last point before the joints first move.
+        let moved = |a: &[f64], b: &[f64]| a.iter().zip(b).any(|(x, y)| (x - y).abs() > 1e-15);
+        for (k, w) in trajectory.points.windows(2).enumerate() {
+            if moved(&w[0].positions, &w[1].positions) {
+                motion_start_s = t[k];
+                break;
+            }
+        }
+        if motion_start_s.is_nan() {
+            motion_start_s = t.first().copied().unwrap_or(0.0);
+        }
+        let to = [m.x_m, m.y_m, m.z_m];
+        let d = [to[0] - from[0], to[1] - from[1], to[2] - from[2]];
+        let mid = [(to[0] + from[0]) / 2.0, (to[1] + from[1]) / 2.0];
+        TimedMove {
+            sequence: m.sequence,
+            source_line: m.source_line,
+            extrude: m.extrude,
+            delta_e_m: m.delta_e_m,
+            length_m: (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(),
+            length_xy_m: d[0].hypot(d[1]),
+            feedrate_m_per_s: m.feedrate_m_per_s,
+            mid_radius_m: mid[0].hypot(mid[1]),
+            t,
+            speed,
+            motion_start_s,
+        }
+    }
+}
+
+/// One command breakpoint.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Command {
+    pub t: f64,
+    pub rpm: f64,
+    pub pin_open: bool,
+    pub source_line: u32,
+    /// The move the command belongs to (orders commands at the same instant).
+    pub sequence: u64,
+}
+
+/// rpm of move `m` at tool speed `speed` (the radius model ignores the speed).
+fn rpm_at(m: &TimedMove, speed: f64, options: &ScrewOptions) -> f64 {
+    if !m.extrude {
+        return 0.0;
+    }
+    if m.length_m <= 0.0 {
+        // Feeding in place (a prime): ΔE over the planned duration of the move.
+        let duration = m.t.last().unwrap_or(&0.0) - m.motion_start_s;
+        return match options.model {
+            RpmModel::PolarSpeed { e_per_rev_m } if duration > 0.0 => {
+                60.0 * m.delta_e_m / duration / e_per_rev_m
+            }
+            _ => 0.0,
+        };
+    }
+    match options.model {
+        RpmModel::PolarSpeed { e_per_rev_m } => {
+            60.0 * speed * (m.delta_e_m / m.length_m) / e_per_rev_m
+        }
+        RpmModel::Radius { gamma } => {
+            if m.length_xy_m <= 0.0 {
+                return 0.0;
+            }
+            // The seed's units: mm/min, mm.
+            gamma
+                * (m.feedrate_m_per_s * 60_000.0)
+                * (m.mid_radius_m * 1000.0)
+                * (m.delta_e_m * 1000.0)
+                / (m.length_xy_m * 1000.0)
+        }
+    }
+}
+
+/// The command breakpoints for consecutive moves (in plan order), before smoothing.
+pub fn breakpoints(moves: &[TimedMove], options: &ScrewOptions) -> Vec<Command> {
+    let mut out: Vec<Command> = Vec::new();
+    // Look-ahead openings fall inside earlier moves: merged in by time at the end.
+    let mut openings: Vec<Command> = Vec::new();
+    let mut previous_extruding = false;
+    let mut pin_closed_at = f64::NEG_INFINITY;
+    for m in moves {
+        let (Some(&t0), Some(&t1)) = (m.t.first(), m.t.last()) else {
+            continue;
+        };
+        if t1 <= t0 && !m.extrude {
+            continue; // an instant without material (G92, a feedrate-only line): no pin change
+        }
+        if m.extrude {
+            if !previous_extruding {
+                let open = Command {
+                    t: match options.strategy {
+                        PinStrategy::Stop => t0,
+                        PinStrategy::Lookahead => {
+                            (m.motion_start_s - options.pin_open_delay_s).max(pin_closed_at)
+                        }
+                    },
+                    rpm: 0.0,
+                    pin_open: true,
+                    source_line: m.source_line,
+                    sequence: m.sequence,
+                };
+                match options.strategy {
+                    PinStrategy::Stop => out.push(open),
+                    PinStrategy::Lookahead => openings.push(open),
+                }
+                // Nothing turns before the move starts moving.
+                out.push(Command {
+                    t: m.motion_start_s,
+                    rpm: 0.0,
+                    pin_open: true,
+                    source_line: m.source_line,
+                    sequence: m.sequence,
+                });
+            }
+            for (&t, &v) in m.t.iter().zip(&m.speed) {
+                let rpm = match options.model {
+                    // Constant while the move moves, nothing during a pin rest before it.
+                    RpmModel::Radius { .. } if t < m.motion_start_s || t1 <= t0 => 0.0,
+                    RpmModel::Radius { .. } => rpm_at(m, 0.0, options),
+                    RpmModel::PolarSpeed { .. } => rpm_at(m, v, options),
+                };
+                out.push(Command {
+                    t,
+                    rpm: rpm.min(options.max_rpm),
+                    pin_open: true,
+                    source_line: m.source_line,
+                    sequence: m.sequence,
+                });
+            }
+        } else if previous_extruding {
+            // Close at the start of the first non-extruding move.
+            out.push(Command {
+                t: t0,
+                rpm: 0.0,
+                pin_open: false,
+                source_line: m.source_line,
+                sequence: m.sequence,
+            });
+            pin_closed_at = t0;
+        }
+        previous_extruding = m.extrude;
+    }
+    if previous_extruding {
+        if let Some(last) = out.last().copied() {
+            out.push(Command {
+                rpm: 0.0,
+                pin_open: false,
+                ..last
+            });
+        }
+    }
+    // Plan order is time order, up to the nanosecond rounding of trajectory stamps.
+    for i in 1..out.len() {
+        out[i].t = out[i].t.max(out[i - 1].t);
+    }
+    let mut merged = Vec::with_capacity(out.len() + openings.len());
+    let mut rest = out.into_iter().peekable();
+    for open in openings {
+        // Before the opening: everything earlier, and earlier moves' breakpoints at its time
+        // (times agree to the nanosecond of the trajectory stamps).
+        const SAME_INSTANT_S: f64 = 1e-9;
+        while rest.peek().is_some_and(|c| {
+            c.t < open.t - SAME_INSTANT_S
+                || c.t <= open.t + SAME_INSTANT_S && c.sequence < open.sequence
+        }) {
+            merged.extend(rest.next());
+        }
+        merged.push(open);
+    }
+    merged.extend(rest);
+    for i in 1..merged.len() {
+        merged[i].t = merged[i].t.max(merged[i - 1].t);
+    }
+    limit_rate(&mut merged, options.max_rpm_per_s);
+    merged
+}
+
+/// Lower rpm where it would change faster than `max_rpm_per_s` (forward and backward), so
+/// the command never exceeds the plan and never jumps.
+fn limit_rate(commands: &mut [Command], max_rpm_per_s: f64) {
+    if max_rpm_per_s <= 0.0 {
+        return;
+    }
+    for i in 1..commands.len() {
+        let allowed = commands[i - 1].rpm + max_rpm_per_s * (commands[i].t - commands[i - 1].t);
+        commands[i].rpm = commands[i].rpm.min(allowed);
+    }
+    for i in (0..commands.len().saturating_sub(1)).rev() {
+        let allowed = commands[i + 1].rpm + max_rpm_per_s * (commands[i + 1].t - commands[i].t);
+        commands[i].rpm = commands[i].rpm.min(allowed);
+    }
+}
+
+/// rpm·s fed between `a` and `b` by breakpoints with linear interpolation (exact trapezoids).
+pub fn integral(commands: &[Command], a: f64, b: f64) -> f64 {
+    let mut sum = 0.0;
+    for w in commands.windows(2) {
+        let (t0, t1) = (w[0].t, w[1].t);
+        if t1 <= t0 || t1 <= a || t0 >= b {
+            continue;
+        }
+        let at = |t: f64| w[0].rpm + (w[1].rpm - w[0].rpm) * (t - t0) / (t1 - t0);
+        let (lo, hi) = (t0.max(a), t1.min(b));
+        sum += 0.5 * (at(lo) + at(hi)) * (hi - lo);
+    }
+    sum
+}
+
+/// Smoothing: average the breakpoint profile exactly over a uniform grid, filter it without
+/// delay, and return one command per grid interval (held until the next one). Each run of
+/// open pin is filtered on its own and rescaled to feed exactly what it fed before: the filter
+/// only moves material within a run, never into a closed pin. rpm is zero while the pin is
+/// closed.
+pub fn smooth(commands: &[Command], taps: &[f64], period_s: f64) -> Vec<Command> {
+    let (Some(first), Some(last)) = (commands.first(), commands.last()) else {
+        return Vec::new();
+    };
+    let n = ((last.t - first.t) / period_s).ceil().max(1.0) as usize;
+    let start = first.t;
+    // The breakpoint in force at the start of each interval.
+    let mut in_force = Vec::with_capacity(n);
+    let mut j = 0;
+    for k in 0..n {
+        let t = start + k as f64 * period_s;
+        while j + 1 < commands.len() && commands[j + 1].t <= t {
+            j += 1;
+        }
+        in_force.push(j);
+    }
+    let averages: Vec<f64> = (0..n)
+        .map(|k| {
+            let a = start + k as f64 * period_s;
+            integral(commands, a, a + period_s) / period_s
+        })
+        .collect();
+    let mut rpm = vec![0.0; n];
+    let mut k = 0;
+    while k < n {
+        if !commands[in_force[k]].pin_open {
+            k += 1;
+            continue;
+        }
+        let run_start = k;
+        while k < n && commands[in_force[k]].pin_open {
+            k += 1;
+        }
+        let raw = &averages[run_start..k];
+        let filtered = filter_zero_phase(raw, taps);
+        let (want, got): (f64, f64) = (raw.iter().sum(), filtered.iter().map(|v| v.max(0.0)).sum());
+        let scale = if got > 0.0 { want / got } else { 1.0 };
+        for (i, v) in filtered.iter().enumerate() {
+            rpm[run_start + i] = v.max(0.0) * scale;
+        }
+    }
+    (0..n)
+        .map(|k| {
+            let c = &commands[in_force[k]];
+            Command {
+                t: start + k as f64 * period_s,
+                rpm: rpm[k],
+                pin_open: c.pin_open,
+                source_line: c.source_line,
+                sequence: c.sequence,
+            }
+        })
+        .chain(std::iter::once(Command {
+            t: start + n as f64 * period_s,
+            rpm: 0.0,
+            pin_open: last.pin_open,
+            source_line: last.source_line,
+            sequence: last.sequence,
+        }))
+        .collect()
+}
+
+/// rpm·s fed between `a` and `b` by held (zero-order) commands.
+pub fn integral_held(commands: &[Command], a: f64, b: f64) -> f64 {
+    commands
+        .windows(2)
+        .map(|w| {
+            let (lo, hi) = (w[0].t.max(a), w[1].t.min(b));
+            if hi > lo {
+                w[0].rpm * (hi - lo)
+            } else {
+                0.0
+            }
+        })
+        .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rate_limit_lowers_steps_into_ramps() {
+        let c = |t, rpm| Command {
+            t,
+            rpm,
+            pin_open: true,
+            source_line: 0,
+            sequence: 0,
+        };
+        let mut commands = vec![
+            c(0.0, 0.0),
+            c(1.0, 0.0),
+            c(1.0, 100.0),
+            c(3.0, 100.0),
+            c(3.0, 0.0),
+        ];
+        limit_rate(&mut commands, 50.0);
+        let rpms: Vec<f64> = commands.iter().map(|c| c.rpm).collect();
+        assert_eq!(
+            rpms,
+            [0.0, 0.0, 0.0, 0.0, 0.0],
+            "a step with no time to ramp is lowered"
+        );
+        let mut commands = vec![c(0.0, 0.0), c(1.0, 100.0), c(4.0, 100.0), c(5.0, 0.0)];
+        limit_rate(&mut commands, 50.0);
+        let rpms: Vec<f64> = commands.iter().map(|c| c.rpm).collect();
+        assert_eq!(rpms, [0.0, 50.0, 50.0, 0.0]);
+        for w in commands.windows(2) {
+            assert!((w[1].rpm - w[0].rpm).abs() <= 50.0 * (w[1].t - w[0].t) + 1e-12);
+        }
+    }
+}

@@ -160,8 +160,13 @@ pub async fn print(
         _ = cell_runtime::shutdown_signal() => None,
     };
     bar.finish_and_clear();
-    // Let the last progress and diagnostics reach the recorder before it stops.
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    if matches!(outcome, Some(Ok(_)))
+        && !recorder.wait_stream_finished(Duration::from_secs(10)).await
+    {
+        eprintln!("warning: the bag did not receive the final /gcode/progress within 10 s");
+    }
+    // The streamer's closing diagnostics follow its final progress.
+    tokio::time::sleep(Duration::from_millis(200)).await;
     planner.abort();
     let recorded = recorder.stop().await.context("finishing the bag")?;
     match outcome {

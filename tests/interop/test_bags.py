@@ -85,7 +85,7 @@ def test_mcap_ros2_support_reads_every_message_with_expected_values(printed_bags
         progress = decoded["/gcode/progress"]
         assert progress[-1].finished
         assert progress[-1].moves_acknowledged == len(lines)
-        diag = decoded["/diagnostics"][-1].status[0]
+        diag = [d.status[0] for d in decoded["/diagnostics"] if d.status[0].name == "/gcode_streamer"][-1]
         assert diag.message == "stream finished"
         assert {kv.key: kv.value for kv in diag.values}["moves"] == str(len(lines))
 

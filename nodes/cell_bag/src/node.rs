@@ -97,6 +97,7 @@ const WRITER_QUEUE: usize = 4096;
 /// A running recorder; [`Recorder::stop`] drains, finishes the bag, and returns its summary.
 pub struct Recorder {
     stop: watch::Sender<bool>,
+    stream_finished: watch::Receiver<bool>,
     taps: Vec<tokio::task::JoinHandle<()>>,
     writer: std::thread::JoinHandle<anyhow::Result<RecordSummary>>,
     _node: CellNode,
@@ -212,6 +213,7 @@ fn spawn_moves_consumer(
     progress_channel: Option<ChannelId>,
     tx: mpsc::Sender<Item>,
     mut stop: watch::Receiver<bool>,
+    stream_finished: watch::Sender<bool>,
 ) -> anyhow::Result<tokio::task::JoinHandle<()>> {
     let (moves_qos, _) = qos_for("/gcode/moves");
     let moves: Subscription<GcodeMove> = node.subscription("/gcode/moves", &moves_qos)?;
@@ -247,6 +249,9 @@ fn spawn_moves_consumer(
                     }
                     if let Some(channel) = progress_channel {
                         forward(&tx, channel, &p, &info).await;
+                    }
+                    if p.finished {
+                        let _ = stream_finished.send(true);
                     }
                 },
                 _ = tick.tick() => {
@@ -313,6 +318,7 @@ impl Recorder {
         let acknowledge_moves = params.bool("acknowledge_moves");
         let (tx, mut rx) = mpsc::channel::<Item>(WRITER_QUEUE);
         let (stop, stop_rx) = watch::channel(false);
+        let (finished_tx, stream_finished) = watch::channel(false);
         let mut taps = Vec::new();
         let mut moves_channel = None;
         let mut progress_channel = None;
@@ -340,6 +346,7 @@ impl Recorder {
                 progress_channel,
                 tx.clone(),
                 stop_rx.clone(),
+                finished_tx,
             )?);
         } else if let Some(progress) = progress_channel {
             taps.push(spawn_tap::<GcodeProgress>(
@@ -391,6 +398,7 @@ impl Recorder {
             })?;
         Ok(Recorder {
             stop,
+            stream_finished,
             taps,
             writer,
             _node: node,
@@ -400,6 +408,15 @@ impl Recorder {
     /// Fully qualified name of the recorder node (the flow-control consumer name).
     pub fn node_name(&self) -> String {
         self._node.fully_qualified_name()
+    }
+
+    /// Resolves once the recorder has written a `/gcode/progress` that says the stream is
+    /// finished (only when it consumes `/gcode/moves`), or after `timeout`.
+    pub async fn wait_stream_finished(&self, timeout: Duration) -> bool {
+        let mut rx = self.stream_finished.clone();
+        tokio::time::timeout(timeout, rx.wait_for(|&done| done))
+            .await
+            .is_ok_and(|r| r.is_ok())
     }
 
     /// Stop recording: take what the readers still hold, finish the bag, report.

@@ -125,6 +125,9 @@ pub struct CellNode {
     pub names: NameResolver,
     pub params: Params,
     diagnostics: Publisher<DiagnosticArray>,
+    /// Endpoints that must outlive the code that made them: a writer dropped right after its
+    /// last sample cannot repair that sample's loss.
+    kept: Vec<Box<dyn std::any::Any + Send>>,
     _context: Context,
 }
 
@@ -209,8 +212,14 @@ impl CellNode {
             names,
             params,
             diagnostics,
+            kept: Vec::new(),
             _context: context,
         })
+    }
+
+    /// Keep `endpoint` (a publisher, say) alive as long as the node.
+    pub fn keep<T: Send + 'static>(&mut self, endpoint: T) {
+        self.kept.push(Box::new(endpoint));
     }
 
     /// Fully qualified node name, e.g. `/gcode_streamer`.

@@ -20,6 +20,9 @@ use crate::{Event, GcodeError, GcodeReader, InterpreterOptions};
 /// Default node name.
 pub const NODE_NAME: &str = "gcode_streamer";
 
+/// How many more times the finished `/gcode/progress` is published, 50 ms apart.
+const FINAL_REPORT_REPEATS: usize = 4;
+
 /// The node's parameters.
 pub fn param_specs() -> Vec<ParamSpec> {
     vec![
@@ -255,6 +258,14 @@ pub async fn stream(
                 .map_err(|e| anyhow::anyhow!("publishing /gcode/progress: {e:?}"))?;
         }
         if finished {
+            // The final report is repeated: a subscriber that lost one still gets it (a
+            // reliable writer does not always repair a loss in a burst).
+            for _ in 0..FINAL_REPORT_REPEATS {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                progress_pub
+                    .publish(progress.clone())
+                    .map_err(|e| anyhow::anyhow!("publishing /gcode/progress: {e:?}"))?;
+            }
             let summary = StreamSummary {
                 moves: window.acknowledged(),
                 lines: progress.lines_read,

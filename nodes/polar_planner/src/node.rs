@@ -134,7 +134,8 @@ pub fn sample_joint_states(
     }
 }
 
-/// Run the planner on `node` until shutdown (or forever in a graph).
+/// Run the planner on `node` until an error; the caller decides when to stop it (signals
+/// belong to whoever owns the process).
 pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let params = node.params.clone();
     let (options, step_options) = options_from_params(&params)?;
@@ -218,7 +219,6 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     }
                 }
             }
-            _ = cell_runtime::shutdown_signal() => return Ok(()),
         }
         if planned.is_empty() {
             continue;
@@ -277,5 +277,8 @@ pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
         );
     }
     let mut node = CellNode::start(NODE_NAME, &param_specs(), &ros_args)?;
-    run(&mut node).await
+    tokio::select! {
+        result = run(&mut node) => result,
+        _ = cell_runtime::shutdown_signal() => Ok(()),
+    }
 }

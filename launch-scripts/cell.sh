@@ -13,7 +13,7 @@ if [[ $# -lt 1 ]]; then
 fi
 gcode=$1
 bag=${2:-cell.mcap}
-for b in bag_recorder polar_planner gcode_streamer; do
+for b in bag_recorder polar_planner screw_driver gcode_streamer; do
   [[ -x $bin/$b ]] || { echo "$bin/$b missing: cargo build --release --workspace" >&2; exit 1; }
 done
 # shellcheck disable=SC2086
@@ -22,9 +22,12 @@ recorder=$!
 # shellcheck disable=SC2086
 "$bin/polar_planner" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &
 planner=$!
+# shellcheck disable=SC2086
+"$bin/screw_driver" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &
+screw=$!
 stop_nodes() {
-  kill -INT "$planner" 2>/dev/null || true
-  wait "$planner" || true
+  kill -INT "$screw" "$planner" 2>/dev/null || true
+  wait "$screw" "$planner" || true
   kill -INT "$recorder" 2>/dev/null || true
   wait "$recorder"
 }

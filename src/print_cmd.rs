@@ -83,9 +83,15 @@ pub async fn print(
     let recorder_specs = cell_bag::node::param_specs();
     let streamer_specs = gcode_streamer::node::param_specs();
     let planner_specs = polar_planner::node::param_specs();
+    let screw_specs = screw_driver::node::param_specs();
     check_global_params(
         ros_args,
-        &[&recorder_specs, &streamer_specs, &planner_specs],
+        &[
+            &recorder_specs,
+            &streamer_specs,
+            &planner_specs,
+            &screw_specs,
+        ],
     )?;
     let (input, total) = open_input(file)?;
 
@@ -103,6 +109,21 @@ pub async fn print(
         ),
     )?;
     let recorder = Recorder::start(recorder_node)?;
+    let mut screw_node = CellNode::start(
+        screw_driver::node::NODE_NAME,
+        &screw_specs,
+        &args_for(
+            ros_args,
+            screw_driver::node::NODE_NAME,
+            &screw_specs,
+            vec![],
+        ),
+    )?;
+    // The stop strategy needs the planner to rest for the pin.
+    let pin_dwell = match screw_node.params.string("pin_strategy") {
+        "stop" => screw_node.params.f64("pin_open_delay_s"),
+        _ => 0.0,
+    };
     let mut planner_node = CellNode::start(
         polar_planner::node::NODE_NAME,
         &planner_specs,
@@ -110,14 +131,19 @@ pub async fn print(
             ros_args,
             polar_planner::node::NODE_NAME,
             &planner_specs,
-            vec![],
+            vec![param("pin_open_dwell_s", pin_dwell.to_string())],
         ),
     )?;
     let consumers = format!(
-        "[{:?}, {:?}]",
+        "[{:?}, {:?}, {:?}]",
         recorder.node_name(),
-        planner_node.fully_qualified_name()
+        planner_node.fully_qualified_name(),
+        screw_node.fully_qualified_name()
     );
+    let screw = tokio::spawn(async move {
+        let result = screw_driver::node::run(&mut screw_node).await;
+        (screw_node, result)
+    });
     let planner = tokio::spawn(async move {
         let result = polar_planner::node::run(&mut planner_node).await;
         (planner_node, result)
@@ -144,11 +170,17 @@ pub async fn print(
         ProgressBar::hidden()
     };
     let mut planner = planner;
+    let mut screw = screw;
     let outcome = tokio::select! {
         finished = &mut planner => Some(match finished {
             Ok((_, Err(e))) => Err(e.context("polar_planner")),
             Ok((_, Ok(()))) => Err(anyhow::anyhow!("polar_planner stopped")),
             Err(e) => Err(anyhow::anyhow!("polar_planner task: {e}")),
+        }),
+        finished = &mut screw => Some(match finished {
+            Ok((_, Err(e))) => Err(e.context("screw_driver")),
+            Ok((_, Ok(()))) => Err(anyhow::anyhow!("screw_driver stopped")),
+            Err(e) => Err(anyhow::anyhow!("screw_driver task: {e}")),
         }),
         r = gcode_streamer::node::stream(&mut streamer, input, file, total, |p| {
             bar.set_position(p.bytes_read);
@@ -168,6 +200,7 @@ pub async fn print(
     // The streamer's closing diagnostics follow its final progress.
     tokio::time::sleep(Duration::from_millis(200)).await;
     planner.abort();
+    screw.abort();
     let recorded = recorder.stop().await.context("finishing the bag")?;
     match outcome {
         None => {

@@ -31,7 +31,7 @@ def test_launch_xml_names_existing_binaries_and_parameter_file():
     args = {a.get("name"): a.get("default") for a in root.iter("arg")}
     assert set(args) == {"gcode_file", "bag", "bin_dir", "params"}
     commands = [e.get("cmd") for e in root.iter("executable")]
-    assert len(commands) == 3
+    assert len(commands) == 4
     for cmd in commands:
         binary = re.match(r"\$\(var bin_dir\)/(\S+)", cmd).group(1)
         assert (BIN_DIR / binary).exists(), binary

@@ -121,13 +121,14 @@ pub fn make_context(domain_id: u16, network: &Network) -> Result<Context, Runtim
 
 /// A running node: ros2-client node, resolved names and parameters, diagnostics publisher.
 pub struct CellNode {
-    pub node: Node,
-    pub names: NameResolver,
-    pub params: Params,
-    diagnostics: Publisher<DiagnosticArray>,
+    // Fields drop in order: endpoints before the node and its participant.
     /// Endpoints that must outlive the code that made them: a writer dropped right after its
     /// last sample cannot repair that sample's loss.
     kept: Vec<Box<dyn std::any::Any + Send>>,
+    diagnostics: Publisher<DiagnosticArray>,
+    pub node: Node,
+    pub names: NameResolver,
+    pub params: Params,
     _context: Context,
 }
 
@@ -314,6 +315,34 @@ fn to_ros_parameter(v: &ParamValue) -> ParameterValue {
         ParamValue::IntegerArray(a) => ParameterValue::IntegerArray(a.clone()),
         ParamValue::DoubleArray(a) => ParameterValue::DoubleArray(a.clone()),
         ParamValue::StringArray(a) => ParameterValue::StringArray(a.clone()),
+    }
+}
+
+/// Publish, waiting while the reliable send window is full (back-pressure from a slow
+/// subscriber is not an error); gives up after `patience`.
+pub async fn publish<T: RosMessage>(
+    publisher: &Publisher<T>,
+    message: T,
+    patience: std::time::Duration,
+) -> Result<(), RuntimeError> {
+    let deadline = std::time::Instant::now() + patience;
+    let mut pending = message;
+    loop {
+        match publisher.publish(pending) {
+            Ok(()) => return Ok(()),
+            Err(ros2_client::ros2::WriteError::WouldBlock { data })
+                if std::time::Instant::now() < deadline =>
+            {
+                pending = data;
+                tokio::time::sleep(std::time::Duration::from_millis(1)).await;
+            }
+            Err(e) => {
+                return Err(RuntimeError::Dds(format!(
+                    "publishing a {}: {e:?}",
+                    T::TYPE.full_name()
+                )))
+            }
+        }
     }
 }
 

@@ -14,7 +14,12 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
-use cell_runtime::{now_ns, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params};
+use cell_runtime::{
+    now_ns, publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
+};
+
+/// How long a publication may wait for a full send window before it is an error.
+const PATIENCE: Duration = Duration::from_secs(30);
 use gcode_streamer::flow::{AckTracker, Verdict};
 use polar_cell_msgs::{
     DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory,
@@ -224,9 +229,12 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             continue;
         }
         for plan in planned.drain(..) {
-            trajectory_pub
-                .publish(trajectory_message(&plan, epoch_ns))
-                .map_err(|e| anyhow!("/polar/trajectory: {e:?}"))?;
+            publish(
+                &trajectory_pub,
+                trajectory_message(&plan, epoch_ns),
+                PATIENCE,
+            )
+            .await?;
             if publish_steps {
                 segments.clear();
                 steps.segments(&plan, &mut segments);

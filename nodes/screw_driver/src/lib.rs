@@ -5,3 +5,6 @@
 
 pub mod fir;
 pub mod screw;
+
+#[cfg(feature = "node")]
+pub mod node;

@@ -88,13 +88,15 @@ pub struct TimedMove {
 impl TimedMove {
     /// From a move, where it starts (the previous move's target), and its planned
     /// `JointTrajectory` (joints `bed_theta`, `arm_r`, `z`): the tool speed at each point is
-    /// exact from the joint velocities, `√(ṙ² + r²θ̇² + ż²)`.
+    /// exact from the joint velocities, `√(ṙ² + r²θ̇² + ż²)`. Times are seconds after
+    /// `base_ns` (a stamp in ns): wall-clock epochs as f64 seconds would resolve only ~0.2 µs.
     pub fn from_trajectory(
         m: &polar_cell_msgs::GcodeMove,
         from: [f64; 3],
         trajectory: &polar_cell_msgs::JointTrajectory,
+        base_ns: i64,
     ) -> TimedMove {
-        let t0 = trajectory.header.stamp.as_nanos() as f64 * 1e-9;
+        let t0 = (trajectory.header.stamp.as_nanos() - base_ns) as f64 * 1e-9;
         let mut t = Vec::with_capacity(trajectory.points.len());
         let mut speed = Vec::with_capacity(trajectory.points.len());
         let mut motion_start_s = f64::NAN;

@@ -42,7 +42,9 @@ fn timed(moves: &[GcodeMove], dwell: f64) -> Vec<TimedMove> {
         .iter()
         .zip(&plans)
         .map(|(m, p)| {
-            let t = TimedMove::from_trajectory(m, from, &trajectory_message(p, 0));
+            // A wall-clock epoch, as the node sees: times must stay exact relative to it.
+            let epoch: i64 = 1_795_318_512_024_268_371;
+            let t = TimedMove::from_trajectory(m, from, &trajectory_message(p, epoch), epoch);
             if matches!(
                 m.kind,
                 GcodeMove::KIND_LINEAR | GcodeMove::KIND_RAPID | GcodeMove::KIND_HOME

@@ -1,0 +1,252 @@
+//! The `screw_driver` node: `/gcode/moves` (as a flow-control consumer) and `/polar/trajectory`
+//! in, `/screw/command` out, stamped on the planned timeline.
+//!
+//! The k-th trajectory is the plan of the k-th move (the planner publishes exactly one per
+//! move, in order). Commands are computed per chunk of moves: a chunk ends when input goes
+//! idle (`idle_flush_s`), or when it holds more than `max_buffer_s` of plan — cut at a pin
+//! closed for at least `pin_open_delay_s`, so no opening reaches back before the cut. A move
+//! is acknowledged once its commands are published.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail};
+use cell_runtime::{reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params};
+use gcode_streamer::flow::{AckTracker, Verdict};
+use polar_cell_msgs::{
+    GcodeAck, GcodeMove, GcodeProgress, Header, JointTrajectory, ScrewCommand, Time,
+};
+
+use crate::fir::{FILTER_1, FILTER_2, FILTER_2_60DB};
+use crate::screw::{breakpoints, smooth, PinStrategy, RpmModel, ScrewOptions, TimedMove};
+
+/// Default node name.
+pub const NODE_NAME: &str = "screw_driver";
+
+pub fn param_specs() -> Vec<ParamSpec> {
+    let d = ScrewOptions::default();
+    vec![
+        ParamSpec::new("model", ParamValue::String("polar_speed".into()), "rpm model: polar_speed (exact tool speed) or radius (seed eq. 9)"),
+        ParamSpec::new("e_per_rev_m", ParamValue::Double(0.002), "filament-equivalent length one screw revolution feeds (polar_speed)").range(1e-9, 1.0),
+        ParamSpec::new("gamma", ParamValue::Double(1.0), "calibration constant γ of seed eq. 9 (radius)").range(0.0, 1e6),
+        ParamSpec::new("pin_open_delay_s", ParamValue::Double(d.pin_open_delay_s), "time from opening the pin to material flowing").range(0.0, 60.0),
+        ParamSpec::new("pin_strategy", ParamValue::String("lookahead".into()), "lookahead (open early from the plan) or stop (the planner rests; set its pin_open_dwell_s)"),
+        ParamSpec::new("max_rpm", ParamValue::Double(d.max_rpm), "largest screw speed").range(0.0, 1e5),
+        ParamSpec::new("max_rpm_per_s", ParamValue::Double(d.max_rpm_per_s), "largest rpm change per second (0: unlimited)").range(0.0, 1e9),
+        ParamSpec::new("smoothing", ParamValue::String("none".into()), "none, fir1, fir2 (the seed's 1521 taps) or fir2_60db (1525 taps)"),
+        ParamSpec::new("smoothing_period_s", ParamValue::Double(d.smoothing_period_s), "grid of the smoothed commands").range(1e-5, 10.0),
+        ParamSpec::new("idle_flush_s", ParamValue::Double(0.1), "compute commands when no trajectory came for this long").range(0.001, 60.0),
+        ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
+        ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
+    ]
+}
+
+/// Screw options from the node's parameters.
+pub fn options_from_params(p: &Params) -> anyhow::Result<ScrewOptions> {
+    let model = match p.string("model") {
+        "polar_speed" => RpmModel::PolarSpeed {
+            e_per_rev_m: p.f64("e_per_rev_m"),
+        },
+        "radius" => RpmModel::Radius {
+            gamma: p.f64("gamma"),
+        },
+        other => bail!("parameter model: `{other}` is not polar_speed or radius"),
+    };
+    let strategy = match p.string("pin_strategy") {
+        "lookahead" => PinStrategy::Lookahead,
+        "stop" => PinStrategy::Stop,
+        other => bail!("parameter pin_strategy: `{other}` is not lookahead or stop"),
+    };
+    let smoothing = match p.string("smoothing") {
+        "none" => None,
+        "fir1" => Some(FILTER_1.taps()),
+        "fir2" => Some(FILTER_2.taps()),
+        "fir2_60db" => Some(FILTER_2_60DB.taps()),
+        other => bail!("parameter smoothing: `{other}` is not none, fir1, fir2 or fir2_60db"),
+    };
+    Ok(ScrewOptions {
+        model,
+        pin_open_delay_s: p.f64("pin_open_delay_s"),
+        strategy,
+        max_rpm: p.f64("max_rpm"),
+        max_rpm_per_s: p.f64("max_rpm_per_s"),
+        smoothing,
+        smoothing_period_s: p.f64("smoothing_period_s"),
+    })
+}
+
+fn model_name(options: &ScrewOptions) -> &'static str {
+    match options.model {
+        RpmModel::PolarSpeed { .. } => "polar_speed",
+        RpmModel::Radius { .. } => "radius",
+    }
+}
+
+/// Commands for `chunk` as messages.
+pub fn command_messages(
+    chunk: &[TimedMove],
+    options: &ScrewOptions,
+    base_ns: i64,
+) -> Vec<ScrewCommand> {
+    let raw = breakpoints(chunk, options);
+    let commands = match &options.smoothing {
+        Some(taps) => smooth(&raw, taps, options.smoothing_period_s),
+        None => raw,
+    };
+    commands
+        .into_iter()
+        .map(|c| ScrewCommand {
+            header: Header {
+                stamp: Time::from_nanos(base_ns + (c.t * 1e9).round() as i64),
+                frame_id: String::new(),
+            },
+            rpm: c.rpm,
+            pin_open: c.pin_open,
+            source_line: c.source_line,
+            model: model_name(options).to_string(),
+        })
+        .collect()
+}
+
+/// Where a chunk of buffered moves may end: after the last move that starts a closed-pin gap
+/// of at least `delay` (so no later opening reaches back into it).
+fn safe_cut(moves: &VecDeque<TimedMove>, delay: f64) -> Option<usize> {
+    let mut cut = None;
+    let mut gap_start: Option<f64> = None;
+    for (i, m) in moves.iter().enumerate() {
+        let (Some(&t0), Some(&t1)) = (m.t.first(), m.t.last()) else {
+            continue;
+        };
+        if m.extrude {
+            gap_start = None;
+        } else if t1 > t0 {
+            let start = *gap_start.get_or_insert(t0);
+            if t1 - start >= delay {
+                cut = Some(i + 1);
+            }
+        }
+    }
+    cut
+}
+
+/// Run the screw driver on `node` until an error.
+pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
+    let params = node.params.clone();
+    let options = options_from_params(&params)?;
+    let acknowledge = params.bool("acknowledge_moves");
+    let idle_flush = Duration::from_secs_f64(params.f64("idle_flush_s"));
+    let max_buffer_s = params.f64("max_buffer_s");
+    let moves_sub = node.subscription::<GcodeMove>("/gcode/moves", &reliable_qos(100_000))?;
+    let trajectories =
+        node.subscription::<JointTrajectory>("/polar/trajectory", &reliable_qos(100_000))?;
+    let progress_sub =
+        node.subscription::<GcodeProgress>("/gcode/progress", &reliable_qos(1000))?;
+    let acks = node.publisher::<GcodeAck>("/gcode/ack", &reliable_qos(1000))?;
+    let commands_pub = std::sync::Arc::new(
+        node.publisher::<ScrewCommand>("/screw/command", &reliable_qos(100_000))?,
+    );
+    node.keep(commands_pub.clone());
+    let mut tracker = AckTracker::new(node.fully_qualified_name(), 64);
+    let mut expected_without_acks = 0u64;
+    let mut moves: VecDeque<GcodeMove> = VecDeque::new();
+    let mut timed: VecDeque<TimedMove> = VecDeque::new();
+    let mut from = [0.0f64; 3];
+    let mut done_until = 0u64;
+    let mut last_input = Instant::now();
+    // Times are kept relative to the first trajectory's stamp (integer ns).
+    let mut base_ns: Option<i64> = None;
+    let mut tick = tokio::time::interval(Duration::from_millis(10));
+    node.log(
+        LogLevel::Info,
+        &format!("screw commands, model {}", model_name(&options)),
+    );
+    loop {
+        let mut flush_all = false;
+        tokio::select! {
+            taken = moves_sub.async_take() => {
+                let (m, _) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
+                let accept = if acknowledge {
+                    tracker.accept(m.sequence) == Verdict::Process
+                } else if m.sequence == expected_without_acks {
+                    expected_without_acks += 1;
+                    true
+                } else {
+                    false
+                };
+                if accept {
+                    moves.push_back(m);
+                }
+            }
+            taken = trajectories.async_take() => {
+                let (trajectory, _) = taken.map_err(|e| anyhow!("/polar/trajectory: {e:?}"))?;
+                last_input = Instant::now();
+                // Trajectories come in move order; a move not received yet is waited for.
+                let Some(m) = moves.pop_front() else {
+                    bail!("/polar/trajectory arrived before its /gcode/moves message");
+                };
+                let base = *base_ns.get_or_insert(trajectory.header.stamp.as_nanos());
+                timed.push_back(TimedMove::from_trajectory(&m, from, &trajectory, base));
+                if matches!(m.kind, GcodeMove::KIND_RAPID | GcodeMove::KIND_LINEAR | GcodeMove::KIND_ARC_CW | GcodeMove::KIND_ARC_CCW | GcodeMove::KIND_HOME) {
+                    from = [m.x_m, m.y_m, m.z_m];
+                }
+            }
+            taken = progress_sub.async_take() => {
+                if let Ok((p, _)) = taken {
+                    if acknowledge && tracker.on_progress(&p.consumers, &p.consumer_next_expected) {
+                        if let Some(ack) = tracker.ack_due(true) {
+                            let _ = acks.publish(ack);
+                        }
+                    }
+                }
+            }
+            _ = tick.tick() => {
+                flush_all = !timed.is_empty() && last_input.elapsed() >= idle_flush;
+                if acknowledge {
+                    let ack = if tracker.needs_hello() { Some(tracker.hello()) } else { tracker.ack_processed(done_until) };
+                    if let Some(ack) = ack {
+                        let _ = acks.publish(ack);
+                    }
+                }
+            }
+        }
+        let buffered_s = match (
+            timed.front().and_then(|m| m.t.first()),
+            timed.back().and_then(|m| m.t.last()),
+        ) {
+            (Some(a), Some(b)) => b - a,
+            _ => 0.0,
+        };
+        let cut = if flush_all {
+            Some(timed.len())
+        } else if buffered_s > max_buffer_s {
+            safe_cut(&timed, options.pin_open_delay_s)
+        } else {
+            None
+        };
+        if let Some(cut) = cut.filter(|&c| c > 0) {
+            let chunk: Vec<TimedMove> = timed.drain(..cut).collect();
+            for message in command_messages(&chunk, &options, base_ns.unwrap_or(0)) {
+                cell_runtime::publish(&commands_pub, message, Duration::from_secs(30)).await?;
+            }
+            done_until = chunk.last().map_or(done_until, |m| m.sequence + 1);
+            if acknowledge {
+                if let Some(ack) = tracker.ack_processed(done_until) {
+                    let _ = acks.publish(ack);
+                }
+            }
+        }
+    }
+}
+
+/// Run the node from its own command line until SIGINT/SIGTERM.
+pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
+    let (ros_args, rest) = cell_runtime::RosArgs::parse(&argv)?;
+    if !rest.is_empty() {
+        bail!("unexpected arguments {rest:?}: parameters go after --ros-args -p name:=value");
+    }
+    let mut node = CellNode::start(NODE_NAME, &param_specs(), &ros_args)?;
+    tokio::select! {
+        result = run(&mut node) => result,
+        _ = cell_runtime::shutdown_signal() => Ok(()),
+    }
+}

@@ -335,6 +335,57 @@ impl AckTracker {
     }
 }
 
+/// How a node takes in `/gcode/moves`: as a flow-control consumer ([`AckTracker`]), or —
+/// replaying a bag, with no streamer to acknowledge — simply in sequence order from 0.
+#[derive(Debug, Clone)]
+pub struct Intake {
+    tracker: Option<AckTracker>,
+    next_without_acks: u64,
+}
+
+impl Intake {
+    /// `consumer` is the node's fully qualified name.
+    pub fn new(consumer: impl Into<String>, acknowledge: bool) -> Self {
+        Intake {
+            tracker: acknowledge.then(|| AckTracker::new(consumer, 64)),
+            next_without_acks: 0,
+        }
+    }
+
+    /// True when the move with this sequence number is the next one to process.
+    pub fn accept(&mut self, sequence: u64) -> bool {
+        match &mut self.tracker {
+            Some(t) => t.accept(sequence) == Verdict::Process,
+            None if sequence == self.next_without_acks => {
+                self.next_without_acks += 1;
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// A progress report arrived: the confirmation to publish when it told the resume point.
+    pub fn on_progress(&mut self, consumers: &[String], next_expected: &[u64]) -> Option<GcodeAck> {
+        let t = self.tracker.as_mut()?;
+        if t.on_progress(consumers, next_expected) {
+            t.ack_due(true)
+        } else {
+            None
+        }
+    }
+
+    /// What to publish now, given that every move before `processed_until` is finished: the
+    /// announcement until the resume point is known, then the acknowledgement.
+    pub fn ack(&mut self, processed_until: u64) -> Option<GcodeAck> {
+        let t = self.tracker.as_mut()?;
+        if t.needs_hello() {
+            Some(t.hello())
+        } else {
+            t.ack_processed(processed_until)
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -484,6 +535,20 @@ mod tests {
         assert!(!w.on_tick(ms(50)));
         assert!(w.on_tick(ms(102)));
         assert_eq!(w.next_to_send().map(|m| m.sequence), Some(2));
+    }
+
+    #[test]
+    fn intake_with_and_without_acknowledgements() {
+        let mut replay = Intake::new("/p", false);
+        assert!(replay.accept(0) && !replay.accept(2) && replay.accept(1));
+        assert_eq!(replay.ack(2), None, "no acknowledgements when replaying");
+        let mut live = Intake::new("/p", true);
+        assert!(live.ack(0).unwrap().resume, "announces itself first");
+        assert!(!live.accept(0), "resume point unknown");
+        let confirm = live.on_progress(&["/p".into()], &[3]).unwrap();
+        assert_eq!((confirm.next_expected, confirm.resume), (3, false));
+        assert!(live.accept(3) && live.accept(4));
+        assert_eq!(live.ack(4).unwrap().next_expected, 4);
     }
 
     #[test]

@@ -20,7 +20,7 @@ use cell_runtime::{
 
 /// How long a publication may wait for a full send window before it is an error.
 const PATIENCE: Duration = Duration::from_secs(30);
-use gcode_streamer::flow::{AckTracker, Verdict};
+use gcode_streamer::flow::Intake;
 use polar_cell_msgs::{
     DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory,
     StepSegment,
@@ -146,7 +146,6 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let (options, step_options) = options_from_params(&params)?;
     let mut planner = Planner::new(options).map_err(|e| anyhow!("{e}"))?;
     let mut steps = StepGenerator::new(step_options, [0.0; 3]);
-    let acknowledge = params.bool("acknowledge_moves");
     let publish_steps = params.bool("publish_steps");
     let js_period = params.f64("joint_state_period_s");
     let idle_flush = Duration::from_secs_f64(params.f64("idle_flush_s"));
@@ -159,9 +158,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         node.publisher::<JointTrajectory>("/polar/trajectory", &reliable_qos(10_000))?;
     let steps_pub = node.publisher::<StepSegment>("/polar/steps", &reliable_qos(10_000))?;
     let joint_states_pub = node.publisher::<JointState>("/joint_states", &reliable_qos(10_000))?;
-    let mut tracker = AckTracker::new(node.fully_qualified_name(), 64);
-    // Without acknowledgements, accept moves from sequence 0 on (a bag's first move).
-    let mut expected_without_acks = 0u64;
+    let mut intake = Intake::new(
+        node.fully_qualified_name(),
+        params.bool("acknowledge_moves"),
+    );
     let mut planned = Vec::new();
     let mut segments = Vec::new();
     let mut states = Vec::new();
@@ -178,15 +178,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         tokio::select! {
             taken = moves_sub.async_take() => {
                 let (m, _) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
-                let accept = if acknowledge {
-                    tracker.accept(m.sequence) == Verdict::Process
-                } else if m.sequence == expected_without_acks {
-                    expected_without_acks += 1;
-                    true
-                } else {
-                    false
-                };
-                if accept {
+                if intake.accept(m.sequence) {
                     if epoch_ns < 0 {
                         epoch_ns = now_ns() as i64;
                     }
@@ -200,10 +192,8 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             }
             taken = progress_sub.async_take() => {
                 if let Ok((p, _)) = taken {
-                    if acknowledge && tracker.on_progress(&p.consumers, &p.consumer_next_expected) {
-                        if let Some(ack) = tracker.ack_due(true) {
-                            let _ = acks.publish(ack);
-                        }
+                    if let Some(ack) = intake.on_progress(&p.consumers, &p.consumer_next_expected) {
+                        let _ = acks.publish(ack);
                     }
                 }
             }
@@ -211,17 +201,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 if pending > 0 && last_move.elapsed() >= idle_flush {
                     planner.flush(&mut planned);
                 }
-                if acknowledge {
-                    // Announce until the resume point is known; then repeat the acknowledgement
-                    // (recovers a lost one).
-                    let ack = if tracker.needs_hello() {
-                        Some(tracker.hello())
-                    } else {
-                        tracker.ack_processed(planned_until)
-                    };
-                    if let Some(ack) = ack {
-                        let _ = acks.publish(ack);
-                    }
+                // Announce until the resume point is known; then repeat the acknowledgement
+                // (recovers a lost one).
+                if let Some(ack) = intake.ack(planned_until) {
+                    let _ = acks.publish(ack);
                 }
             }
         }
@@ -257,10 +240,8 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             pending = pending.saturating_sub(1);
         }
         // Acknowledge what is planned and published; the lookahead queue is not.
-        if acknowledge {
-            if let Some(ack) = tracker.ack_processed(planned_until) {
-                let _ = acks.publish(ack);
-            }
+        if let Some(ack) = intake.ack(planned_until) {
+            let _ = acks.publish(ack);
         }
         if last_diagnostics.elapsed() >= Duration::from_secs(1) {
             last_diagnostics = Instant::now();

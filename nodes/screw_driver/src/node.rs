@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail};
 use cell_runtime::{reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params};
-use gcode_streamer::flow::{AckTracker, Verdict};
+use gcode_streamer::flow::Intake;
 use polar_cell_msgs::{
     GcodeAck, GcodeMove, GcodeProgress, Header, JointTrajectory, ScrewCommand, Time,
 };
@@ -133,7 +133,6 @@ fn safe_cut(moves: &VecDeque<TimedMove>, delay: f64) -> Option<usize> {
 pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let params = node.params.clone();
     let options = options_from_params(&params)?;
-    let acknowledge = params.bool("acknowledge_moves");
     let idle_flush = Duration::from_secs_f64(params.f64("idle_flush_s"));
     let max_buffer_s = params.f64("max_buffer_s");
     let moves_sub = node.subscription::<GcodeMove>("/gcode/moves", &reliable_qos(100_000))?;
@@ -146,8 +145,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         node.publisher::<ScrewCommand>("/screw/command", &reliable_qos(100_000))?,
     );
     node.keep(commands_pub.clone());
-    let mut tracker = AckTracker::new(node.fully_qualified_name(), 64);
-    let mut expected_without_acks = 0u64;
+    let mut intake = Intake::new(
+        node.fully_qualified_name(),
+        params.bool("acknowledge_moves"),
+    );
     let mut moves: VecDeque<GcodeMove> = VecDeque::new();
     let mut timed: VecDeque<TimedMove> = VecDeque::new();
     let mut from = [0.0f64; 3];
@@ -165,15 +166,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         tokio::select! {
             taken = moves_sub.async_take() => {
                 let (m, _) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
-                let accept = if acknowledge {
-                    tracker.accept(m.sequence) == Verdict::Process
-                } else if m.sequence == expected_without_acks {
-                    expected_without_acks += 1;
-                    true
-                } else {
-                    false
-                };
-                if accept {
+                if intake.accept(m.sequence) {
                     moves.push_back(m);
                 }
             }
@@ -192,20 +185,15 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             }
             taken = progress_sub.async_take() => {
                 if let Ok((p, _)) = taken {
-                    if acknowledge && tracker.on_progress(&p.consumers, &p.consumer_next_expected) {
-                        if let Some(ack) = tracker.ack_due(true) {
-                            let _ = acks.publish(ack);
-                        }
+                    if let Some(ack) = intake.on_progress(&p.consumers, &p.consumer_next_expected) {
+                        let _ = acks.publish(ack);
                     }
                 }
             }
             _ = tick.tick() => {
                 flush_all = !timed.is_empty() && last_input.elapsed() >= idle_flush;
-                if acknowledge {
-                    let ack = if tracker.needs_hello() { Some(tracker.hello()) } else { tracker.ack_processed(done_until) };
-                    if let Some(ack) = ack {
-                        let _ = acks.publish(ack);
-                    }
+                if let Some(ack) = intake.ack(done_until) {
+                    let _ = acks.publish(ack);
                 }
             }
         }
@@ -229,10 +217,8 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 cell_runtime::publish(&commands_pub, message, Duration::from_secs(30)).await?;
             }
             done_until = chunk.last().map_or(done_until, |m| m.sequence + 1);
-            if acknowledge {
-                if let Some(ack) = tracker.ack_processed(done_until) {
-                    let _ = acks.publish(ack);
-                }
+            if let Some(ack) = intake.ack(done_until) {
+                let _ = acks.publish(ack);
             }
         }
     }

@@ -1,5 +1,6 @@
-"""Golden replay of the planner: a recorded /gcode/moves bag is played into a planner node
-(plan time 0 = stamp 0, acknowledgements off) and its /polar/trajectory is recorded.
+"""Golden replays: a recorded /gcode/moves bag is played into a planner node (plan time 0 =
+stamp 0, acknowledgements off) and its /polar/trajectory is recorded; both are played into a
+screw driver and its /screw/command is recorded.
 
     python tests/interop/golden.py   # regenerate tests/golden/ (run in a network namespace)
 """
@@ -17,6 +18,7 @@ from conftest import BIN_DIR, FIXTURES, run  # noqa: E402
 GOLDEN = HERE.parent / "golden"
 MOVES_BAG = GOLDEN / "polartest_moves.mcap"
 TRAJECTORY_BAG = GOLDEN / "polartest_trajectory.mcap"
+SCREW_BAG = GOLDEN / "polartest_screw.mcap"
 
 
 def record_moves(out: Path):
@@ -51,8 +53,35 @@ def replay_plan(moves_bag: Path, out: Path):
         raise RuntimeError(f"bag_recorder failed: {errors[1]}")
 
 
+def replay_screw(moves_bag: Path, trajectory_bag: Path, out: Path):
+    """Play recorded moves and trajectories into a screw driver; record /screw/command."""
+    screw = subprocess.Popen(
+        [str(BIN_DIR / "screw_driver"), "--ros-args", "-p", "acknowledge_moves:=false",
+         "-p", "idle_flush_s:=1.0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    recorder = subprocess.Popen(
+        [str(BIN_DIR / "bag_recorder"), "--ros-args", "-p", f"output:={out}",
+         "-p", "topics:=[/screw/command]", "-p", "acknowledge_moves:=false"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        time.sleep(1.0)
+        for bag, topic in ((moves_bag, "/gcode/moves"), (trajectory_bag, "/polar/trajectory")):
+            run([BIN_DIR / "polar-cell", "bag", "play", bag, "--fast", "--wait-subscribers-s", "15",
+                 "--topics", topic])
+        time.sleep(2.5)  # the screw driver computes commands when input stops
+    finally:
+        for proc in (screw, recorder):
+            proc.send_signal(signal.SIGINT)
+        errors = [proc.communicate(timeout=30)[1] for proc in (screw, recorder)]
+    if recorder.returncode != 0:
+        raise RuntimeError(f"bag_recorder failed: {errors[1]}")
+
+
 if __name__ == "__main__":
     GOLDEN.mkdir(exist_ok=True)
     record_moves(MOVES_BAG)
     replay_plan(MOVES_BAG, TRAJECTORY_BAG)
-    print(f"wrote {MOVES_BAG} and {TRAJECTORY_BAG}")
+    replay_screw(MOVES_BAG, TRAJECTORY_BAG, SCREW_BAG)
+    print(f"wrote {MOVES_BAG}, {TRAJECTORY_BAG} and {SCREW_BAG}")

@@ -2,7 +2,7 @@
 //! in, `/screw/command` out, stamped on the planned timeline.
 //!
 //! The k-th trajectory is the plan of the k-th move (the planner publishes exactly one per
-//! move, in order). Commands are computed per chunk of moves: a chunk ends when input goes
+//! move, in order); they are paired whichever arrives first. Commands are computed per chunk of moves: a chunk ends when input goes
 //! idle (`idle_flush_s`), or when it holds more than `max_buffer_s` of plan — cut at a pin
 //! closed for at least `pin_open_delay_s`, so no opening reaches back before the cut. A move
 //! is acknowledged once its commands are published.
@@ -150,6 +150,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         params.bool("acknowledge_moves"),
     );
     let mut moves: VecDeque<GcodeMove> = VecDeque::new();
+    let mut plans: VecDeque<JointTrajectory> = VecDeque::new();
     let mut timed: VecDeque<TimedMove> = VecDeque::new();
     let mut from = [0.0f64; 3];
     let mut done_until = 0u64;
@@ -173,15 +174,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             taken = trajectories.async_take() => {
                 let (trajectory, _) = taken.map_err(|e| anyhow!("/polar/trajectory: {e:?}"))?;
                 last_input = Instant::now();
-                // Trajectories come in move order; a move not received yet is waited for.
-                let Some(m) = moves.pop_front() else {
-                    bail!("/polar/trajectory arrived before its /gcode/moves message");
-                };
-                let base = *base_ns.get_or_insert(trajectory.header.stamp.as_nanos());
-                timed.push_back(TimedMove::from_trajectory(&m, from, &trajectory, base));
-                if matches!(m.kind, GcodeMove::KIND_RAPID | GcodeMove::KIND_LINEAR | GcodeMove::KIND_ARC_CW | GcodeMove::KIND_ARC_CCW | GcodeMove::KIND_HOME) {
-                    from = [m.x_m, m.y_m, m.z_m];
-                }
+                plans.push_back(trajectory);
             }
             taken = progress_sub.async_take() => {
                 if let Ok((p, _)) = taken {
@@ -195,6 +188,22 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 if let Some(ack) = intake.ack(done_until) {
                     let _ = acks.publish(ack);
                 }
+            }
+        }
+        // The k-th trajectory is the plan of the k-th move, whichever arrives first.
+        while !moves.is_empty() && !plans.is_empty() {
+            let (m, trajectory) = (moves.pop_front().unwrap(), plans.pop_front().unwrap());
+            let base = *base_ns.get_or_insert(trajectory.header.stamp.as_nanos());
+            timed.push_back(TimedMove::from_trajectory(&m, from, &trajectory, base));
+            if matches!(
+                m.kind,
+                GcodeMove::KIND_RAPID
+                    | GcodeMove::KIND_LINEAR
+                    | GcodeMove::KIND_ARC_CW
+                    | GcodeMove::KIND_ARC_CCW
+                    | GcodeMove::KIND_HOME
+            ) {
+                from = [m.x_m, m.y_m, m.z_m];
             }
         }
         let buffered_s = match (

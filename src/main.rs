@@ -5,6 +5,7 @@
 //! `name`, a node-prefixed one (`-p gcode_streamer:window:=64`) to that node only.
 
 mod bag_cmd;
+mod plot_cmd;
 mod print_cmd;
 
 use std::path::PathBuf;
@@ -42,6 +43,14 @@ enum Command {
     },
     /// Parse a G-code file without DDS: counts, warnings, the first error.
     Check { file: String },
+    /// Plot r, θ, tool speed and screw rpm against time from a recorded print.
+    Plot {
+        /// The bag (file or directory).
+        bag: PathBuf,
+        /// The PNG to write.
+        #[arg(long, default_value = "print.png")]
+        out: PathBuf,
+    },
     /// Bag tools.
     Bag {
         #[command(subcommand)]
@@ -98,6 +107,7 @@ async fn main() -> anyhow::Result<()> {
             no_progress,
         } => print_cmd::print(&file, &bag, bag_dir, !no_progress, &ros_args).await,
         Command::Check { file } => print_cmd::check(&file),
+        Command::Plot { bag, out } => plot_cmd::plot(&bag, &out),
         Command::Bag { command } => match command {
             BagCommand::Info { bag } => bag_cmd::info(&bag),
             BagCommand::Play {

@@ -5,7 +5,8 @@
 //! move, in order); they are paired whichever arrives first. Commands are computed per chunk of moves: a chunk ends when input goes
 //! idle (`idle_flush_s`), or when it holds more than `max_buffer_s` of plan — cut at a pin
 //! closed for at least `pin_open_delay_s`, so no opening reaches back before the cut. A move
-//! is acknowledged once its commands are published.
+//! is acknowledged once it is paired with its trajectory: the node then holds all it needs
+//! (a restart loses the commands of the chunk being buffered).
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -18,7 +19,9 @@ use polar_cell_msgs::{
 };
 
 use crate::fir::{FILTER_1, FILTER_2, FILTER_2_60DB};
-use crate::screw::{breakpoints, smooth, PinStrategy, RpmModel, ScrewOptions, TimedMove};
+use crate::screw::{
+    breakpoints_from, smooth, PinState, PinStrategy, RpmModel, ScrewOptions, TimedMove,
+};
 
 /// Default node name.
 pub const NODE_NAME: &str = "screw_driver";
@@ -82,13 +85,15 @@ fn model_name(options: &ScrewOptions) -> &'static str {
     }
 }
 
-/// Commands for `chunk` as messages.
+/// Commands for `chunk` as messages, continuing from `pin` (and updating it).
 pub fn command_messages(
     chunk: &[TimedMove],
     options: &ScrewOptions,
     base_ns: i64,
+    pin: &mut PinState,
+    end_of_input: bool,
 ) -> Vec<ScrewCommand> {
-    let raw = breakpoints(chunk, options);
+    let raw = breakpoints_from(chunk, options, pin, end_of_input);
     let commands = match &options.smoothing {
         Some(taps) => smooth(&raw, taps, options.smoothing_period_s),
         None => raw,
@@ -154,6 +159,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let mut timed: VecDeque<TimedMove> = VecDeque::new();
     let mut from = [0.0f64; 3];
     let mut done_until = 0u64;
+    let mut pin = PinState::default();
     let mut last_input = Instant::now();
     // Times are kept relative to the first trajectory's stamp (integer ns).
     let mut base_ns: Option<i64> = None;
@@ -195,6 +201,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             let (m, trajectory) = (moves.pop_front().unwrap(), plans.pop_front().unwrap());
             let base = *base_ns.get_or_insert(trajectory.header.stamp.as_nanos());
             timed.push_back(TimedMove::from_trajectory(&m, from, &trajectory, base));
+            done_until = m.sequence + 1;
             if matches!(
                 m.kind,
                 GcodeMove::KIND_RAPID
@@ -213,19 +220,21 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             (Some(a), Some(b)) => b - a,
             _ => 0.0,
         };
+        // Full buffer: cut at a safe gap, or (a long print without one) everything.
         let cut = if flush_all {
             Some(timed.len())
         } else if buffered_s > max_buffer_s {
-            safe_cut(&timed, options.pin_open_delay_s)
+            safe_cut(&timed, options.pin_open_delay_s).or(Some(timed.len()))
         } else {
             None
         };
         if let Some(cut) = cut.filter(|&c| c > 0) {
             let chunk: Vec<TimedMove> = timed.drain(..cut).collect();
-            for message in command_messages(&chunk, &options, base_ns.unwrap_or(0)) {
+            let messages =
+                command_messages(&chunk, &options, base_ns.unwrap_or(0), &mut pin, flush_all);
+            for message in messages {
                 cell_runtime::publish(&commands_pub, message, Duration::from_secs(30)).await?;
             }
-            done_until = chunk.last().map_or(done_until, |m| m.sequence + 1);
             if let Some(ack) = intake.ack(done_until) {
                 let _ = acks.publish(ack);
             }

@@ -185,13 +185,42 @@ fn rpm_at(m: &TimedMove, speed: f64, options: &ScrewOptions) -> f64 {
     }
 }
 
+/// The pin's state between chunks of moves processed separately.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PinState {
+    /// The last move with a duration fed material (the pin is open).
+    pub extruding: bool,
+    /// When the pin last closed.
+    pub closed_at: f64,
+}
+
+impl Default for PinState {
+    fn default() -> Self {
+        PinState {
+            extruding: false,
+            closed_at: f64::NEG_INFINITY,
+        }
+    }
+}
+
 /// The command breakpoints for consecutive moves (in plan order), before smoothing.
 pub fn breakpoints(moves: &[TimedMove], options: &ScrewOptions) -> Vec<Command> {
+    breakpoints_from(moves, options, &mut PinState::default(), true)
+}
+
+/// [`breakpoints`] for one chunk of a longer run: starts from `state` and leaves it for the
+/// next chunk; the pin is closed after the last move only at `end_of_input`.
+pub fn breakpoints_from(
+    moves: &[TimedMove],
+    options: &ScrewOptions,
+    state: &mut PinState,
+    end_of_input: bool,
+) -> Vec<Command> {
     let mut out: Vec<Command> = Vec::new();
     // Look-ahead openings fall inside earlier moves: merged in by time at the end.
     let mut openings: Vec<Command> = Vec::new();
-    let mut previous_extruding = false;
-    let mut pin_closed_at = f64::NEG_INFINITY;
+    let mut previous_extruding = state.extruding;
+    let mut pin_closed_at = state.closed_at;
     for m in moves {
         let (Some(&t0), Some(&t1)) = (m.t.first(), m.t.last()) else {
             continue;
@@ -254,15 +283,21 @@ pub fn breakpoints(moves: &[TimedMove], options: &ScrewOptions) -> Vec<Command> 
         }
         previous_extruding = m.extrude;
     }
-    if previous_extruding {
+    if previous_extruding && end_of_input {
         if let Some(last) = out.last().copied() {
             out.push(Command {
                 rpm: 0.0,
                 pin_open: false,
                 ..last
             });
+            pin_closed_at = last.t;
+            previous_extruding = false;
         }
     }
+    *state = PinState {
+        extruding: previous_extruding,
+        closed_at: pin_closed_at,
+    };
     // Plan order is time order, up to the nanosecond rounding of trajectory stamps.
     for i in 1..out.len() {
         out[i].t = out[i].t.max(out[i - 1].t);

@@ -38,6 +38,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("max_rpm_per_s", ParamValue::Double(d.max_rpm_per_s), "largest rpm change per second (0: unlimited)").range(0.0, 1e9),
         ParamSpec::new("smoothing", ParamValue::String("none".into()), "none, fir1, fir2 (the seed's 1521 taps) or fir2_60db (1525 taps)"),
         ParamSpec::new("smoothing_period_s", ParamValue::Double(d.smoothing_period_s), "grid of the smoothed commands").range(1e-5, 10.0),
+        ParamSpec::new("command_period_s", ParamValue::Double(0.0), "without smoothing: 0 publishes the exact breakpoints (rpm linear between them); > 0 resamples onto this grid, each command the exact average over its interval").range(0.0, 10.0),
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.1), "compute commands when no trajectory came for this long").range(0.001, 60.0),
         ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
@@ -92,11 +93,14 @@ pub fn command_messages(
     base_ns: i64,
     pin: &mut PinState,
     end_of_input: bool,
+    command_period_s: f64,
 ) -> Vec<ScrewCommand> {
     let raw = breakpoints_from(chunk, options, pin, end_of_input);
-    let commands = match &options.smoothing {
-        Some(taps) => smooth(&raw, taps, options.smoothing_period_s),
-        None => raw,
+    let commands = match (&options.smoothing, command_period_s) {
+        (Some(taps), _) => smooth(&raw, taps, options.smoothing_period_s),
+        // A fixed rate: exact interval averages (an identity filter), held per interval.
+        (None, period) if period > 0.0 => smooth(&raw, &[1.0], period),
+        (None, _) => raw,
     };
     commands
         .into_iter()
@@ -140,6 +144,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let options = options_from_params(&params)?;
     let idle_flush = Duration::from_secs_f64(params.f64("idle_flush_s"));
     let max_buffer_s = params.f64("max_buffer_s");
+    let command_period_s = params.f64("command_period_s");
     let moves_sub = node.subscription::<GcodeMove>("/gcode/moves", &reliable_qos(100_000))?;
     let trajectories =
         node.subscription::<JointTrajectory>("/polar/trajectory", &reliable_qos(100_000))?;
@@ -230,8 +235,14 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         };
         if let Some(cut) = cut.filter(|&c| c > 0) {
             let chunk: Vec<TimedMove> = timed.drain(..cut).collect();
-            let messages =
-                command_messages(&chunk, &options, base_ns.unwrap_or(0), &mut pin, flush_all);
+            let messages = command_messages(
+                &chunk,
+                &options,
+                base_ns.unwrap_or(0),
+                &mut pin,
+                flush_all,
+                command_period_s,
+            );
             for message in messages {
                 cell_runtime::publish(&commands_pub, message, Duration::from_secs(30)).await?;
             }

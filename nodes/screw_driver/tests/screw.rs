@@ -246,3 +246,18 @@ fn stop_rests_once_per_off_on_transition() {
         assert_eq!(integral(&commands, m.t[0], m.t[1]), 0.0);
     }
 }
+
+/// At a fixed command rate (an identity "filter" on the grid), each held command feeds exactly
+/// what the breakpoints feed over its interval.
+#[test]
+fn fixed_rate_commands_keep_the_material() {
+    let moves = timed(&fixture("polartest.gcode"), 0.0);
+    let raw = breakpoints(&moves, &ScrewOptions::default());
+    let held = smooth(&raw, &[1.0], 0.01);
+    assert!(held
+        .windows(2)
+        .all(|w| (w[1].t - w[0].t - 0.01).abs() < 1e-9));
+    let total_raw = integral(&raw, raw[0].t, raw.last().unwrap().t);
+    let total_held = integral_held(&held, held[0].t, held.last().unwrap().t);
+    assert!((total_raw - total_held).abs() < 1e-9 * total_raw);
+}

@@ -27,56 +27,48 @@ def record_moves(out: Path):
          "--ros-args", "-p", "bag_recorder:topics:=[/gcode/moves]"])
 
 
-def replay_plan(moves_bag: Path, out: Path):
-    """Play `moves_bag` into a planner node and record its /polar/trajectory to `out`."""
-    planner = subprocess.Popen(
-        [str(BIN_DIR / "polar_planner"), "--ros-args", "-p", "plan_epoch_ns:=0",
-         "-p", "acknowledge_moves:=false", "-p", "publish_steps:=false",
-         "-p", "joint_state_period_s:=0.0"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    recorder = subprocess.Popen(
-        [str(BIN_DIR / "bag_recorder"), "--ros-args", "-p", f"output:={out}",
-         "-p", "topics:=[/polar/trajectory]", "-p", "acknowledge_moves:=false"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
+def replay(node: list, plays: list, out: Path, topic: str, settle_s: float):
+    """Start `node` (a command) and a recorder of `topic` into `out`, play each
+    `(bag, topic)` of `plays` as fast as subscribers take it, wait `settle_s` for the node to
+    finish its output, then stop both with SIGINT (which finishes the bag)."""
+    processes = [
+        subprocess.Popen([str(a) for a in node], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True),
+        subprocess.Popen(
+            [str(BIN_DIR / "bag_recorder"), "--ros-args", "-p", f"output:={out}",
+             "-p", f"topics:=[{topic}]", "-p", "acknowledge_moves:=false"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        ),
+    ]
     try:
         time.sleep(1.0)  # both subscribed before anything is played
-        run([BIN_DIR / "polar-cell", "bag", "play", moves_bag, "--fast", "--wait-subscribers-s", "15",
-             "--topics", "/gcode/moves"])
-        time.sleep(1.0)  # the planner flushes its lookahead when input stops
+        for bag, played in plays:
+            run([BIN_DIR / "polar-cell", "bag", "play", bag, "--fast", "--wait-subscribers-s", "15",
+                 "--topics", played])
+        time.sleep(settle_s)
     finally:
-        for proc in (planner, recorder):
+        for proc in processes:
             proc.send_signal(signal.SIGINT)
-        errors = [proc.communicate(timeout=30)[1] for proc in (planner, recorder)]
-    if recorder.returncode != 0:
+        errors = [proc.communicate(timeout=30)[1] for proc in processes]
+    if processes[1].returncode != 0:
         raise RuntimeError(f"bag_recorder failed: {errors[1]}")
+
+
+def replay_plan(moves_bag: Path, out: Path):
+    """Play `moves_bag` into a planner node and record its /polar/trajectory to `out`; the
+    planner flushes its lookahead when input stops."""
+    planner = [BIN_DIR / "polar_planner", "--ros-args", "-p", "plan_epoch_ns:=0",
+               "-p", "acknowledge_moves:=false", "-p", "publish_steps:=false",
+               "-p", "joint_state_period_s:=0.0"]
+    replay(planner, [(moves_bag, "/gcode/moves")], out, "/polar/trajectory", 1.0)
 
 
 def replay_screw(moves_bag: Path, trajectory_bag: Path, out: Path):
-    """Play recorded moves and trajectories into a screw driver; record /screw/command."""
-    screw = subprocess.Popen(
-        [str(BIN_DIR / "screw_driver"), "--ros-args", "-p", "acknowledge_moves:=false",
-         "-p", "idle_flush_s:=1.0"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    recorder = subprocess.Popen(
-        [str(BIN_DIR / "bag_recorder"), "--ros-args", "-p", f"output:={out}",
-         "-p", "topics:=[/screw/command]", "-p", "acknowledge_moves:=false"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    try:
-        time.sleep(1.0)
-        for bag, topic in ((moves_bag, "/gcode/moves"), (trajectory_bag, "/polar/trajectory")):
-            run([BIN_DIR / "polar-cell", "bag", "play", bag, "--fast", "--wait-subscribers-s", "15",
-                 "--topics", topic])
-        time.sleep(2.5)  # the screw driver computes commands when input stops
-    finally:
-        for proc in (screw, recorder):
-            proc.send_signal(signal.SIGINT)
-        errors = [proc.communicate(timeout=30)[1] for proc in (screw, recorder)]
-    if recorder.returncode != 0:
-        raise RuntimeError(f"bag_recorder failed: {errors[1]}")
+    """Play recorded moves and trajectories into a screw driver; record /screw/command (it
+    computes commands when input stops)."""
+    screw = [BIN_DIR / "screw_driver", "--ros-args", "-p", "acknowledge_moves:=false",
+             "-p", "idle_flush_s:=1.0"]
+    plays = [(moves_bag, "/gcode/moves"), (trajectory_bag, "/polar/trajectory")]
+    replay(screw, plays, out, "/screw/command", 2.5)
 
 
 if __name__ == "__main__":

@@ -110,24 +110,7 @@ impl StepGenerator {
                 }
                 sub.step_counts[dominant] = part.end - part.start;
                 sub.duration_s = part.duration_s;
-                match part.shape {
-                    Shape::Cruise { period_s } => {
-                        sub.cruise_steps = part.end - part.start;
-                        sub.cruise_period_ticks = period_s * f;
-                    }
-                    Shape::Ramp {
-                        first_period_s,
-                        accelerating,
-                    } => {
-                        sub.first_period_ticks = first_period_s * f;
-                        sub.ramp_r = a.abs() / (f * f);
-                        if accelerating {
-                            sub.accelerate_steps = part.end - part.start;
-                        } else {
-                            sub.decelerate_steps = part.end - part.start;
-                        }
-                    }
-                }
+                fill_timing(&mut sub, &part, a, f);
                 out.push(sub);
             }
         }
@@ -157,6 +140,29 @@ struct Part {
     end: u32,
     shape: Shape,
     duration_s: f64,
+}
+
+/// Write a part's dominant-axis timing into its segment (timer `f` Hz, acceleration `a`).
+fn fill_timing(seg: &mut StepSegment, part: &Part, a: f64, f: f64) {
+    let steps = part.end - part.start;
+    match part.shape {
+        Shape::Cruise { period_s } => {
+            seg.cruise_steps = steps;
+            seg.cruise_period_ticks = period_s * f;
+        }
+        Shape::Ramp {
+            first_period_s,
+            accelerating,
+        } => {
+            seg.first_period_ticks = first_period_s * f;
+            seg.ramp_r = a.abs() / (f * f);
+            if accelerating {
+                seg.accelerate_steps = steps;
+            } else {
+                seg.decelerate_steps = steps;
+            }
+        }
+    }
 }
 
 /// Split an `n`-step ramp from rate `v0` at acceleration `a` (steps/s, steps/s²) into exact
@@ -290,26 +296,9 @@ mod tests {
                 step_counts: vec![steps, 0, 0],
                 dominant_axis: 0,
                 timer_frequency_hz: f,
-                ramp_r: a.abs() / (f * f),
                 ..Default::default()
             };
-            match part.shape {
-                Shape::Cruise { period_s } => {
-                    seg.cruise_steps = steps;
-                    seg.cruise_period_ticks = period_s * f;
-                }
-                Shape::Ramp {
-                    first_period_s,
-                    accelerating,
-                } => {
-                    seg.first_period_ticks = first_period_s * f;
-                    if accelerating {
-                        seg.accelerate_steps = steps;
-                    } else {
-                        seg.decelerate_steps = steps;
-                    }
-                }
-            }
+            fill_timing(&mut seg, &part, a, f);
             let mut pulses = Vec::new();
             decode(&seg, &mut pulses);
             assert_eq!(pulses.len() as u32, steps);

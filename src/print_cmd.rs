@@ -9,6 +9,7 @@ use anyhow::{bail, Context as _};
 use cell_bag::node::{print_summary, Recorder};
 use cell_runtime::args::ParamOverride;
 use cell_runtime::{CellNode, ParamSpec, RosArgs};
+use gcode_streamer::node::StreamSummary;
 use gcode_streamer::{Event, GcodeReader};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -33,6 +34,32 @@ fn args_for(
     );
     args.params = params;
     args
+}
+
+/// Start node `name` with its parameter `specs`, our `ours` overrides first (the user's win).
+fn start_node(
+    name: &str,
+    specs: &[ParamSpec],
+    ros_args: &RosArgs,
+    ours: Vec<ParamOverride>,
+) -> anyhow::Result<CellNode> {
+    Ok(CellNode::start(
+        name,
+        specs,
+        &args_for(ros_args, name, specs, ours),
+    )?)
+}
+
+/// What a node task that should run until the print ends means when it ends first.
+fn stopped(
+    name: &str,
+    finished: Result<(CellNode, anyhow::Result<()>), tokio::task::JoinError>,
+) -> anyhow::Result<StreamSummary> {
+    match finished {
+        Ok((_, Err(e))) => Err(e.context(name.to_string())),
+        Ok((_, Ok(()))) => Err(anyhow::anyhow!("{name} stopped")),
+        Err(e) => Err(anyhow::anyhow!("{name} task: {e}")),
+    }
 }
 
 /// Every global `-p` must be declared by at least one node (unknown parameters are errors).
@@ -95,44 +122,32 @@ pub async fn print(
     )?;
     let (input, total) = open_input(file)?;
 
-    let recorder_node = CellNode::start(
+    let recorder_node = start_node(
         cell_bag::node::NODE_NAME,
         &recorder_specs,
-        &args_for(
-            ros_args,
-            cell_bag::node::NODE_NAME,
-            &recorder_specs,
-            vec![
-                param("output", format!("{:?}", bag.display().to_string())),
-                param("bag_directory", bag_dir.to_string()),
-            ],
-        ),
+        ros_args,
+        vec![
+            param("output", format!("{:?}", bag.display().to_string())),
+            param("bag_directory", bag_dir.to_string()),
+        ],
     )?;
     let recorder = Recorder::start(recorder_node)?;
-    let mut screw_node = CellNode::start(
+    let mut screw_node = start_node(
         screw_driver::node::NODE_NAME,
         &screw_specs,
-        &args_for(
-            ros_args,
-            screw_driver::node::NODE_NAME,
-            &screw_specs,
-            vec![],
-        ),
+        ros_args,
+        vec![],
     )?;
     // The stop strategy needs the planner to rest for the pin.
     let pin_dwell = match screw_node.params.string("pin_strategy") {
         "stop" => screw_node.params.f64("pin_open_delay_s"),
         _ => 0.0,
     };
-    let mut planner_node = CellNode::start(
+    let mut planner_node = start_node(
         polar_planner::node::NODE_NAME,
         &planner_specs,
-        &args_for(
-            ros_args,
-            polar_planner::node::NODE_NAME,
-            &planner_specs,
-            vec![param("pin_open_dwell_s", pin_dwell.to_string())],
-        ),
+        ros_args,
+        vec![param("pin_open_dwell_s", pin_dwell.to_string())],
     )?;
     let consumers = format!(
         "[{:?}, {:?}, {:?}]",
@@ -140,23 +155,19 @@ pub async fn print(
         planner_node.fully_qualified_name(),
         screw_node.fully_qualified_name()
     );
-    let screw = tokio::spawn(async move {
+    let mut screw = tokio::spawn(async move {
         let result = screw_driver::node::run(&mut screw_node).await;
         (screw_node, result)
     });
-    let planner = tokio::spawn(async move {
+    let mut planner = tokio::spawn(async move {
         let result = polar_planner::node::run(&mut planner_node).await;
         (planner_node, result)
     });
-    let mut streamer = CellNode::start(
+    let mut streamer = start_node(
         gcode_streamer::node::NODE_NAME,
         &streamer_specs,
-        &args_for(
-            ros_args,
-            gcode_streamer::node::NODE_NAME,
-            &streamer_specs,
-            vec![param("consumers", consumers)],
-        ),
+        ros_args,
+        vec![param("consumers", consumers)],
     )?;
 
     let bar = if show_progress {
@@ -169,19 +180,9 @@ pub async fn print(
     } else {
         ProgressBar::hidden()
     };
-    let mut planner = planner;
-    let mut screw = screw;
     let outcome = tokio::select! {
-        finished = &mut planner => Some(match finished {
-            Ok((_, Err(e))) => Err(e.context("polar_planner")),
-            Ok((_, Ok(()))) => Err(anyhow::anyhow!("polar_planner stopped")),
-            Err(e) => Err(anyhow::anyhow!("polar_planner task: {e}")),
-        }),
-        finished = &mut screw => Some(match finished {
-            Ok((_, Err(e))) => Err(e.context("screw_driver")),
-            Ok((_, Ok(()))) => Err(anyhow::anyhow!("screw_driver stopped")),
-            Err(e) => Err(anyhow::anyhow!("screw_driver task: {e}")),
-        }),
+        finished = &mut planner => Some(stopped(polar_planner::node::NODE_NAME, finished)),
+        finished = &mut screw => Some(stopped(screw_driver::node::NODE_NAME, finished)),
         r = gcode_streamer::node::stream(&mut streamer, input, file, total, |p| {
             bar.set_position(p.bytes_read);
             bar.set_message(format!(

@@ -86,8 +86,10 @@ impl Geometry {
     ) -> Self {
         let angle = |i: usize| chain1_angle_rad + i as f64 * 2.0 * std::f64::consts::FRAC_PI_3;
         let radial: [Vector3<f64>; 3] = std::array::from_fn(|i| {
+            // Snap the rounding residue of cos 270° etc. to the exact zero of the layout.
+            let snap = |v: f64| if v.abs() < 1e-15 { 0.0 } else { v };
             let (s, c) = angle(i).sin_cos();
-            Vector3::new(c, s, 0.0)
+            Vector3::new(snap(c), snap(s), 0.0)
         });
         let tangent = radial.map(|u| Vector3::new(-u.y, u.x, 0.0));
         Geometry {

@@ -33,5 +33,5 @@ pub use geometry::{Geometry, Limits};
 pub use kinematics::{ForwardSolver, IkSolution, JointPositions, ToolTarget};
 pub use pose::{Pose, Tilt};
 
-// The URDF of the mechanism as shipped (`urdf/hybrid_pkm.urdf`), compiled in as the default.
-// pub const BUILTIN_URDF: &str = include_str!("../../../urdf/hybrid_pkm.urdf");
+/// The URDF of the mechanism as shipped (`urdf/hybrid_pkm.urdf`), compiled in as the default.
+pub const BUILTIN_URDF: &str = include_str!("../../../urdf/hybrid_pkm.urdf");

@@ -5,6 +5,7 @@
 //! `name`, a node-prefixed one (`-p gcode_streamer:window:=64`) to that node only.
 
 mod bag_cmd;
+mod mechanism_cmd;
 mod plot_cmd;
 mod print_cmd;
 
@@ -27,6 +28,11 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// The hybrid machining head (3-RPS + XY table): ik, fk, cl, urdf, calibrate, simulate.
+    Mechanism {
+        #[command(subcommand)]
+        command: mechanism_cmd::MechanismCommand,
+    },
     /// Print a G-code file through the cell's nodes over DDS, recording every topic.
     Print {
         /// The G-code file (`-` for stdin).
@@ -108,6 +114,7 @@ async fn main() -> anyhow::Result<()> {
         } => print_cmd::print(&file, &bag, bag_dir, !no_progress, &ros_args).await,
         Command::Check { file } => print_cmd::check(&file),
         Command::Plot { bag, out } => plot_cmd::plot(&bag, &out),
+        Command::Mechanism { command } => mechanism_cmd::run(command),
         Command::Bag { command } => match command {
             BagCommand::Info { bag } => bag_cmd::info(&bag),
             BagCommand::Play {

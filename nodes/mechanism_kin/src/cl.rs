@@ -331,9 +331,13 @@ mod tests {
         for c in cmds {
             let sol = fk.solve(&g, c.solution.ik.legs_mm).unwrap();
             let tip_world = sol.output_point_mm - sol.rotation.column(2) * g.tool_length_mm;
-            let tip_work = tip_world
-                - Vector3::new(c.solution.table_mm[0], c.solution.table_mm[1], 0.0);
-            assert!((tip_work - c.target.tip_mm).amax() < 1e-9, "line {}", c.line);
+            let tip_work =
+                tip_world - Vector3::new(c.solution.table_mm[0], c.solution.table_mm[1], 0.0);
+            assert!(
+                (tip_work - c.target.tip_mm).amax() < 1e-9,
+                "line {}",
+                c.line
+            );
             assert!((sol.rotation.column(2) - c.target.axis).amax() < 1e-12);
         }
     }
@@ -358,7 +362,16 @@ mod tests {
                     return format!("{l}\n");
                 }
                 let z: f64 = f[2].parse().unwrap();
-                format!("{},{},{},{},{},{},{}\n", f[0], f[1], z + 150.0, f[3], f[4], f[5], f[6])
+                format!(
+                    "{},{},{},{},{},{},{}\n",
+                    f[0],
+                    f[1],
+                    z + 150.0,
+                    f[3],
+                    f[4],
+                    f[5],
+                    f[6]
+                )
             })
             .collect();
         let cmds = run(&lifted).unwrap();
@@ -405,7 +418,11 @@ mod tests {
             ("1,2,3,0,0,-1,s\n1,x,3,0,0,-1,e\n", 2, "Py `x`"),
             ("1,2,3,0,0,-0.5,s\n", 1, "length 0.5"),
             ("1,2,3,0,0,-1,w\n", 1, "outside a path"),
-            ("1,2,3,0,0,-1,s\n1,2,3,0,0,-1,s\n", 2, "inside the path started at line 1"),
+            (
+                "1,2,3,0,0,-1,s\n1,2,3,0,0,-1,s\n",
+                2,
+                "inside the path started at line 1",
+            ),
             ("1,2,3,0,0,-1,s\n\n", 2, "file ends inside"),
             ("1,2,3,0,0,-1,q\n", 1, "flag `q`"),
             ("Px,Py,Pz,Vx,Vy,flag\n", 1, "header"),
@@ -414,7 +431,11 @@ mod tests {
         for (text, line, says) in cases {
             let err = run(text).unwrap_err();
             match &err {
-                ClError::Malformed { line: l, reason, file } => {
+                ClError::Malformed {
+                    line: l,
+                    reason,
+                    file,
+                } => {
                     assert_eq!(*l, line, "{text:?}: {err}");
                     assert!(reason.contains(says), "{text:?}: {err}");
                     assert_eq!(file, "part.cl");

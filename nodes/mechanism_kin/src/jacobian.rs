@@ -162,7 +162,7 @@ fn invert(m: &Matrix3<f64>, what: &'static str) -> Result<Matrix3<f64>, KinError
     let svd = m.svd(false, false);
     let (max, min) = (svd.singular_values.max(), svd.singular_values.min());
     let condition = if min > 0.0 { max / min } else { f64::INFINITY };
-    if !(condition < 1e10) {
+    if condition.is_nan() || condition >= 1e10 {
         return Err(KinError::Singular { what, condition });
     }
     m.try_inverse()

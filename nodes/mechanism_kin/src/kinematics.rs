@@ -108,8 +108,8 @@ impl Geometry {
     /// The shift (X_u, Y_u) that puts the rotated points into their chain planes.
     pub(crate) fn plane_shift(&self, rotated: &[Vector3<f64>; 3]) -> Vector3<f64> {
         let mut shift = Vector3::zeros();
-        for i in 0..3 {
-            shift -= self.tangent[i] * self.tangent[i].dot(&rotated[i]);
+        for (t, r) in self.tangent.iter().zip(rotated) {
+            shift -= t * t.dot(r);
         }
         shift * (2.0 / 3.0)
     }
@@ -423,8 +423,8 @@ impl ForwardSolver {
         // Σ (C_i − P) p_iᵀ = R·(3/2)R_out²·diag(1, 1, 0).
         let p = (c[0] + c[1] + c[2]) / 3.0;
         let mut m = Matrix3::zeros();
-        for i in 0..3 {
-            m += (c[i] - p) * geom.platform_points[i].transpose();
+        for (ci, pi) in c.iter().zip(&geom.platform_points) {
+            m += (ci - p) * pi.transpose();
         }
         let scale = 1.5 * geom.platform_radius_mm * geom.platform_radius_mm;
         let ex = m.column(0) / scale;

@@ -26,7 +26,11 @@ pub mod jacobian;
 pub mod kinematics;
 pub mod path;
 pub mod pose;
+pub mod report;
 pub mod urdf;
+
+#[cfg(feature = "node")]
+pub mod node;
 
 pub use error::KinError;
 pub use geometry::{Geometry, Limits};

@@ -208,7 +208,7 @@ mod tests {
     #[test]
     fn rotation_matches_seed_rodrigues_on_both_sides_of_the_series_switch() {
         for &t2 in &[0.0, 1e-7, 0.05, 0.0999, 0.1001, 0.2, 0.35, -0.3] {
-            for &t1 in &[0.1, 0.7, 1.5, 2.9, 3.14159] {
+            for &t1 in &[0.1, 0.7, 1.5, 2.9, 3.1] {
                 let r = Tilt::from_theta(t1, t2).rotation();
                 let d = (r - seed_rotation(t1, t2)).abs().max();
                 assert!(d < 2e-16 * 8.0, "θ1 {t1} θ2 {t2}: {d:e}");

@@ -1,0 +1,218 @@
+//! The `mechanism_kin` node: `/mechanism/tool_pose` in, `/mechanism/joint_states` (every URDF
+//! joint, so RViz shows the closed mechanism) and `/robot_description` (transient local) out.
+//!
+//! A tool pose is the tool tip in the workpiece (`table`) frame, in metres, and an orientation
+//! whose z axis is the tool axis pointing spindle-ward; rotation about the tool axis is free
+//! (a ball end mill). Each pose is solved, checked by forward kinematics and through the URDF
+//! tree, and reported on `/diagnostics`; an unreachable pose is an error diagnostic and no
+//! joint state.
+
+use anyhow::{anyhow, bail, Context};
+use cell_runtime::{reliable_qos, transient_local_qos, CellNode, LogLevel, ParamSpec, ParamValue};
+use nalgebra::Vector3;
+use polar_cell_msgs::{Header, JointState, PoseStamped, StringMsg, Time};
+
+use crate::kinematics::{ForwardSolver, ToolTarget};
+use crate::report::{evaluate, Evaluation};
+use crate::urdf::joint_names;
+
+/// Default node name.
+pub const NODE_NAME: &str = "mechanism_kin";
+
+pub fn param_specs() -> Vec<ParamSpec> {
+    vec![
+        ParamSpec::new(
+            "urdf_path",
+            ParamValue::String(String::new()),
+            "URDF of the mechanism (empty: the built-in urdf/hybrid_pkm.urdf)",
+        ),
+        ParamSpec::new(
+            "publish_home",
+            ParamValue::Bool(true),
+            "publish the home pose's joint states at start so the model shows closed at once",
+        ),
+    ]
+}
+
+/// The target a tool pose message asks for (mm, unit axis).
+pub fn target_from_pose(msg: &PoseStamped) -> ToolTarget {
+    let p = &msg.pose.position;
+    let q = &msg.pose.orientation;
+    let norm = (q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w).sqrt();
+    let (x, y, z, w) = (q.x / norm, q.y / norm, q.z / norm, q.w / norm);
+    // R(q)·ẑ
+    let axis = Vector3::new(
+        2.0 * (x * z + w * y),
+        2.0 * (y * z - w * x),
+        1.0 - 2.0 * (x * x + y * y),
+    );
+    ToolTarget {
+        tip_mm: Vector3::new(p.x, p.y, p.z) * 1e3,
+        axis,
+    }
+}
+
+/// The joint state message of an evaluation.
+pub fn joint_state(e: &Evaluation, stamp: Time) -> JointState {
+    JointState {
+        header: Header {
+            stamp,
+            frame_id: String::new(),
+        },
+        name: joint_names(),
+        position: e.joint_values_si.clone(),
+        velocity: vec![],
+        effort: vec![],
+    }
+}
+
+/// Diagnostic key/values of an evaluation.
+pub fn diagnostic_values(e: &Evaluation) -> Vec<(&'static str, String)> {
+    let legs = e.solution.ik.legs_mm;
+    vec![
+        (
+            "leg_lengths_mm",
+            format!("{:.6} {:.6} {:.6}", legs[0], legs[1], legs[2]),
+        ),
+        (
+            "table_mm",
+            format!(
+                "{:.6} {:.6}",
+                e.solution.table_mm[0], e.solution.table_mm[1]
+            ),
+        ),
+        ("fk_residual_m", format!("{:.3e}", e.fk_residual_mm * 1e-3)),
+        ("fk_iterations", e.fk_iterations.to_string()),
+        (
+            "loop_closure_residual_m",
+            format!("{:.3e}", e.loop_closure_residual_m),
+        ),
+        ("io_ratio", format!("{:.6}", e.io_ratio)),
+        ("leg_margin_m", format!("{:.6}", e.leg_margin_mm * 1e-3)),
+        ("swing_margin_rad", format!("{:.6}", e.swing_margin_rad)),
+        ("table_margin_m", format!("{:.6}", e.table_margin_mm * 1e-3)),
+    ]
+}
+
+/// Run the node until an error.
+pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
+    let path = node.params.string("urdf_path").to_string();
+    let text = if path.is_empty() {
+        crate::BUILTIN_URDF.to_string()
+    } else {
+        std::fs::read_to_string(&path).with_context(|| format!("reading URDF {path}"))?
+    };
+    let (tree, geom) = crate::urdf::load(&text).map_err(|e| {
+        anyhow!(
+            "{}: {e}",
+            if path.is_empty() {
+                "built-in URDF"
+            } else {
+                &path
+            }
+        )
+    })?;
+    let description = node.publisher::<StringMsg>("/robot_description", &transient_local_qos(1))?;
+    description
+        .publish(StringMsg { data: text })
+        .map_err(|e| anyhow!("/robot_description: {e:?}"))?;
+    node.keep(description);
+    let states = node.publisher::<JointState>("/mechanism/joint_states", &reliable_qos(100))?;
+    let poses = node.subscription::<PoseStamped>("/mechanism/tool_pose", &reliable_qos(100))?;
+    let mut fk = ForwardSolver::default();
+    node.log(
+        LogLevel::Info,
+        &format!(
+            "3-RPS + XY table: R_in {} mm, R_out {} mm, tool {} mm",
+            geom.base_radius_mm, geom.platform_radius_mm, geom.tool_length_mm
+        ),
+    );
+    if node.params.bool("publish_home") {
+        // Home: platform flat at the seed's Z = 393 mm, table centred under the tool.
+        let home = ToolTarget {
+            tip_mm: Vector3::new(0.0, 0.0, 393.0 - geom.tool_length_mm),
+            axis: Vector3::z(),
+        };
+        let e = evaluate(&geom, &tree, &mut fk, &home)?;
+        cell_runtime::publish(
+            &states,
+            joint_state(&e, Time::from_nanos(cell_runtime::now_ns() as i64)),
+            std::time::Duration::from_secs(5),
+        )
+        .await?;
+    }
+    loop {
+        let (msg, _) = poses
+            .async_take()
+            .await
+            .map_err(|e| anyhow!("/mechanism/tool_pose: {e:?}"))?;
+        let target = target_from_pose(&msg);
+        match evaluate(&geom, &tree, &mut fk, &target) {
+            Ok(e) => {
+                cell_runtime::publish(
+                    &states,
+                    joint_state(&e, msg.header.stamp),
+                    std::time::Duration::from_secs(5),
+                )
+                .await?;
+                node.diagnose(0, "tool pose solved", &diagnostic_values(&e));
+            }
+            Err(err) => {
+                let text = format!(
+                    "tool pose tip ({:.6}, {:.6}, {:.6}) m unreachable: {err}",
+                    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z
+                );
+                node.log(LogLevel::Warn, &text);
+                node.diagnose(2, &text, &[]);
+            }
+        }
+    }
+}
+
+/// Run the node from its own command line until SIGINT/SIGTERM.
+pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
+    let (ros_args, rest) = cell_runtime::RosArgs::parse(&argv)?;
+    if !rest.is_empty() {
+        bail!("unexpected arguments {rest:?}: parameters go after --ros-args -p name:=value");
+    }
+    let mut node = CellNode::start(NODE_NAME, &param_specs(), &ros_args)?;
+    tokio::select! {
+        result = run(&mut node) => result,
+        _ = cell_runtime::shutdown_signal() => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use polar_cell_msgs::{Point, Pose, Quaternion};
+
+    #[test]
+    fn quaternion_z_axis_is_the_tool_axis() {
+        // 10° about x: z axis → (0, −sin 10°, cos 10°)
+        let h = 5f64.to_radians();
+        let msg = PoseStamped {
+            header: Header::default(),
+            pose: Pose {
+                position: Point {
+                    x: 0.01,
+                    y: 0.02,
+                    z: 0.25,
+                },
+                orientation: Quaternion {
+                    x: h.sin(),
+                    y: 0.0,
+                    z: 0.0,
+                    w: h.cos(),
+                },
+            },
+        };
+        let t = target_from_pose(&msg);
+        assert!(
+            (t.axis - Vector3::new(0.0, -(10f64.to_radians().sin()), 10f64.to_radians().cos()))
+                .amax()
+                < 1e-15
+        );
+        assert!((t.tip_mm - Vector3::new(10.0, 20.0, 250.0)).amax() < 1e-12);
+    }
+}

@@ -97,21 +97,26 @@ pub enum MechanismCommand {
 #[derive(clap::Args, Debug)]
 pub struct PoseArgs {
     /// Output-point height Z, mm (with θ1/θ2 or roll/pitch).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     z: Option<f64>,
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     theta1_deg: Option<f64>,
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     theta2_deg: Option<f64>,
-    #[arg(long, conflicts_with_all = ["theta1_deg", "theta2_deg"])]
+    #[arg(long, allow_negative_numbers = true, conflicts_with_all = ["theta1_deg", "theta2_deg"])]
     roll_deg: Option<f64>,
-    #[arg(long, conflicts_with_all = ["theta1_deg", "theta2_deg"])]
+    #[arg(long, allow_negative_numbers = true, conflicts_with_all = ["theta1_deg", "theta2_deg"])]
     pitch_deg: Option<f64>,
     /// Tool tip x,y,z in the workpiece frame, mm (with --axis instead of a pose).
-    #[arg(long, value_delimiter = ',', conflicts_with_all = ["z", "theta1_deg", "theta2_deg", "roll_deg", "pitch_deg"])]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, conflicts_with_all = ["z", "theta1_deg", "theta2_deg", "roll_deg", "pitch_deg"])]
     tip_mm: Option<Vec<f64>>,
     /// Tool axis x,y,z, unit, pointing spindle-ward (default 0,0,1).
-    #[arg(long, value_delimiter = ',', requires = "tip_mm")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        requires = "tip_mm"
+    )]
     axis: Option<Vec<f64>>,
 }
 

@@ -398,8 +398,8 @@ pub fn run(command: MechanismCommand) -> anyhow::Result<()> {
                 "tool_tip_mm": [tip.x, tip.y, tip.z],
                 "tool_axis": [sol.rotation[(0, 2)], sol.rotation[(1, 2)], sol.rotation[(2, 2)]],
                 "iterations": sol.iterations,
-                "side_residual_mm": sol.side_residual_mm,
-                "closure_residual": sol.closure_residual,
+                "side_residual_mm": sol.side_residual_mm(&geom),
+                "closure_residual_mm": sol.closure_residual_mm(&geom),
                 "calibrated_tool": predicted.map(|(t, a)| json!({"tip_mm": [t.x, t.y, t.z], "axis": [a.x, a.y, a.z]})),
             });
             if common.json {

@@ -135,19 +135,27 @@ pub fn validate(
     cal: Option<&Calibration>,
     targets: &[ToolTarget],
 ) -> ValidationErrors {
+    validate_with(truth, targets, |target| match cal {
+        Some(c) => c
+            .corrected_inverse(geom, target)
+            .map(|c| (c.legs_mm, c.table_mm)),
+        None => geom
+            .inverse_tool(target)
+            .map(|s| (s.ik.legs_mm, s.table_mm))
+            .map_err(CalibError::from),
+    })
+}
+
+/// Like [`validate`] with any controller: `command` gives legs and table for a target.
+pub fn validate_with(
+    truth: &ErrorModel,
+    targets: &[ToolTarget],
+    command: impl Fn(&ToolTarget) -> Result<([f64; 3], [f64; 2]), CalibError>,
+) -> ValidationErrors {
     let mut e = ValidationErrors::default();
     let (mut tip_sq, mut axis_sq, mut n) = (0.0, 0.0, 0usize);
     for target in targets {
-        let command = match cal {
-            Some(c) => c
-                .corrected_inverse(geom, target)
-                .map(|c| (c.legs_mm, c.table_mm)),
-            None => geom
-                .inverse_tool(target)
-                .map(|s| (s.ik.legs_mm, s.table_mm))
-                .map_err(CalibError::from),
-        };
-        let Ok((legs, table)) = command else {
+        let Ok((legs, table)) = command(target) else {
             e.refused += 1;
             continue;
         };

@@ -37,3 +37,11 @@ def test_launch_xml_names_existing_binaries_and_parameter_file():
         assert (BIN_DIR / binary).exists(), binary
         assert "--params-file $(var params)" in cmd
     assert (LAUNCH / args["params"].replace("$(dirname)/", "")).exists()
+
+
+def test_mechanism_launch_xml_starts_an_existing_binary_with_the_parameter_file():
+    root = ET.parse(LAUNCH / "mechanism.launch.xml").getroot()
+    (cmd,) = [e.get("cmd") for e in root.iter("executable")]
+    assert re.match(r"\$\(var bin_dir\)/mechanism_kin ", cmd)
+    assert (BIN_DIR / "mechanism_kin").exists()
+    assert "--params-file $(var params)" in cmd

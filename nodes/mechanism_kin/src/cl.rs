@@ -237,6 +237,19 @@ pub fn post_process(
     Ok(out)
 }
 
+/// One CL line: `s` for a path's first point, `e` for its last, `w` between.
+fn push_row(out: &mut String, tip: Vector3<f64>, v: Vector3<f64>, first: bool, last: bool) {
+    let flag = match (first, last) {
+        (true, _) => 's',
+        (_, true) => 'e',
+        _ => 'w',
+    };
+    out.push_str(&format!(
+        "{:.9},{:.9},{:.9},{:.12},{:.12},{:.12},{flag}\n",
+        tip.x, tip.y, tip.z, v.x, v.y, v.z
+    ));
+}
+
 /// A CL file for a concave hemisphere of `radius_mm` centred at (0, 0, `centre_z_mm`):
 /// passes in planes x = const (pick feed apart), tool normal to the surface (the seed's
 /// Fig. 7.12(a) part), limited to `max_tilt_rad` from vertical.
@@ -260,17 +273,7 @@ pub fn hemisphere(
             // out to the surface.
             let z = centre_z_mm - (radius_mm * radius_mm - x * x - y * y).sqrt();
             let v = Vector3::new(x, y, z - centre_z_mm) / radius_mm;
-            let flag = if j == 0 {
-                's'
-            } else if j == n {
-                'e'
-            } else {
-                'w'
-            };
-            s.push_str(&format!(
-                "{x:.9},{y:.9},{z:.9},{:.12},{:.12},{:.12},{flag}\n",
-                v.x, v.y, v.z
-            ));
+            push_row(&mut s, Vector3::new(x, y, z), v, j == 0, j == n);
         }
     }
     s
@@ -290,17 +293,7 @@ pub fn spiral(turns: f64, pitch_mm: f64, z_mm: f64, step_mm: f64, tilt_rad: f64)
         // V from spindle to tip: down, leaning outward so the spindle sits toward the centre.
         let v = Vector3::new(tilt_rad.sin() * ca, tilt_rad.sin() * sa, -tilt_rad.cos());
         let last = angle >= total_angle;
-        let flag = if first {
-            's'
-        } else if last {
-            'e'
-        } else {
-            'w'
-        };
-        s.push_str(&format!(
-            "{x:.9},{y:.9},{z_mm:.9},{:.12},{:.12},{:.12},{flag}\n",
-            v.x, v.y, v.z
-        ));
+        push_row(&mut s, Vector3::new(x, y, z_mm), v, first, last);
         if last {
             break;
         }

@@ -407,12 +407,7 @@ impl ForwardSolver {
             let step_max = step.amax();
             if !step_max.is_finite() || step_max > 1.0 {
                 self.warm = false;
-                return Err(KinError::Unreachable {
-                    iterations,
-                    l1: legs_mm[0],
-                    l2: legs_mm[1],
-                    l3: legs_mm[2],
-                });
+                return Err(unreachable(iterations, &legs_mm));
             }
             for k in 0..3 {
                 phi[k] -= step[k];
@@ -426,12 +421,7 @@ impl ForwardSolver {
         };
         if phi.iter().any(|p| p.abs() >= std::f64::consts::FRAC_PI_2) {
             self.warm = false;
-            return Err(KinError::Unreachable {
-                iterations,
-                l1: legs_mm[0],
-                l2: legs_mm[1],
-                l3: legs_mm[2],
-            });
+            return Err(unreachable(iterations, &legs_mm));
         }
         // Pose from the three points: P is their centroid (Σ p_i = 0) and
         // Σ (C_i − P) p_iᵀ = R·(3/2)R_out²·diag(1, 1, 0).
@@ -461,6 +451,15 @@ impl ForwardSolver {
             hinge_rad: phi,
             iterations,
         })
+    }
+}
+
+fn unreachable(iterations: u32, legs_mm: &[f64; 3]) -> KinError {
+    KinError::Unreachable {
+        iterations,
+        l1: legs_mm[0],
+        l2: legs_mm[1],
+        l3: legs_mm[2],
     }
 }
 

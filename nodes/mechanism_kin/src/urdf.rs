@@ -279,16 +279,21 @@ impl UrdfTree {
         poses
     }
 
-    /// Largest distance, m, between the ends of chains 2 and 3 and the platform's sphere
-    /// points, and between the three ball frames' orientations (as rad · 1 m).
-    pub fn loop_closure_residual_m(&self, geom: &Geometry, values: &[f64]) -> f64 {
+    /// World pose of every link for joint values in [`joint_names`] order (SI units).
+    pub fn link_poses_in_order(&self, values: &[f64]) -> HashMap<String, Isometry3<f64>> {
         let names = joint_names();
         let map: HashMap<&str, f64> = names
             .iter()
             .map(String::as_str)
             .zip(values.iter().copied())
             .collect();
-        let poses = self.link_poses(&map);
+        self.link_poses(&map)
+    }
+
+    /// Largest distance, m, between the ends of chains 2 and 3 and the platform's sphere
+    /// points, and between the three ball frames' orientations (as rad · 1 m).
+    pub fn loop_closure_residual_m(&self, geom: &Geometry, values: &[f64]) -> f64 {
+        let poses = self.link_poses_in_order(values);
         let platform = poses["platform"];
         let mut worst: f64 = 0.0;
         for i in 1..3 {
@@ -527,13 +532,7 @@ mod tests {
                 let values = joint_values_si(&j);
                 worst = worst.max(tree.loop_closure_residual_m(&g, &values));
                 // platform and tool tip through the tree
-                let names = joint_names();
-                let map: HashMap<&str, f64> = names
-                    .iter()
-                    .map(String::as_str)
-                    .zip(values.iter().copied())
-                    .collect();
-                let poses = tree.link_poses(&map);
+                let poses = tree.link_poses_in_order(&values);
                 let p = poses["platform"].translation.vector * 1e3;
                 assert!((p - Geometry::output_point(&sol)).amax() < 1e-9);
                 let tip = poses["tool_tip"].translation.vector * 1e3;

@@ -18,7 +18,7 @@ use mechanism_kin::report::{evaluate, Evaluation};
 use mechanism_kin::urdf::{joint_names, UrdfTree};
 use mechanism_kin::{Geometry, Pose};
 use nalgebra::Vector3;
-use polar_cell_msgs::{Header, JointState, RosMessage, StringMsg, Time};
+use polar_cell_msgs::{Header, JointState, PoseStamped, RosMessage, StringMsg, Time};
 use serde_json::json;
 
 #[derive(Subcommand, Debug)]
@@ -161,11 +161,40 @@ fn load_calibration(path: &Option<PathBuf>) -> anyhow::Result<Option<Calibration
         .transpose()
 }
 
-/// A bag of joint states with the URDF.
+/// A bag of joint states (and the tool poses they answer) with the URDF. A program has no
+/// wall-clock time: stamps count 10 ms per command from 0, so the bag is reproducible.
 struct JointBag {
     writer: BagWriter<BufWriter<File>>,
     states: cell_bag::ChannelId,
+    poses: cell_bag::ChannelId,
     stamp_ns: u64,
+}
+
+/// The PoseStamped asking for `target`: tip in metres, orientation the shortest turn of ẑ onto
+/// the tool axis (what the node reads back as the axis).
+fn tool_pose_message(target: &ToolTarget, stamp: Time) -> PoseStamped {
+    let a = target.axis.normalize();
+    let (w, x, y) = (1.0 + a.z, -a.y, a.x);
+    let norm = (w * w + x * x + y * y).sqrt();
+    PoseStamped {
+        header: Header {
+            stamp,
+            frame_id: "table".into(),
+        },
+        pose: polar_cell_msgs::Pose {
+            position: polar_cell_msgs::Point {
+                x: target.tip_mm.x * 1e-3,
+                y: target.tip_mm.y * 1e-3,
+                z: target.tip_mm.z * 1e-3,
+            },
+            orientation: polar_cell_msgs::Quaternion {
+                x: x / norm,
+                y: y / norm,
+                z: 0.0,
+                w: w / norm,
+            },
+        },
+    }
 }
 
 impl JointBag {
@@ -187,7 +216,12 @@ impl JointBag {
             JointState::TYPE,
             QosRecord::ROS_DEFAULT,
         )?;
-        let stamp_ns = cell_runtime::now_ns();
+        let poses = writer.add_topic(
+            "/mechanism/tool_pose",
+            PoseStamped::TYPE,
+            QosRecord::ROS_DEFAULT,
+        )?;
+        let stamp_ns = 0;
         writer.write_message(
             description,
             stamp_ns,
@@ -198,13 +232,37 @@ impl JointBag {
         Ok(JointBag {
             writer,
             states,
+            poses,
             stamp_ns,
         })
     }
 
-    /// One joint state per command, 10 ms apart on the bag's clock.
-    fn push(&mut self, values: &[f64]) -> anyhow::Result<()> {
+    /// One tool pose and its joint state per command, 10 ms apart on the bag's clock.
+    fn push(&mut self, target: &ToolTarget, values: &[f64]) -> anyhow::Result<()> {
         self.stamp_ns += 10_000_000;
+        let stamp = Time::from_nanos(self.stamp_ns as i64);
+        self.writer
+            .write_message(self.poses, self.stamp_ns, &tool_pose_message(target, stamp))?;
+        self.push_state(values)
+    }
+
+    /// Like [`JointBag::push`], the joint state solved for the pose exactly as the message
+    /// carries it (metres and a quaternion), as the node would solve it: replaying the bag's
+    /// poses into the node gives these states bit for bit.
+    fn push_solved(
+        &mut self,
+        target: &ToolTarget,
+        geom: &Geometry,
+        tree: &UrdfTree,
+        fk: &mut ForwardSolver,
+    ) -> anyhow::Result<()> {
+        let message = tool_pose_message(target, Time::from_nanos(0));
+        let as_sent = mechanism_kin::node::target_from_pose(&message);
+        let e = evaluate(geom, tree, fk, &as_sent)?;
+        self.push(target, &e.joint_values_si)
+    }
+
+    fn push_state(&mut self, values: &[f64]) -> anyhow::Result<()> {
         let msg = JointState {
             header: Header {
                 stamp: Time::from_nanos(self.stamp_ns as i64),
@@ -326,7 +384,7 @@ pub fn run(command: MechanismCommand) -> anyhow::Result<()> {
                 .transpose()?;
             if let Some(bag) = &common.bag {
                 let mut b = JointBag::create(bag, &text)?;
-                b.push(&e.joint_values_si)?;
+                b.push_solved(&target, &geom, &tree, &mut fk)?;
                 b.finish()?;
             }
             if common.json {
@@ -383,7 +441,11 @@ pub fn run(command: MechanismCommand) -> anyhow::Result<()> {
             if let Some(bag) = &common.bag {
                 let joints = geom.joint_positions(&ik, [0.0, 0.0]);
                 let mut b = JointBag::create(bag, &text)?;
-                b.push(&mechanism_kin::urdf::joint_values_si(&joints))?;
+                let reached = ToolTarget {
+                    tip_mm: tip,
+                    axis: sol.rotation.column(2).into_owned(),
+                };
+                b.push(&reached, &mechanism_kin::urdf::joint_values_si(&joints))?;
                 b.finish()?;
             }
             let v = json!({
@@ -463,7 +525,7 @@ pub fn run(command: MechanismCommand) -> anyhow::Result<()> {
                     None => e.solution.ik.legs_mm,
                 };
                 if let Some(b) = bag.as_mut() {
-                    b.push(&e.joint_values_si)?;
+                    b.push_solved(&c.target, &geom, &tree, &mut fk)?;
                 }
                 rows.push(json!({
                     "line": c.line,

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Regenerate the golden bags of tests/golden/ (planner replay) from the fixtures.
+# Regenerate the golden bags of tests/golden/ (planner, screw driver and mechanism replays).
 # Run after an intended change of the planner's output; review the diff of the test first.
 set -euo pipefail
 cd "$(dirname "$0")/../.."

@@ -1,15 +1,21 @@
 """Golden replays: a recorded /gcode/moves bag is played into a planner node (plan time 0 =
 stamp 0, acknowledgements off) and its /polar/trajectory is recorded; both are played into a
-screw driver and its /screw/command is recorded.
+screw driver and its /screw/command is recorded. For the machining head, `polar-cell mechanism
+cl` post-processes a generated bowl into a bag of /mechanism/tool_pose and the joint states
+that answer them; the poses are played into the mechanism_kin node and its
+/mechanism/joint_states recorded.
 
     python tests/interop/golden.py   # regenerate tests/golden/ (run in a network namespace)
 """
 
+import math
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -19,6 +25,35 @@ GOLDEN = HERE.parent / "golden"
 MOVES_BAG = GOLDEN / "polartest_moves.mcap"
 TRAJECTORY_BAG = GOLDEN / "polartest_trajectory.mcap"
 SCREW_BAG = GOLDEN / "polartest_screw.mcap"
+BOWL_CL_BAG = GOLDEN / "bowl_cl.mcap"
+
+
+def hemisphere_cl(path):
+    """An independent CL generator: a concave bowl of radius 50 mm, tool along the normal."""
+    lines = ["Px,Py,Pz,Vx,Vy,Vz,flag"]
+    centre_z = 300.0
+    for x in np.arange(-12.0, 12.01, 6.0):
+        ys = np.linspace(-12.0, 12.0, 7)
+        for k, y in enumerate(ys):
+            z = centre_z - math.sqrt(50.0**2 - x * x - y * y)
+            v = np.array([x, y, z - centre_z]) / 50.0
+            flag = "s" if k == 0 else ("e" if k == len(ys) - 1 else "w")
+            lines.append(",".join(repr(float(c)) for c in (x, y, z, *v)) + f",{flag}")
+    path.write_text("\n".join(lines) + "\n")
+    return len(lines) - 1
+
+
+
+def post_process_bowl(cl: Path, out: Path):
+    """The CLI's bag of the bowl: tool poses and the joint states that answer them."""
+    hemisphere_cl(cl)
+    run([BIN_DIR / "polar-cell", "mechanism", "cl", cl, "--bag", out])
+
+
+def replay_mechanism(cl_bag: Path, out: Path):
+    """Play the tool poses of `cl_bag` into a mechanism_kin node; record its joint states."""
+    node = [BIN_DIR / "mechanism_kin", "--ros-args", "-p", "publish_home:=false"]
+    replay(node, [(cl_bag, "/mechanism/tool_pose")], out, "/mechanism/joint_states", 1.0)
 
 
 def record_moves(out: Path):
@@ -76,4 +111,6 @@ if __name__ == "__main__":
     record_moves(MOVES_BAG)
     replay_plan(MOVES_BAG, TRAJECTORY_BAG)
     replay_screw(MOVES_BAG, TRAJECTORY_BAG, SCREW_BAG)
-    print(f"wrote {MOVES_BAG}, {TRAJECTORY_BAG} and {SCREW_BAG}")
+    post_process_bowl(GOLDEN / "bowl.cl", BOWL_CL_BAG)
+    (GOLDEN / "bowl.cl").unlink()
+    print(f"wrote {MOVES_BAG}, {TRAJECTORY_BAG}, {SCREW_BAG} and {BOWL_CL_BAG}")

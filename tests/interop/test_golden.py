@@ -5,7 +5,8 @@ tests/golden/regenerate.sh)."""
 from mcap.reader import make_reader
 
 from conftest import assert_readable_by_independent_readers
-from golden import MOVES_BAG, SCREW_BAG, TRAJECTORY_BAG, replay_plan, replay_screw
+from golden import (BOWL_CL_BAG, MOVES_BAG, SCREW_BAG, TRAJECTORY_BAG, post_process_bowl,
+                    replay_mechanism, replay_plan, replay_screw)
 
 
 def messages(bag, topic):
@@ -34,3 +35,20 @@ def test_screw_replay_matches_the_golden_bag(tmp_path):
     assert len(got) == len(golden) > 1000
     mismatches = [i for i, (a, b) in enumerate(zip(got, golden)) if a != b]
     assert not mismatches, f"{len(mismatches)} commands differ, first #{mismatches[0]}"
+
+
+def test_mechanism_replay_answers_each_pose_as_the_cli_did(polar_cell, tmp_path):
+    """The bowl's tool poses played into the mechanism_kin node: its joint states are the
+    CLI's bit for bit, and the CLI still writes the golden bag's messages."""
+    out = tmp_path / "joint_states.mcap"
+    replay_mechanism(BOWL_CL_BAG, out)
+    assert_readable_by_independent_readers(out)
+    got = messages(out, "/mechanism/joint_states")
+    golden = messages(BOWL_CL_BAG, "/mechanism/joint_states")
+    assert len(got) == len(golden) == len(messages(BOWL_CL_BAG, "/mechanism/tool_pose")) == 45
+    mismatches = [i for i, (a, b) in enumerate(zip(got, golden)) if a != b]
+    assert not mismatches, f"{len(mismatches)} joint states differ, first #{mismatches[0]}"
+    again = tmp_path / "bowl_cl.mcap"
+    post_process_bowl(tmp_path / "bowl.cl", again)
+    for topic in ("/mechanism/tool_pose", "/mechanism/joint_states", "/robot_description"):
+        assert messages(again, topic) == messages(BOWL_CL_BAG, topic), topic

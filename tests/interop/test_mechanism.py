@@ -28,6 +28,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from conftest import ROOT, assert_readable_by_independent_readers, binary, run
+from golden import hemisphere_cl
 from test_dds import DiagnosticArray, Header, Time, ros_qos, valid
 
 URDF = ROOT / "urdf" / "hybrid_pkm.urdf"
@@ -117,21 +118,6 @@ def test_unreachable_pose_is_an_error(polar_cell):
     assert proc.returncode != 0 and "chain 1" in proc.stderr, proc.stderr
 
 
-def hemisphere_cl(path):
-    """An independent CL generator: a concave bowl of radius 50 mm, tool along the normal."""
-    lines = ["Px,Py,Pz,Vx,Vy,Vz,flag"]
-    centre_z = 300.0
-    for x in np.arange(-12.0, 12.01, 6.0):
-        ys = np.linspace(-12.0, 12.0, 7)
-        for k, y in enumerate(ys):
-            z = centre_z - math.sqrt(50.0**2 - x * x - y * y)
-            v = np.array([x, y, z - centre_z]) / 50.0
-            flag = "s" if k == 0 else ("e" if k == len(ys) - 1 else "w")
-            lines.append(",".join(repr(float(c)) for c in (x, y, z, *v)) + f",{flag}")
-    path.write_text("\n".join(lines) + "\n")
-    return len(lines) - 1
-
-
 def test_cl_bag_is_readable_and_every_state_puts_the_tool_on_its_point(polar_cell, tmp_path):
     cl = tmp_path / "bowl.cl"
     points = hemisphere_cl(cl)
@@ -141,7 +127,7 @@ def test_cl_bag_is_readable_and_every_state_puts_the_tool_on_its_point(polar_cel
     assert out["paths"] == 5 and len(commands) == points + 2 * 5
     decoded = assert_readable_by_independent_readers(bag)
     states = decoded["/mechanism/joint_states"]
-    assert len(states) == len(commands)
+    assert len(states) == len(commands) == len(decoded["/mechanism/tool_pose"])
     assert "hybrid_pkm" in decoded["/robot_description"][0].data
     for state, command in zip(states, commands):
         joints = dict(zip(state.name, state.position))

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Every test of the suite: format, lints, Rust unit/integration tests, and the interop tests
-# against independent peers (Cyclone DDS, mcap-ros2-support, rosbags).
+# against independent peers (Cyclone DDS, mcap-ros2-support, rosbags, Pinocchio, check_urdf).
 #
 # DDS tests run inside a private network namespace (loopback only) so they never touch a real
 # network: as root, this script re-executes itself under `unshare -n`.
@@ -38,6 +38,6 @@ if grep -qE "FAILED|error(\[|:)" /tmp/polar-cell-cargo-test.log || ! grep -q "te
   cat /tmp/polar-cell-cargo-test.log
   exit 1
 fi
-echo "== interop tests (Cyclone DDS, mcap-ros2-support, rosbags)"
+echo "== interop tests (Cyclone DDS, mcap-ros2-support, rosbags, Pinocchio, check_urdf)"
 cd tests/interop
 POLAR_CELL_BIN_DIR="$root/target/release" "$root/.venv/bin/python" -m pytest -q -p no:cacheprovider

@@ -699,7 +699,7 @@ mod tests {
     #[test]
     fn leg_limits_cover_the_seed_work_range() {
         let g = Geometry::default();
-        let (mut lo, mut hi, mut swing) = (f64::MAX, f64::MIN, 0.0f64);
+        let (mut lo, mut hi, mut swing, mut hinge) = (f64::MAX, f64::MIN, 0.0f64, 0.0f64);
         for zi in 0..=20 {
             for t1i in 0..72 {
                 for t2i in [-20, -10, 0, 10, 20] {
@@ -715,6 +715,8 @@ mod tests {
                         hi = hi.max(l);
                     }
                     swing = g.swing_rad(&sol).into_iter().fold(swing, f64::max);
+                    let j = g.joint_positions(&sol, [0.0, 0.0]);
+                    hinge = j.hinge_rad.iter().fold(hinge, |m, h| m.max(h.abs()));
                 }
             }
         }
@@ -723,5 +725,7 @@ mod tests {
             "{lo}..{hi}"
         );
         assert!(swing < g.limits.swing_max_rad, "{}", swing.to_degrees());
+        // The URDF gives the plate hinges the spherical joints' ±45° (the seed gives none).
+        assert!(hinge < g.limits.swing_max_rad, "{}", hinge.to_degrees());
     }
 }

@@ -607,7 +607,7 @@ pub fn run(command: MechanismCommand) -> anyhow::Result<()> {
                 error.to_radians(),
                 noise_um * 1e-3,
                 (noise_arcsec / 3600.0).to_radians(),
-            );
+            )?;
             let data = match design.as_str() {
                 "plan" => sim.measure_legs(&calib::geometric::measurement_plan(
                     &geom,

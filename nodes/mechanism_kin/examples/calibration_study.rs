@@ -79,7 +79,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         (1..=MACHINES)
             .map(|seed| {
                 let sim =
-                    Simulation::new(&geom, seed, 0.5, 0.5f64.to_radians(), noise_tip, noise_axis);
+                    Simulation::new(&geom, seed, 0.5, 0.5f64.to_radians(), noise_tip, noise_axis)
+                        .expect("valid study settings");
                 validate(&geom, &sim.truth, None, targets)
             })
             .collect()
@@ -109,7 +110,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         };
         for seed in 1..=MACHINES {
             let mut sim =
-                Simulation::new(&geom, seed, 0.5, 0.5f64.to_radians(), noise_tip, noise_axis);
+                Simulation::new(&geom, seed, 0.5, 0.5f64.to_radians(), noise_tip, noise_axis)?;
             let data = sim.measure_legs(&plan)?;
             let cal = calibrate(&geom, &data, Method::Geometric)?;
             geo_work.push(validate(&geom, &sim.truth, Some(&cal), &work));

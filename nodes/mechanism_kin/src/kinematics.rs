@@ -210,10 +210,9 @@ impl Geometry {
         Self::output_point(sol) - sol.rotation.column(2) * self.tool_length_mm
     }
 
-    /// Tool-tip inverse kinematics: the platform tilts so its normal is the tool axis, stands
-    /// at Z = T_z + l·a_z, and the table absorbs X_u, Y_u and places the workpiece:
-    /// table = (X_u, Y_u) − l·(a_x, a_y) − (T_x, T_y).
-    pub fn inverse_tool(&self, target: &ToolTarget) -> Result<ToolSolution, KinError> {
+    /// The platform pose that holds the tool along `target.axis` with its tip at the target's
+    /// height, and the normalised axis; the target is checked (finite, unit axis pointing up).
+    pub fn tool_pose(&self, target: &ToolTarget) -> Result<(Pose, Vector3<f64>), KinError> {
         let a = &target.axis;
         for (what, v) in [
             ("tip x", target.tip_mm.x),
@@ -235,11 +234,19 @@ impl Geometry {
             });
         }
         let axis = a / norm;
-        let l = self.tool_length_mm;
         let pose = Pose {
-            z_mm: target.tip_mm.z + l * axis.z,
+            z_mm: target.tip_mm.z + self.tool_length_mm * axis.z,
             tilt: Tilt::from_normal(&axis),
         };
+        Ok((pose, axis))
+    }
+
+    /// Tool-tip inverse kinematics: the platform tilts so its normal is the tool axis, stands
+    /// at Z = T_z + l·a_z, and the table absorbs X_u, Y_u and places the workpiece:
+    /// table = (X_u, Y_u) − l·(a_x, a_y) − (T_x, T_y).
+    pub fn inverse_tool(&self, target: &ToolTarget) -> Result<ToolSolution, KinError> {
+        let (pose, axis) = self.tool_pose(target)?;
+        let l = self.tool_length_mm;
         let ik = self.inverse(&pose)?;
         let table_mm = [
             ik.parasitic_xy_mm[0] - l * axis.x - target.tip_mm.x,

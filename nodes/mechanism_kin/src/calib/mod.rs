@@ -45,6 +45,8 @@ pub enum CalibError {
     },
     #[error("response surface: {0}")]
     Rsm(String),
+    #[error("simulation: {0}")]
+    Settings(String),
     #[error("calibration file: {0}")]
     File(String),
     #[error(transparent)]
@@ -289,7 +291,8 @@ mod tests {
                 0.5f64.to_radians(),
                 noise * 1e-3,
                 (noise / 3600.0).to_radians(),
-            );
+            )
+            .unwrap();
             let plan = geometric::measurement_plan(&g, 20, &geometric::IdentifyOptions::default())
                 .unwrap();
             let data = sim.measure_legs(&plan).unwrap();
@@ -346,7 +349,8 @@ mod tests {
             0.5f64.to_radians(),
             1e-3,
             (1.0f64 / 3600.0).to_radians(),
-        );
+        )
+        .unwrap();
         let data = sim.measure_legs(&design).unwrap();
         let cal = calibrate(&g, &data, Method::Rsm).unwrap();
         // The seed's target: Z_s 200 mm, θ1 30°, θ2 5°.
@@ -378,7 +382,7 @@ mod tests {
     #[test]
     fn unidentifiable_combinations_are_reported() {
         let g = Geometry::default();
-        let mut sim = Simulation::new(&g, 3, 0.5, 0.5f64.to_radians(), 1e-3, 4.8e-6);
+        let mut sim = Simulation::new(&g, 3, 0.5, 0.5f64.to_radians(), 1e-3, 4.8e-6).unwrap();
         let plan =
             geometric::measurement_plan(&g, 20, &geometric::IdentifyOptions::default()).unwrap();
         let data = sim.measure_legs(&plan).unwrap();

@@ -215,15 +215,11 @@ impl ErrorModel {
         tip_z_mm: f64,
         axis: &Vector3<f64>,
     ) -> Result<([f64; 3], ToolPose), KinError> {
-        let nominal = geom.inverse_tool(&crate::kinematics::ToolTarget {
+        let (pose, _) = geom.tool_pose(&crate::kinematics::ToolTarget {
             tip_mm: Vector3::new(0.0, 0.0, tip_z_mm),
             axis: *axis,
-        });
-        let mut legs = match nominal {
-            Ok(s) => s.ik.legs_mm,
-            Err(KinError::TableLimit { .. }) => unreachable!("tip at the table origin"),
-            Err(e) => return Err(e),
-        };
+        })?;
+        let mut legs = geom.inverse(&pose)?.legs_mm;
         let mut phi = [0.0; 3];
         let residual = |t: &ToolPose| {
             Vector3::new(t.tip_mm.z - tip_z_mm, t.axis.x - axis.x, t.axis.y - axis.y)

@@ -43,7 +43,19 @@ impl Simulation {
         angle_error_rad: f64,
         noise_tip_mm: f64,
         noise_axis_rad: f64,
-    ) -> Self {
+    ) -> Result<Self, CalibError> {
+        for (what, v) in [
+            ("length error", length_error_mm),
+            ("angle error", angle_error_rad),
+            ("tip noise", noise_tip_mm),
+            ("axis noise", noise_axis_rad),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(CalibError::Settings(format!(
+                    "{what} must be finite and not negative, got {v}"
+                )));
+            }
+        }
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut params = [0.0; PARAMETER_COUNT];
         for (k, p) in params.iter_mut().enumerate() {
@@ -54,17 +66,18 @@ impl Simulation {
             };
             *p = rng.random_range(-1.0..=1.0) * size;
         }
-        Simulation {
+        Ok(Simulation {
             truth: ErrorModel::new(geom, params),
             rng,
             noise_tip_mm,
             noise_axis_rad,
-        }
+        })
     }
 
     fn noisy(&mut self, t: ToolPose) -> (Vector3<f64>, Vector3<f64>) {
-        let tip = Normal::new(0.0, self.noise_tip_mm.max(0.0)).unwrap();
-        let ang = Normal::new(0.0, self.noise_axis_rad.max(0.0)).unwrap();
+        // σ was checked finite and ≥ 0 in `new`, which is all Normal::new refuses.
+        let tip = Normal::new(0.0, self.noise_tip_mm).expect("σ checked in new");
+        let ang = Normal::new(0.0, self.noise_axis_rad).expect("σ checked in new");
         let rng = &mut self.rng;
         let tip_mm = t.tip_mm + Vector3::new(tip.sample(rng), tip.sample(rng), tip.sample(rng));
         let axis =

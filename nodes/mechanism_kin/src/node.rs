@@ -133,13 +133,20 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             tip_mm: Vector3::new(0.0, 0.0, 393.0 - geom.tool_length_mm),
             axis: Vector3::z(),
         };
-        let e = evaluate(&geom, &tree, &mut fk, &home)?;
-        cell_runtime::publish(
-            &states,
-            joint_state(&e, Time::from_nanos(cell_runtime::now_ns() as i64)),
-            std::time::Duration::from_secs(5),
-        )
-        .await?;
+        match evaluate(&geom, &tree, &mut fk, &home) {
+            Ok(e) => {
+                cell_runtime::publish(
+                    &states,
+                    joint_state(&e, Time::from_nanos(cell_runtime::now_ns() as i64)),
+                    std::time::Duration::from_secs(5),
+                )
+                .await?
+            }
+            Err(err) => node.log(
+                LogLevel::Warn,
+                &format!("home pose (Z 393 mm, flat) not reachable with this URDF: {err}"),
+            ),
+        }
     }
     loop {
         let (msg, _) = poses

@@ -15,6 +15,8 @@ pub enum ArgsError {
     ExpectedAssignment { flag: String, value: String },
     #[error("unknown ROS argument `{0}` (inside --ros-args)")]
     UnknownArgument(String),
+    #[error("unexpected arguments {0:?}: parameters go after --ros-args -p name:=value")]
+    Unexpected(Vec<String>),
 }
 
 /// One `-r` remapping, optionally restricted to one node.

@@ -133,6 +133,20 @@ pub struct CellNode {
 }
 
 impl CellNode {
+    /// Start a node that takes nothing but ROS arguments from its command line `argv`
+    /// (without the program name): anything else is an error.
+    pub fn start_from_argv(
+        default_name: &str,
+        specs: &[ParamSpec],
+        argv: &[String],
+    ) -> Result<CellNode, RuntimeError> {
+        let (ros_args, rest) = RosArgs::parse(argv)?;
+        if !rest.is_empty() {
+            return Err(crate::args::ArgsError::Unexpected(rest).into());
+        }
+        Self::start(default_name, specs, &ros_args)
+    }
+
     /// Create the node `default_name` (subject to `__node`/`__ns` remaps) with its declared
     /// parameters resolved from the ROS command line, on its own DDS participant.
     pub fn start(

@@ -255,11 +255,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
 
 /// Run the node from its own command line until SIGINT/SIGTERM.
 pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
-    let (ros_args, rest) = cell_runtime::RosArgs::parse(&argv)?;
-    if !rest.is_empty() {
-        bail!("unexpected arguments {rest:?}: parameters go after --ros-args -p name:=value");
-    }
-    let mut node = CellNode::start(NODE_NAME, &param_specs(), &ros_args)?;
+    let mut node = CellNode::start_from_argv(NODE_NAME, &param_specs(), &argv)?;
     tokio::select! {
         result = run(&mut node) => result,
         _ = cell_runtime::shutdown_signal() => Ok(()),

@@ -170,33 +170,6 @@ struct JointBag {
     stamp_ns: u64,
 }
 
-/// The PoseStamped asking for `target`: tip in metres, orientation the shortest turn of ẑ onto
-/// the tool axis (what the node reads back as the axis).
-fn tool_pose_message(target: &ToolTarget, stamp: Time) -> PoseStamped {
-    let a = target.axis.normalize();
-    let (w, x, y) = (1.0 + a.z, -a.y, a.x);
-    let norm = (w * w + x * x + y * y).sqrt();
-    PoseStamped {
-        header: Header {
-            stamp,
-            frame_id: "table".into(),
-        },
-        pose: polar_cell_msgs::Pose {
-            position: polar_cell_msgs::Point {
-                x: target.tip_mm.x * 1e-3,
-                y: target.tip_mm.y * 1e-3,
-                z: target.tip_mm.z * 1e-3,
-            },
-            orientation: polar_cell_msgs::Quaternion {
-                x: x / norm,
-                y: y / norm,
-                z: 0.0,
-                w: w / norm,
-            },
-        },
-    }
-}
-
 impl JointBag {
     fn create(path: &Path, urdf: &str) -> anyhow::Result<Self> {
         let file =
@@ -241,8 +214,11 @@ impl JointBag {
     fn push(&mut self, target: &ToolTarget, values: &[f64]) -> anyhow::Result<()> {
         self.stamp_ns += 10_000_000;
         let stamp = Time::from_nanos(self.stamp_ns as i64);
-        self.writer
-            .write_message(self.poses, self.stamp_ns, &tool_pose_message(target, stamp))?;
+        self.writer.write_message(
+            self.poses,
+            self.stamp_ns,
+            &mechanism_kin::node::pose_message(target, stamp),
+        )?;
         self.push_state(values)
     }
 
@@ -256,7 +232,7 @@ impl JointBag {
         tree: &UrdfTree,
         fk: &mut ForwardSolver,
     ) -> anyhow::Result<()> {
-        let message = tool_pose_message(target, Time::from_nanos(0));
+        let message = mechanism_kin::node::pose_message(target, Time::from_nanos(0));
         let as_sent = mechanism_kin::node::target_from_pose(&message);
         let e = evaluate(geom, tree, fk, &as_sent)?;
         self.push(target, &e.joint_values_si)

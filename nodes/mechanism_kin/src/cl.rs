@@ -323,9 +323,8 @@ mod tests {
         let mut fk = ForwardSolver::default();
         for c in cmds {
             let sol = fk.solve(&g, c.solution.ik.legs_mm).unwrap();
-            let tip_world = sol.output_point_mm - sol.rotation.column(2) * g.tool_length_mm;
-            let tip_work =
-                tip_world - Vector3::new(c.solution.table_mm[0], c.solution.table_mm[1], 0.0);
+            let tip_work = sol.tool_tip_mm(&g)
+                - Vector3::new(c.solution.table_mm[0], c.solution.table_mm[1], 0.0);
             assert!(
                 (tip_work - c.target.tip_mm).amax() < 1e-9,
                 "line {}",

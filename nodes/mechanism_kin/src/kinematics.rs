@@ -307,6 +307,11 @@ pub struct FkSolution {
 }
 
 impl FkSolution {
+    /// The tool tip this pose reaches in the base frame (table at zero), mm.
+    pub fn tool_tip_mm(&self, geom: &Geometry) -> Vector3<f64> {
+        self.output_point_mm - self.rotation.column(2) * geom.tool_length_mm
+    }
+
     /// Largest |side − √3·R_out| at the answer, mm.
     pub fn side_residual_mm(&self, geom: &Geometry) -> f64 {
         side_residual(&self.sphere_centres_mm, geom)

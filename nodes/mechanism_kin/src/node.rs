@@ -10,7 +10,7 @@
 use anyhow::{anyhow, Context};
 use cell_runtime::{reliable_qos, transient_local_qos, CellNode, LogLevel, ParamSpec, ParamValue};
 use nalgebra::Vector3;
-use polar_cell_msgs::{Header, JointState, PoseStamped, StringMsg, Time};
+use polar_cell_msgs::{Header, JointState, Point, Pose, PoseStamped, Quaternion, StringMsg, Time};
 
 use crate::kinematics::{ForwardSolver, ToolTarget};
 use crate::report::{evaluate, Evaluation};
@@ -49,6 +49,33 @@ pub fn target_from_pose(msg: &PoseStamped) -> ToolTarget {
     ToolTarget {
         tip_mm: Vector3::new(p.x, p.y, p.z) * 1e3,
         axis,
+    }
+}
+
+/// The PoseStamped asking for `target`: tip in metres, orientation the shortest turn of ẑ onto
+/// the tool axis (what the node reads back as the axis).
+pub fn pose_message(target: &ToolTarget, stamp: Time) -> PoseStamped {
+    let a = target.axis.normalize();
+    let (w, x, y) = (1.0 + a.z, -a.y, a.x);
+    let norm = (w * w + x * x + y * y).sqrt();
+    PoseStamped {
+        header: Header {
+            stamp,
+            frame_id: "table".into(),
+        },
+        pose: Pose {
+            position: Point {
+                x: target.tip_mm.x * 1e-3,
+                y: target.tip_mm.y * 1e-3,
+                z: target.tip_mm.z * 1e-3,
+            },
+            orientation: Quaternion {
+                x: x / norm,
+                y: y / norm,
+                z: 0.0,
+                w: w / norm,
+            },
+        },
     }
 }
 
@@ -188,7 +215,6 @@ pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use polar_cell_msgs::{Point, Pose, Quaternion};
 
     #[test]
     fn quaternion_z_axis_is_the_tool_axis() {
@@ -217,5 +243,8 @@ mod tests {
                 < 1e-15
         );
         assert!((t.tip_mm - Vector3::new(10.0, 20.0, 250.0)).amax() < 1e-12);
+        // and the message the CLI writes for a target reads back as that target
+        let back = target_from_pose(&pose_message(&t, Time::default()));
+        assert!((back.axis - t.axis).amax() < 1e-15 && (back.tip_mm - t.tip_mm).amax() < 1e-12);
     }
 }

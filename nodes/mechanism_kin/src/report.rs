@@ -41,8 +41,7 @@ pub fn evaluate(
     let joints = geom.joint_positions(ik, solution.table_mm);
     let joint_values_si = joint_values_si(&joints);
     let forward = fk.solve(geom, ik.legs_mm)?;
-    let tip = forward.output_point_mm
-        - forward.rotation.column(2) * geom.tool_length_mm
+    let tip = forward.tool_tip_mm(geom)
         - nalgebra::Vector3::new(solution.table_mm[0], solution.table_mm[1], 0.0);
     let l = &geom.limits;
     let leg_margin_mm = ik

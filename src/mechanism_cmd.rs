@@ -334,10 +334,8 @@ fn pose_target(args: &PoseArgs, geom: &Geometry) -> anyhow::Result<ToolTarget> {
     // A platform pose: the tool tip it reaches with the table at the position that puts the
     // workpiece origin under the tool (table = tip's x, y).
     let normal = pose.tilt.normal();
-    let sol = geom.inverse(&pose)?;
-    let tip_world = geom.tool_tip_mm(&sol);
     Ok(ToolTarget {
-        tip_mm: Vector3::new(0.0, 0.0, tip_world.z),
+        tip_mm: Vector3::new(0.0, 0.0, pose.z_mm - geom.tool_length_mm * normal.z),
         axis: normal,
     })
 }
@@ -488,7 +486,7 @@ pub fn run(command: MechanismCommand) -> anyhow::Result<()> {
             let mut worst_fk: f64 = 0.0;
             let mut worst_loop: f64 = 0.0;
             for c in &commands {
-                let e = evaluate(&geom, &tree, &mut fk, &c.target)
+                let e = mechanism_kin::report::check(&geom, &tree, &mut fk, &c.target, c.solution)
                     .map_err(|err| anyhow!("{name}:{}: {err}", c.line))?;
                 worst_fk = worst_fk.max(e.fk_residual_mm);
                 worst_loop = worst_loop.max(e.loop_closure_residual_m);

@@ -37,6 +37,17 @@ pub fn evaluate(
     target: &ToolTarget,
 ) -> Result<Evaluation, KinError> {
     let solution = geom.inverse_tool(target)?;
+    check(geom, tree, fk, target, solution)
+}
+
+/// The checks of [`evaluate`] for a target already solved (e.g. by the CL post-processor).
+pub fn check(
+    geom: &Geometry,
+    tree: &UrdfTree,
+    fk: &mut ForwardSolver,
+    target: &ToolTarget,
+    solution: ToolSolution,
+) -> Result<Evaluation, KinError> {
     let ik = &solution.ik;
     let joints = geom.joint_positions(ik, solution.table_mm);
     let joint_values_si = joint_values_si(&joints);

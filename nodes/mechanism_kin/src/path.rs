@@ -114,11 +114,9 @@ impl<'g> PathGenerator<'g> {
             max_z_mm: 0.0,
             at_fraction: 0.0,
         };
-        let mut errors = vec![0.0; n + 1];
-        for (k, e) in errors.iter_mut().enumerate().take(n).skip(1) {
+        for k in 1..n {
             let u = k as f64 / n as f64;
             let (d, dz) = self.error_at(path, &la, &lb, s_a, s_b, u)?;
-            *e = d;
             best.max_z_mm = best.max_z_mm.max(dz);
             if d > best.max_mm {
                 best.max_mm = d;

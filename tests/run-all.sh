@@ -33,9 +33,12 @@ cargo fmt --all -- --check
 echo "== cargo clippy"
 cargo clippy --workspace --all-targets --locked --quiet -- -D warnings
 echo "== cargo test"
-cargo test --workspace --release --locked 2>&1 | tee /tmp/polar-cell-cargo-test.log | grep -E "^(test result|running|error|failures)|FAILED|panicked" || true
+cargo test --workspace --release --locked --no-fail-fast 2>&1 | tee /tmp/polar-cell-cargo-test.log | grep -E "^(test result|running|error|failures)|FAILED|panicked" || true
 if grep -qE "FAILED|error(\[|:)" /tmp/polar-cell-cargo-test.log || ! grep -q "test result" /tmp/polar-cell-cargo-test.log; then
   cat /tmp/polar-cell-cargo-test.log
+  # The reasons last, where a truncated CI log still shows them: each failing test's output.
+  echo "== what the failing tests printed"
+  awk '/^---- .* stdout ----$/ {show=1} /^failures:$/ && show {show=0} show' /tmp/polar-cell-cargo-test.log | tail -c 20000
   exit 1
 fi
 echo "== interop tests (Cyclone DDS, mcap-ros2-support, rosbags, Pinocchio, check_urdf)"

@@ -350,9 +350,16 @@ pub async fn publish<T: RosMessage>(
                 pending = data;
                 tokio::time::sleep(std::time::Duration::from_millis(1)).await;
             }
+            Err(ros2_client::ros2::WriteError::WouldBlock { .. }) => {
+                return Err(RuntimeError::Dds(format!(
+                    "publishing a {}: the send window stayed full for {patience:?} \
+                     (a subscriber is not acknowledging)",
+                    T::TYPE.full_name()
+                )))
+            }
             Err(e) => {
                 return Err(RuntimeError::Dds(format!(
-                    "publishing a {}: {e:?}",
+                    "publishing a {}: {e}",
                     T::TYPE.full_name()
                 )))
             }

@@ -217,22 +217,23 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 trajectory_message(&plan, epoch_ns),
                 PATIENCE,
             )
-            .await?;
+            .await
+            .context("/polar/trajectory")?;
             if publish_steps {
                 segments.clear();
                 steps.segments(&plan, &mut segments);
                 for mut s in segments.drain(..) {
                     s.header.stamp = stamp(epoch_ns, plan.start_time());
-                    steps_pub
-                        .publish(s)
-                        .map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
+                    publish(&steps_pub, s, PATIENCE)
+                        .await
+                        .context("/polar/steps")?;
                 }
             }
             sample_joint_states(&plan, js_period, &mut next_state_t, epoch_ns, &mut states);
             for s in states.drain(..) {
-                joint_states_pub
-                    .publish(s)
-                    .map_err(|e| anyhow!("/joint_states: {e:?}"))?;
+                publish(&joint_states_pub, s, PATIENCE)
+                    .await
+                    .context("/joint_states")?;
             }
             planned_until = plan.sequence + 1;
             moves_planned += 1;

@@ -350,6 +350,58 @@ mod tests {
         );
     }
 
+    /// Greedy placement is as good as an exhaustive search: the fewest segments over every
+    /// placement on a 240-point grid of the Fig. 4.4 sweep (dynamic programming over all
+    /// feasible grid segments) is never fewer than the greedy count.
+    #[test]
+    fn greedy_placement_is_not_beaten_by_exhaustive_search() {
+        let g = Geometry::default();
+        let path = fig_4_4_path();
+        let mut gen = PathGenerator::new(&g, PathOptions::default()).unwrap();
+        let greedy_segments = gen.adaptive(&path).unwrap().len() - 1;
+        const GRID: usize = 240;
+        // At 1 µm no segment spans 1/8 of the sweep: checked, so the search may stop there.
+        const LONGEST: usize = GRID / 8;
+        let mut fewest = vec![usize::MAX; GRID + 1];
+        fewest[0] = 0;
+        for j in 1..=GRID {
+            for i in j.saturating_sub(LONGEST)..j {
+                if fewest[i] == usize::MAX {
+                    continue;
+                }
+                let e = gen
+                    .segment_error(&path, i as f64 / GRID as f64, j as f64 / GRID as f64)
+                    .unwrap();
+                if e.max_mm <= 1e-3 {
+                    fewest[j] = fewest[j].min(fewest[i] + 1);
+                } else {
+                    assert!(j - i > 1, "a single grid step already fails at {i}");
+                }
+            }
+        }
+        for i in 0..GRID - LONGEST {
+            let e = gen
+                .segment_error(
+                    &path,
+                    i as f64 / GRID as f64,
+                    (i + LONGEST) as f64 / GRID as f64,
+                )
+                .unwrap();
+            assert!(e.max_mm > 1e-3, "a segment of 1/8 meets 1 µm at {i}");
+        }
+        assert!(
+            greedy_segments <= fewest[GRID],
+            "greedy {greedy_segments} vs exhaustive {}",
+            fewest[GRID]
+        );
+        // and the grid is fine enough for the comparison to be close
+        assert!(fewest[GRID] <= greedy_segments + 3, "{}", fewest[GRID]);
+        eprintln!(
+            "Fig 4.4 at 1 µm: greedy {greedy_segments} segments, best on the grid {}",
+            fewest[GRID]
+        );
+    }
+
     #[test]
     fn nearest_point_error_ignores_running_ahead() {
         // A pure Z move at zero tilt keeps the point on the vertical line: legs are nearly

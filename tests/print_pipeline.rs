@@ -89,6 +89,8 @@ fn small_window_forces_flow_control_and_still_loses_nothing() {
     std::fs::remove_dir_all(&dir).ok();
     assert_eq!(count, 1766, "{log}");
     assert_eq!(seqs, (0..1766).collect::<Vec<u64>>());
+    // A clean print ends cleanly: no node closes its participant under live endpoints.
+    assert!(!log.contains("ERROR"), "{log}");
 }
 
 /// Stderr of a `print` of finger.gcode with these ROS arguments that must fail.

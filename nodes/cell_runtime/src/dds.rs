@@ -127,9 +127,23 @@ pub struct CellNode {
     kept: Vec<Box<dyn std::any::Any + Send>>,
     diagnostics: Publisher<DiagnosticArray>,
     pub node: Node,
+    /// Dropped after `node` (whose drop tells the spinner to stop) and before `_context`.
+    _spinner: SpinnerExit,
     pub names: NameResolver,
     pub params: Params,
     _context: Context,
+}
+
+/// Waits, when dropped, for the node's spinner thread to end. The spinner holds the node's
+/// parameter services and its own handle on the participant, which it drops first; without
+/// the wait, the participant can close before those endpoints and RustDDS logs an error for
+/// each ("Cannot remove Reader/Writer").
+struct SpinnerExit(std::sync::mpsc::Receiver<()>);
+
+impl Drop for SpinnerExit {
+    fn drop(&mut self) {
+        let _ = self.0.recv_timeout(std::time::Duration::from_secs(2));
+    }
 }
 
 impl CellNode {
@@ -213,9 +227,14 @@ impl CellNode {
         let spinner = node
             .spinner()
             .map_err(|e| RuntimeError::Dds(format!("{e:?}")))?;
+        let (exited, exit) = std::sync::mpsc::sync_channel(1);
         std::thread::Builder::new()
             .name(format!("spin {node_name}"))
-            .spawn(move || futures::executor::block_on(spinner.spin()))
+            .spawn(move || {
+                // `spin` consumes the spinner: its endpoints are gone when this is sent.
+                let _ = futures::executor::block_on(spinner.spin());
+                let _ = exited.send(());
+            })
             .map_err(|e| RuntimeError::Dds(e.to_string()))?;
         let diagnostics_topic =
             create_topic::<DiagnosticArray>(&mut node, &names, "/diagnostics", &ros_default_qos())?;
@@ -228,6 +247,7 @@ impl CellNode {
             params,
             diagnostics,
             kept: Vec::new(),
+            _spinner: SpinnerExit(exit),
             _context: context,
         })
     }

@@ -38,7 +38,9 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new(
             "window",
             ParamValue::Integer(4096),
-            "moves in flight before waiting for acknowledgements",
+            "moves in flight before waiting for acknowledgements (keep it above the planner's \
+             lookahead_blocks: a smaller window starves the planner, which then plans to a stop \
+             after each window)",
         )
         .range(1.0, 1e6),
         ParamSpec::new(

@@ -4,6 +4,7 @@
 //! Pure: no DDS. The node (feature `node`) wires it to topics.
 
 pub mod fir;
+pub mod joint;
 pub mod screw;
 
 #[cfg(feature = "node")]

@@ -1,5 +1,7 @@
 //! The `screw_driver` node: `/gcode/moves` (as a flow-control consumer) and `/polar/trajectory`
-//! in, `/screw/command` out, stamped on the planned timeline.
+//! in, `/screw/command` out, stamped on the planned timeline, and the `screw` joint's angle
+//! on `/joint_states` (beside the planner's stage joints, so `robot_state_publisher` has
+//! every joint of `urdf/polar_cell.urdf`).
 //!
 //! The k-th trajectory is the plan of the k-th move (the planner publishes exactly one per
 //! move, in order); they are paired whichever arrives first. Commands are computed per chunk of moves: a chunk ends when input goes
@@ -11,20 +13,27 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-use anyhow::{anyhow, bail};
-use cell_runtime::{reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params};
+use anyhow::{anyhow, bail, Context as _};
+use cell_runtime::{publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params};
 use gcode_streamer::flow::Intake;
 use polar_cell_msgs::{
-    GcodeAck, GcodeMove, GcodeProgress, Header, JointTrajectory, ScrewCommand, Time,
+    GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory, ScrewCommand, Time,
 };
 
 use crate::fir::{FILTER_1, FILTER_2, FILTER_2_60DB};
+use crate::joint::{Hold, ScrewAngle, ScrewSample};
 use crate::screw::{
-    breakpoints_from, smooth, PinState, PinStrategy, RpmModel, ScrewOptions, TimedMove,
+    breakpoints_from, smooth, Command, PinState, PinStrategy, RpmModel, ScrewOptions, TimedMove,
 };
 
 /// Default node name.
 pub const NODE_NAME: &str = "screw_driver";
+
+/// The screw's joint in `urdf/polar_cell.urdf`.
+pub const SCREW_JOINT: &str = "screw";
+
+/// How long a publication may wait for a full send window before it is an error.
+const PATIENCE: Duration = Duration::from_secs(30);
 
 pub fn param_specs() -> Vec<ParamSpec> {
     let d = ScrewOptions::default();
@@ -42,6 +51,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.1), "compute commands when no trajectory came for this long").range(0.001, 60.0),
         ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
+        ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of the screw joint's /joint_states samples (0: none)").range(0.0, 10.0),
     ]
 }
 
@@ -86,35 +96,63 @@ fn model_name(options: &ScrewOptions) -> &'static str {
     }
 }
 
-/// Commands for `chunk` as messages, continuing from `pin` (and updating it).
-pub fn command_messages(
+/// How the published commands run between each other: raw breakpoints are linear, smoothed
+/// or resampled commands are held.
+pub fn command_hold(options: &ScrewOptions, command_period_s: f64) -> Hold {
+    if options.smoothing.is_some() || command_period_s > 0.0 {
+        Hold::ZeroOrder
+    } else {
+        Hold::FirstOrder
+    }
+}
+
+/// Commands for `chunk`, continuing from `pin` (and updating it).
+pub fn chunk_commands(
     chunk: &[TimedMove],
     options: &ScrewOptions,
-    base_ns: i64,
     pin: &mut PinState,
     end_of_input: bool,
     command_period_s: f64,
-) -> Vec<ScrewCommand> {
+) -> Vec<Command> {
     let raw = breakpoints_from(chunk, options, pin, end_of_input);
-    let commands = match (&options.smoothing, command_period_s) {
+    match (&options.smoothing, command_period_s) {
         (Some(taps), _) => smooth(&raw, taps, options.smoothing_period_s),
         // A fixed rate: exact interval averages (an identity filter), held per interval.
         (None, period) if period > 0.0 => smooth(&raw, &[1.0], period),
         (None, _) => raw,
-    };
-    commands
-        .into_iter()
-        .map(|c| ScrewCommand {
-            header: Header {
-                stamp: Time::from_nanos(base_ns + (c.t * 1e9).round() as i64),
-                frame_id: String::new(),
-            },
-            rpm: c.rpm,
-            pin_open: c.pin_open,
-            source_line: c.source_line,
-            model: model_name(options).to_string(),
-        })
-        .collect()
+    }
+}
+
+fn stamp(base_ns: i64, t: f64) -> Time {
+    Time::from_nanos(base_ns + (t * 1e9).round() as i64)
+}
+
+/// A command as its message, stamped on the plan timeline starting at `base_ns`.
+pub fn command_message(c: &Command, options: &ScrewOptions, base_ns: i64) -> ScrewCommand {
+    ScrewCommand {
+        header: Header {
+            stamp: stamp(base_ns, c.t),
+            frame_id: String::new(),
+        },
+        rpm: c.rpm,
+        pin_open: c.pin_open,
+        source_line: c.source_line,
+        model: model_name(options).to_string(),
+    }
+}
+
+/// The `screw` joint's state (the planner publishes the stage's joints on the same topic).
+pub fn joint_state_message(s: &ScrewSample, base_ns: i64) -> JointState {
+    JointState {
+        header: Header {
+            stamp: stamp(base_ns, s.t),
+            frame_id: String::new(),
+        },
+        name: vec![SCREW_JOINT.to_string()],
+        position: vec![s.angle_rad],
+        velocity: vec![s.velocity_rad_per_s],
+        effort: vec![],
+    }
 }
 
 /// Where a chunk of buffered moves may end: after the last move that starts a closed-pin gap
@@ -155,6 +193,17 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         node.publisher::<ScrewCommand>("/screw/command", &reliable_qos(100_000))?,
     );
     node.keep(commands_pub.clone());
+    let joint_states_pub =
+        std::sync::Arc::new(node.publisher::<JointState>("/joint_states", &reliable_qos(10_000))?);
+    node.keep(joint_states_pub.clone());
+    let joint_state_period_s = params.f64("joint_state_period_s");
+    let mut angle = (joint_state_period_s > 0.0).then(|| {
+        ScrewAngle::new(
+            joint_state_period_s,
+            command_hold(&options, command_period_s),
+        )
+    });
+    let mut samples = Vec::new();
     let mut intake = Intake::new(
         node.fully_qualified_name(),
         params.bool("acknowledge_moves"),
@@ -235,16 +284,21 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         };
         if let Some(cut) = cut.filter(|&c| c > 0) {
             let chunk: Vec<TimedMove> = timed.drain(..cut).collect();
-            let messages = command_messages(
-                &chunk,
-                &options,
-                base_ns.unwrap_or(0),
-                &mut pin,
-                flush_all,
-                command_period_s,
-            );
-            for message in messages {
-                cell_runtime::publish(&commands_pub, message, Duration::from_secs(30)).await?;
+            let commands = chunk_commands(&chunk, &options, &mut pin, flush_all, command_period_s);
+            let base = base_ns.unwrap_or(0);
+            for c in &commands {
+                let message = command_message(c, &options, base);
+                publish(&commands_pub, message, PATIENCE)
+                    .await
+                    .context("/screw/command")?;
+            }
+            if let Some(angle) = angle.as_mut() {
+                angle.extend(&commands, &mut samples);
+                for s in samples.drain(..) {
+                    publish(&joint_states_pub, joint_state_message(&s, base), PATIENCE)
+                        .await
+                        .context("/joint_states")?;
+                }
             }
             if let Some(ack) = intake.ack(done_until) {
                 let _ = acks.publish(ack);

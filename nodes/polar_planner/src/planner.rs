@@ -23,6 +23,13 @@ use crate::timing::{plan_speeds, JointLimits, SpeedLimits, SpeedNode};
 /// Joint order everywhere: bed, arm, z.
 pub const JOINT_NAMES: [&str; 3] = ["bed_theta", "arm_r", "z"];
 
+/// The slowest feed planned (0.06 mm/min). With [`MAX_REST_S`] it keeps every move's
+/// duration within about 10⁶ s, so plan time never overflows (a subnormal feed made it ∞).
+pub const MIN_FEED_M_PER_S: f64 = 1e-6;
+
+/// The longest dwell or extruder-only rest planned, s (about 11.6 days).
+pub const MAX_REST_S: f64 = 1e6;
+
 /// Planner settings; defaults match `urdf/polar_cell.urdf`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PlannerOptions {
@@ -139,8 +146,23 @@ pub enum PlanError {
         min: f64,
         max: f64,
     },
-    #[error("move {sequence} (line {line}): feedrate {feed} m/s is not positive")]
+    #[error("move {sequence} (line {line}): feedrate {feed} m/s is below the 1e-6 m/s the planner accepts")]
     BadFeedrate { sequence: u64, line: u32, feed: f64 },
+    #[error("move {sequence} (line {line}): a rest of {seconds} s is longer than the 1e6 s the planner accepts")]
+    RestTooLong {
+        sequence: u64,
+        line: u32,
+        seconds: f64,
+    },
+    #[error("move {sequence} (line {line}): unknown move kind {kind}")]
+    UnknownKind { sequence: u64, line: u32, kind: u8 },
+    #[error("move {sequence} (line {line}): {field} is {value}, not a finite number")]
+    NotFinite {
+        sequence: u64,
+        line: u32,
+        field: &'static str,
+        value: f64,
+    },
     #[error("invalid planner option: {0}")]
     Options(String),
 }
@@ -272,6 +294,37 @@ impl Planner {
 
     /// Queue one move; finished plans are appended to `out` in move order.
     pub fn push(&mut self, m: &GcodeMove, out: &mut Vec<PlannedMove>) -> Result<(), PlanError> {
+        // Our streamer never sends a non-finite number, but any DDS publisher (or a bag) can.
+        let fields = [
+            ("x_m", m.x_m),
+            ("y_m", m.y_m),
+            ("z_m", m.z_m),
+            ("delta_e_m", m.delta_e_m),
+            ("feedrate_m_per_s", m.feedrate_m_per_s),
+            ("dwell_s", m.dwell_s),
+        ];
+        if let Some(&(field, value)) = fields.iter().find(|(_, v)| !v.is_finite()) {
+            return Err(PlanError::NotFinite {
+                sequence: m.sequence,
+                line: m.source_line,
+                field,
+                value,
+            });
+        }
+        if m.kind > GcodeMove::KIND_SET_POSITION {
+            return Err(PlanError::UnknownKind {
+                sequence: m.sequence,
+                line: m.source_line,
+                kind: m.kind,
+            });
+        }
+        if m.kind == GcodeMove::KIND_DWELL && m.dwell_s > MAX_REST_S {
+            return Err(PlanError::RestTooLong {
+                sequence: m.sequence,
+                line: m.source_line,
+                seconds: m.dwell_s,
+            });
+        }
         let target = [m.x_m, m.y_m, m.z_m];
         let length = crate::path::dist3(self.p_end, target);
         self.moves.push_back(PlannedMove {
@@ -320,7 +373,7 @@ impl Planner {
                 } else {
                     m.feedrate_m_per_s
                 };
-                if feed.is_nan() || feed <= 0.0 {
+                if feed.is_nan() || feed < MIN_FEED_M_PER_S {
                     self.moves.pop_back();
                     return Err(PlanError::BadFeedrate {
                         sequence: seq,
@@ -336,6 +389,14 @@ impl Planner {
                     if m.delta_e_m != 0.0 {
                         // Extruder only (retract, prime): the stage rests for the E motion.
                         let duration = m.delta_e_m.abs() / feed;
+                        if duration > MAX_REST_S {
+                            self.moves.pop_back();
+                            return Err(PlanError::RestTooLong {
+                                sequence: seq,
+                                line: m.source_line,
+                                seconds: duration,
+                            });
+                        }
                         self.push_fixed(seq, self.rest_points(duration), true, out);
                     } else {
                         self.push_block(

@@ -209,6 +209,47 @@ fn out_of_range_targets_are_errors() {
     assert!(Planner::new(bad).is_err());
 }
 
+/// Found by fuzzing (tests/fuzz, target move_stream): a G28 whose X was NaN was planned into
+/// NaN joint positions. A move from any publisher with a non-finite number is refused, and
+/// the planner goes on planning the moves after it.
+#[test]
+fn non_finite_moves_are_errors_that_name_the_field() {
+    let mut moves = moves_of(b"G28\nG1 X10 Y10 F3000\n");
+    let good = moves.clone();
+    moves[0].x_m = f64::NAN;
+    let mut planner = Planner::new(PlannerOptions::default()).unwrap();
+    let mut out = Vec::new();
+    let err = planner.push(&moves[0], &mut out).unwrap_err();
+    assert!(
+        err.to_string().contains("x_m is NaN, not a finite number"),
+        "{err}"
+    );
+    moves[1].feedrate_m_per_s = f64::INFINITY;
+    let err = planner.push(&moves[1], &mut out).unwrap_err();
+    assert!(err.to_string().contains("feedrate_m_per_s is inf"), "{err}");
+    // and a feed so small that the move's duration would overflow (found the same way)
+    moves[1].feedrate_m_per_s = 1.6e-316;
+    let err = planner.push(&moves[1], &mut out).unwrap_err();
+    assert!(err.to_string().contains("below the 1e-6 m/s"), "{err}");
+    // an extruder-only move whose rest overflows, and a kind no streamer sends
+    let mut prime = good[1].clone();
+    (prime.x_m, prime.y_m, prime.delta_e_m) = (0.0, 0.0, -1.4e306);
+    let err = planner.push(&prime, &mut out).unwrap_err();
+    assert!(err.to_string().contains("longer than the 1e6 s"), "{err}");
+    prime.kind = 7;
+    let err = planner.push(&prime, &mut out).unwrap_err();
+    assert!(err.to_string().contains("unknown move kind 7"), "{err}");
+    for m in &good {
+        planner.push(m, &mut out).unwrap();
+    }
+    planner.flush(&mut out);
+    assert_eq!(out.len(), 2);
+    assert!(out
+        .iter()
+        .flat_map(|p| &p.points)
+        .all(|p| p.t.is_finite() && p.q.iter().all(|q| q.is_finite())));
+}
+
 #[test]
 fn steps_land_exactly_on_the_final_position() {
     let moves = fixture("polartest.gcode");

@@ -128,7 +128,9 @@ impl TimedMove {
         TimedMove {
             sequence: m.sequence,
             source_line: m.source_line,
-            extrude: m.extrude,
+            // Feeding needs both: a move flagged as extruding that takes material back (any
+            // publisher can send one) must not run the screw backwards with the pin open.
+            extrude: m.extrude && m.delta_e_m > 0.0,
             delta_e_m: m.delta_e_m,
             length_m: (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(),
             length_xy_m: d[0].hypot(d[1]),
@@ -440,6 +442,44 @@ pub fn integral_held(commands: &[Command], a: f64, b: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Found by fuzzing (tests/fuzz, target move_stream): a prime flagged `extrude` with a
+    /// negative ΔE gave −1500 rpm with the pin open.
+    #[test]
+    fn a_move_that_takes_material_back_does_not_feed() {
+        use polar_cell_msgs::{Duration, GcodeMove, JointTrajectory, JointTrajectoryPoint};
+        let point = |t: f64| JointTrajectoryPoint {
+            positions: vec![0.0, 0.05, 0.0],
+            velocities: vec![0.0; 3],
+            time_from_start: Duration::from_secs_f64(t),
+            ..Default::default()
+        };
+        let trajectory = JointTrajectory {
+            points: vec![point(0.0), point(0.2)],
+            ..Default::default()
+        };
+        let mut m = GcodeMove {
+            x_m: 0.05,
+            delta_e_m: -0.01,
+            feedrate_m_per_s: 0.05,
+            extrude: true,
+            ..Default::default()
+        };
+        let timed = TimedMove::from_trajectory(&m, [0.05, 0.0, 0.0], &trajectory, 0);
+        let commands = breakpoints(&[timed], &ScrewOptions::default());
+        assert!(
+            commands.iter().all(|c| c.rpm == 0.0 && !c.pin_open),
+            "{commands:?}"
+        );
+        // and the same move with material going in does feed
+        m.delta_e_m = 0.01;
+        let timed = TimedMove::from_trajectory(&m, [0.05, 0.0, 0.0], &trajectory, 0);
+        let commands = breakpoints(&[timed], &ScrewOptions::default());
+        assert!(
+            commands.iter().any(|c| c.rpm > 0.0 && c.pin_open),
+            "{commands:?}"
+        );
+    }
 
     #[test]
     fn rate_limit_lowers_steps_into_ramps() {

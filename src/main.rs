@@ -100,9 +100,23 @@ fn split_ros_args() -> anyhow::Result<(Vec<String>, RosArgs)> {
     }
 }
 
+/// The bag reader turns a panic of the `mcap` crate on a malformed file into an error that
+/// says what happened (`cell_bag::BagError::Malformed`); the default hook would also print
+/// the panic. Every other panic is printed as usual.
+fn quiet_mcap_panics() {
+    let default_hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let in_mcap = info.location().is_some_and(|l| l.file().contains("/mcap-"));
+        if !in_mcap {
+            default_hook(info);
+        }
+    }));
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     cell_runtime::init_logging("warn,polar_cell=info");
+    quiet_mcap_panics();
     let (argv, ros_args) = split_ros_args()?;
     let cli = Cli::parse_from(argv);
     match cli.command {

@@ -45,6 +45,13 @@ pub enum BagError {
     NotRos2(String),
     #[error("bag has no summary section (was finish() called?)")]
     NoSummary,
+    /// The `mcap` crate (0.26) panics on some malformed records instead of returning an
+    /// error (found by fuzzing, `tests/fuzz`); the reader turns that into this error.
+    #[error("malformed MCAP while {while_doing}: {detail}")]
+    Malformed {
+        while_doing: &'static str,
+        detail: String,
+    },
 }
 
 #[cfg(feature = "node")]

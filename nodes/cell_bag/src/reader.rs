@@ -52,8 +52,32 @@ pub struct BagContents<'a> {
     pub info: BagInfo,
 }
 
+/// Run `read`, a call into the `mcap` crate on untrusted bytes, turning a panic of that crate
+/// into [`BagError::Malformed`]. (`polar-cell` keeps such a panic off the terminal: the error
+/// says it.)
+fn guarded<T>(
+    while_doing: &'static str,
+    read: impl FnOnce() -> Result<T, BagError>,
+) -> Result<T, BagError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(read)).unwrap_or_else(|payload| {
+        let detail = payload
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "the MCAP reader failed".to_string());
+        Err(BagError::Malformed {
+            while_doing,
+            detail,
+        })
+    })
+}
+
 /// Read a bag's summary (the bytes of the whole file).
 pub fn read_bag(bytes: &[u8]) -> Result<BagContents<'_>, BagError> {
+    guarded("reading the summary", || read_summary(bytes))
+}
+
+fn read_summary(bytes: &[u8]) -> Result<BagContents<'_>, BagError> {
     let header_profile = read_profile(bytes)?;
     if header_profile != "ros2" {
         return Err(BagError::NotRos2(format!(
@@ -125,8 +149,25 @@ impl<'a> BagContents<'a> {
     pub fn messages(
         &self,
     ) -> Result<impl Iterator<Item = Result<BagMessage<'a>, BagError>> + 'a, BagError> {
-        let stream = mcap::MessageStream::new(self.bytes)?;
-        Ok(stream.map(|m| {
+        let mut stream = guarded("opening the message stream", || {
+            Ok(mcap::MessageStream::new(self.bytes)?)
+        })?;
+        let mut failed = false;
+        Ok(std::iter::from_fn(move || {
+            if failed {
+                return None;
+            }
+            let next = guarded("reading a message", || Ok(stream.next()));
+            match next {
+                Ok(m) => m.map(|m| m.map_err(BagError::from)),
+                // The stream's state is unknown after a panic: end it after the error.
+                Err(e) => {
+                    failed = true;
+                    Some(Err(e))
+                }
+            }
+        })
+        .map(|m: Result<mcap::Message<'a>, BagError>| {
             let m = m?;
             Ok(BagMessage {
                 topic: m.channel.topic.clone(),

@@ -104,3 +104,20 @@ fn non_ros2_and_truncated_files_are_errors() {
     assert!(read_bag(&bytes[..bytes.len() / 2]).is_err());
     assert!(read_bag(b"not an mcap file at all").is_err());
 }
+
+/// Found by fuzzing (tests/fuzz, target bag): an attachment record whose body holds its
+/// header but not the CRC after it makes `mcap` 0.26 panic (slice index out of range). The
+/// reader answers with an error instead.
+#[test]
+fn a_record_the_mcap_crate_panics_on_is_an_error() {
+    let mut bytes = b"\x89MCAP0\r\n".to_vec();
+    bytes.push(0x09); // attachment
+    bytes.extend_from_slice(&32u64.to_le_bytes());
+    bytes.extend_from_slice(&[0; 32]); // times, empty name and media type, data length 0
+    let err = read_bag(&bytes).err().expect("an error");
+    assert!(
+        err.to_string()
+            .starts_with("malformed MCAP while reading the summary: "),
+        "{err}"
+    );
+}

@@ -16,6 +16,9 @@ if [[ "${POLAR_CELL_NETNS:-}" != "1" ]]; then
   fi
   .venv/bin/pip install --quiet --disable-pip-version-check -r tests/interop/requirements.txt
   cargo test --workspace --release --locked --no-run --quiet
+  if cargo fuzz --version >/dev/null 2>&1; then
+    RUSTC_BOOTSTRAP=1 cargo fuzz build --fuzz-dir tests/fuzz -O
+  fi
   if [[ $(id -u) == 0 ]] && unshare -n true 2>/dev/null; then
     exec env POLAR_CELL_NETNS=1 unshare -n "$0" "$@"
   fi
@@ -44,3 +47,10 @@ fi
 echo "== interop tests (Cyclone DDS, mcap-ros2-support, rosbags, Pinocchio, check_urdf)"
 cd tests/interop
 POLAR_CELL_BIN_DIR="$root/target/release" "$root/.venv/bin/python" -m pytest -q -p no:cacheprovider
+cd "$root"
+echo "== fuzz smoke run (tests/fuzz/run.sh: 20,000 inputs per target, fixed seed)"
+if cargo fuzz --version >/dev/null 2>&1; then
+  tests/fuzz/run.sh 20000
+else
+  echo "WARNING: cargo-fuzz is not installed (cargo install cargo-fuzz); fuzz targets not run" >&2
+fi

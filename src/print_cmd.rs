@@ -198,8 +198,15 @@ pub async fn print(
     {
         eprintln!("warning: the bag did not receive the final /gcode/progress within 10 s");
     }
-    // The streamer's closing diagnostics follow its final progress.
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    // The planner and screw driver flush what they buffered once input stops, and the
+    // streamer's closing diagnostics follow its final progress: record until all is quiet.
+    if matches!(outcome, Some(Ok(_)))
+        && !recorder
+            .wait_quiet(Duration::from_millis(500), Duration::from_secs(60))
+            .await
+    {
+        eprintln!("warning: messages were still arriving 60 s after the stream finished");
+    }
     planner.abort();
     screw.abort();
     let recorded = recorder.stop().await.context("finishing the bag")?;

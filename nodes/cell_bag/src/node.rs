@@ -100,6 +100,8 @@ pub struct Recorder {
     stream_finished: watch::Receiver<bool>,
     taps: Vec<tokio::task::JoinHandle<()>>,
     writer: std::thread::JoinHandle<anyhow::Result<RecordSummary>>,
+    /// Messages written so far (by the writer thread), `/gcode/ack` not counted.
+    written: std::sync::Arc<std::sync::atomic::AtomicU64>,
     _node: CellNode,
 }
 
@@ -322,11 +324,16 @@ impl Recorder {
         let mut taps = Vec::new();
         let mut moves_channel = None;
         let mut progress_channel = None;
+        // Consumers repeat their acknowledgements while idle: not activity.
+        let mut ack_channel = None;
         for (topic, type_name) in &topics {
             let msg_type = polar_cell_msgs::find(type_name)
                 .ok_or_else(|| anyhow!("topic {topic}: unknown message type {type_name}"))?;
             let (qos, record) = qos_for(topic);
             let channel = bag.add_topic(topic, msg_type, record)?;
+            if topic == "/gcode/ack" {
+                ack_channel = Some(channel);
+            }
             match (topic.as_str(), acknowledge_moves) {
                 ("/gcode/moves", true) => moves_channel = Some(channel),
                 ("/gcode/progress", true) => progress_channel = Some(channel),
@@ -364,11 +371,16 @@ impl Recorder {
             &format!("recording {} topics to {}", topics.len(), output.display()),
         );
         let directory_path = directory.then(|| output.clone());
+        let written = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let written_by_writer = written.clone();
         let writer = std::thread::Builder::new()
             .name("bag writer".into())
             .spawn(move || -> anyhow::Result<RecordSummary> {
                 while let Some((channel, log_time, publish_time, bytes)) = rx.blocking_recv() {
                     bag.write(channel, log_time, publish_time, &bytes)?;
+                    if Some(channel) != ack_channel {
+                        written_by_writer.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    }
                 }
                 let messages = bag.message_count();
                 let (sink, topics) = bag.finish()?;
@@ -401,6 +413,7 @@ impl Recorder {
             stream_finished,
             taps,
             writer,
+            written,
             _node: node,
         })
     }
@@ -417,6 +430,28 @@ impl Recorder {
         tokio::time::timeout(timeout, rx.wait_for(|&done| done))
             .await
             .is_ok_and(|r| r.is_ok())
+    }
+
+    /// Resolves once no message (but the consumers' repeated acknowledgements) has been
+    /// written for `quiet` (true), or after `limit`
+    /// (false). After the stream's end the planner and screw driver still flush what they
+    /// buffered (after their idle times, 0.05 s and 0.1 s by default): a quiet graph says
+    /// they are done.
+    pub async fn wait_quiet(&self, quiet: Duration, limit: Duration) -> bool {
+        use std::sync::atomic::Ordering;
+        let start = tokio::time::Instant::now();
+        let mut seen = self.written.load(Ordering::Relaxed);
+        let mut since = start;
+        while start.elapsed() < limit {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+            let now = self.written.load(Ordering::Relaxed);
+            if now != seen {
+                (seen, since) = (now, tokio::time::Instant::now());
+            } else if since.elapsed() >= quiet {
+                return true;
+            }
+        }
+        false
     }
 
     /// Stop recording: take what the readers still hold, finish the bag, report.

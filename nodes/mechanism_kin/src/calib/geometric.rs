@@ -318,25 +318,8 @@ pub fn measurement_plan(
         }
         log_det(&m)
     };
-    let mut best = total(&chosen);
-    for _ in 0..3 {
-        let mut improved = false;
-        for i in 0..n {
-            for c in 0..scaled.len() {
-                let old = chosen[i];
-                chosen[i] = c;
-                let v = total(&chosen);
-                if v > best + 1e-9 {
-                    best = v;
-                    improved = true;
-                } else {
-                    chosen[i] = old;
-                }
-            }
-        }
-        if !improved {
-            break;
-        }
-    }
+    super::exchange(&mut chosen, scaled.len(), false, 3, total, |v, best| {
+        v > best + 1e-9
+    });
     Ok(chosen.iter().map(|&c| candidates[c]).collect())
 }

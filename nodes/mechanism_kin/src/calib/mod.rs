@@ -107,6 +107,44 @@ impl CorrectedCommand {
 }
 
 /// Calibrate from measurements.
+/// Point exchange (Fedorov), the heart of both D-optimal designs: sweep over the chosen
+/// slots, putting each candidate in each slot and keeping it where `better(new, best)` of
+/// `objective`, until a sweep improves nothing or after `max_sweeps`. `distinct`: a candidate
+/// may be chosen once only. Returns the final objective.
+pub(crate) fn exchange(
+    chosen: &mut [usize],
+    candidates: usize,
+    distinct: bool,
+    max_sweeps: usize,
+    objective: impl Fn(&[usize]) -> f64,
+    better: impl Fn(f64, f64) -> bool,
+) -> f64 {
+    let mut best = objective(chosen);
+    for _ in 0..max_sweeps {
+        let mut improved = false;
+        for i in 0..chosen.len() {
+            for c in 0..candidates {
+                if distinct && chosen.contains(&c) {
+                    continue;
+                }
+                let old = chosen[i];
+                chosen[i] = c;
+                let value = objective(chosen);
+                if better(value, best) {
+                    best = value;
+                    improved = true;
+                } else {
+                    chosen[i] = old;
+                }
+            }
+        }
+        if !improved {
+            break;
+        }
+    }
+    best
+}
+
 pub fn calibrate(
     geom: &Geometry,
     data: &[Measurement],
@@ -229,13 +267,7 @@ impl Calibration {
                     ],
                 })
             }
-            Calibration::Rsm { surfaces, .. } => {
-                let c = surfaces.solve(geom, target)?;
-                Ok(CorrectedCommand {
-                    legs_mm: c.legs_mm,
-                    table_mm: c.table_mm,
-                })
-            }
+            Calibration::Rsm { surfaces, .. } => surfaces.solve(geom, target),
         }
     }
 

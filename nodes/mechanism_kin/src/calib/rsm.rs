@@ -17,7 +17,7 @@ use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use statrs::distribution::{ContinuousCDF, StudentsT};
 
 use super::measurements::Measurement;
-use super::CalibError;
+use super::{CalibError, CorrectedCommand};
 use crate::geometry::Geometry;
 use crate::kinematics::ToolTarget;
 use crate::pose::Tilt;
@@ -320,13 +320,6 @@ pub fn fit_surfaces(
     })
 }
 
-/// The corrected command of a response-surface calibration.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct RsmCommand {
-    pub legs_mm: [f64; 3],
-    pub table_mm: [f64; 2],
-}
-
 impl ResponseSurfaces {
     fn legs(&self, x: &Vector3<f64>) -> [f64; 3] {
         std::array::from_fn(|k| self.leg_centre_mm[k] + x[k] * self.leg_half_range_mm[k])
@@ -342,7 +335,11 @@ impl ResponseSurfaces {
     }
 
     /// Legs (and table) that the surfaces say reach `target`; refused outside the region.
-    pub fn solve(&self, geom: &Geometry, target: &ToolTarget) -> Result<RsmCommand, CalibError> {
+    pub fn solve(
+        &self,
+        geom: &Geometry,
+        target: &ToolTarget,
+    ) -> Result<CorrectedCommand, CalibError> {
         self.solve_with(geom, target, true)
     }
 
@@ -352,7 +349,7 @@ impl ResponseSurfaces {
         &self,
         geom: &Geometry,
         target: &ToolTarget,
-    ) -> Result<RsmCommand, CalibError> {
+    ) -> Result<CorrectedCommand, CalibError> {
         self.solve_with(geom, target, false)
     }
 
@@ -361,7 +358,7 @@ impl ResponseSurfaces {
         geom: &Geometry,
         target: &ToolTarget,
         checked: bool,
-    ) -> Result<RsmCommand, CalibError> {
+    ) -> Result<CorrectedCommand, CalibError> {
         let (t1, t2) = tilt_deg(&target.axis, self.theta1_reference_deg);
         let checks = [
             ("tool-tip Z (mm)", target.tip_mm.z, self.region.tip_z_mm),
@@ -423,7 +420,7 @@ impl ResponseSurfaces {
         }
         let legs_mm = self.legs(&x);
         let (tip, _) = self.predict(legs_mm);
-        Ok(RsmCommand {
+        Ok(CorrectedCommand {
             legs_mm,
             table_mm: [tip[0] - target.tip_mm.x, tip[1] - target.tip_mm.y],
         })
@@ -484,29 +481,9 @@ pub fn d_optimal_design(
     };
     // Start spread over the candidates, then exchange.
     let mut chosen: Vec<usize> = (0..n).map(|i| i * rows.len() / n).collect();
-    let mut best = det(&chosen);
-    loop {
-        let mut improved = false;
-        for i in 0..n {
-            for c in 0..rows.len() {
-                if chosen.contains(&c) {
-                    continue;
-                }
-                let old = chosen[i];
-                chosen[i] = c;
-                let d = det(&chosen);
-                if d > best * (1.0 + 1e-9) {
-                    best = d;
-                    improved = true;
-                } else {
-                    chosen[i] = old;
-                }
-            }
-        }
-        if !improved {
-            break;
-        }
-    }
+    let best = super::exchange(&mut chosen, rows.len(), true, usize::MAX, det, |d, best| {
+        d > best * (1.0 + 1e-9)
+    });
     let d_eff = best.max(0.0).powf(1.0 / TERMS as f64) / n as f64;
     Ok((chosen.iter().map(|&c| legs[c]).collect(), d_eff))
 }

@@ -193,19 +193,16 @@ pub async fn print(
         _ = cell_runtime::shutdown_signal() => None,
     };
     bar.finish_and_clear();
-    if matches!(outcome, Some(Ok(_)))
-        && !recorder.wait_stream_finished(Duration::from_secs(10)).await
-    {
-        eprintln!("warning: the bag did not receive the final /gcode/progress within 10 s");
-    }
-    // The planner and screw driver flush what they buffered once input stops, and the
-    // streamer's closing diagnostics follow its final progress: record until all is quiet.
-    if matches!(outcome, Some(Ok(_)))
-        && !recorder
-            .wait_quiet(Duration::from_millis(500), Duration::from_secs(60))
-            .await
-    {
-        eprintln!("warning: messages were still arriving 60 s after the stream finished");
+    if matches!(outcome, Some(Ok(_))) {
+        if !recorder.wait_stream_finished(Duration::from_secs(10)).await {
+            eprintln!("warning: the bag did not receive the final /gcode/progress within 10 s");
+        }
+        // The planner and screw driver flush what they buffered once input stops, and the
+        // streamer's closing diagnostics follow its final progress: record until all is quiet.
+        let quiet = Duration::from_millis(500);
+        if !recorder.wait_quiet(quiet, Duration::from_secs(60)).await {
+            eprintln!("warning: messages were still arriving 60 s after the stream finished");
+        }
     }
     planner.abort();
     screw.abort();

@@ -149,22 +149,17 @@ impl<'a> BagContents<'a> {
     pub fn messages(
         &self,
     ) -> Result<impl Iterator<Item = Result<BagMessage<'a>, BagError>> + 'a, BagError> {
-        let mut stream = guarded("opening the message stream", || {
+        let mut stream = Some(guarded("opening the message stream", || {
             Ok(mcap::MessageStream::new(self.bytes)?)
-        })?;
-        let mut failed = false;
+        })?);
         Ok(std::iter::from_fn(move || {
-            if failed {
-                return None;
-            }
-            let next = guarded("reading a message", || Ok(stream.next()));
+            let next = guarded("reading a message", || {
+                Ok(stream.as_mut().and_then(Iterator::next))
+            });
             match next {
                 Ok(m) => m.map(|m| m.map_err(BagError::from)),
                 // The stream's state is unknown after a panic: end it after the error.
-                Err(e) => {
-                    failed = true;
-                    Some(Err(e))
-                }
+                Err(e) => stream.take().map(|_| Err(e)),
             }
         })
         .map(|m: Result<mcap::Message<'a>, BagError>| {

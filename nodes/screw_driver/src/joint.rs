@@ -71,30 +71,26 @@ impl ScrewAngle {
                 self.last = Some((c, 0.0));
                 continue;
             };
-            let span = c.t - a.t;
-            if span > 0.0 {
+            let mut angle_c = angle_a;
+            if c.t > a.t {
                 loop {
                     let t = self.origin_t + self.next_index as f64 * self.period_s;
                     if t >= c.t {
                         break;
                     }
                     if t >= a.t {
-                        let (rpm, revs_per_60) = self.run(&a, &c, t - a.t);
+                        let (rpm, rpm_s) = self.run(&a, &c, t - a.t);
                         out.push(ScrewSample {
                             t,
-                            angle_rad: angle_a + revs_per_60 * RAD_PER_S_PER_RPM,
+                            angle_rad: angle_a + rpm_s * RAD_PER_S_PER_RPM,
                             velocity_rad_per_s: rpm * RAD_PER_S_PER_RPM,
                         });
                     }
                     self.next_index += 1;
                 }
+                angle_c += self.run(&a, &c, c.t - a.t).1 * RAD_PER_S_PER_RPM;
             }
-            let advance = if span > 0.0 {
-                self.run(&a, &c, span).1
-            } else {
-                0.0
-            };
-            self.last = Some((c, angle_a + advance * RAD_PER_S_PER_RPM));
+            self.last = Some((c, angle_c));
         }
     }
 

@@ -352,6 +352,10 @@ fn to_ros_parameter(v: &ParamValue) -> ParameterValue {
     }
 }
 
+/// How long the nodes' publications wait for a full send window before it is an error: long
+/// enough for a recorder catching up after a million moves.
+pub const PUBLISH_PATIENCE: std::time::Duration = std::time::Duration::from_secs(30);
+
 /// Publish, waiting while the reliable send window is full (back-pressure from a slow
 /// subscriber is not an error); gives up after `patience`.
 pub async fn publish<T: RosMessage>(

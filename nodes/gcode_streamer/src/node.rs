@@ -11,6 +11,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context as _};
 use cell_runtime::{
     now_ns, publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, RosArgs,
+    PUBLISH_PATIENCE,
 };
 use polar_cell_msgs::{DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, Time};
 
@@ -22,10 +23,6 @@ pub const NODE_NAME: &str = "gcode_streamer";
 
 /// How many more times the finished `/gcode/progress` is published, 50 ms apart.
 const FINAL_REPORT_REPEATS: usize = 4;
-
-/// How long a progress report may wait for a subscriber that is slow to acknowledge (a
-/// recorder catching up after a million moves) before the stream gives up.
-const PROGRESS_PATIENCE: Duration = Duration::from_secs(30);
 
 /// The node's parameters.
 pub fn param_specs() -> Vec<ParamSpec> {
@@ -259,7 +256,7 @@ pub async fn stream(
             progress.consumer_next_expected = next;
             progress.finished = finished;
             on_progress(&progress);
-            publish(&progress_pub, progress.clone(), PROGRESS_PATIENCE)
+            publish(&progress_pub, progress.clone(), PUBLISH_PATIENCE)
                 .await
                 .context("/gcode/progress")?;
         }
@@ -268,7 +265,7 @@ pub async fn stream(
             // reliable writer does not always repair a loss in a burst).
             for _ in 0..FINAL_REPORT_REPEATS {
                 tokio::time::sleep(Duration::from_millis(50)).await;
-                publish(&progress_pub, progress.clone(), PROGRESS_PATIENCE)
+                publish(&progress_pub, progress.clone(), PUBLISH_PATIENCE)
                     .await
                     .context("/gcode/progress")?;
             }

@@ -31,6 +31,11 @@ impl Time {
             nanosec: nanos.rem_euclid(1_000_000_000) as u32,
         }
     }
+    /// `seconds` after the stamp `base_nanos`, to the nearest nanosecond: how the nodes stamp
+    /// plan time (seconds since the plan's start) on the wall clock.
+    pub fn after(base_nanos: i64, seconds: f64) -> Self {
+        Time::from_nanos(base_nanos + (seconds * 1e9).round() as i64)
+    }
     pub fn as_nanos(&self) -> i64 {
         self.sec as i64 * 1_000_000_000 + self.nanosec as i64
     }

@@ -6,18 +6,13 @@ use polar_cell_msgs::{
 
 use crate::{PlannedMove, JOINT_NAMES};
 
-/// The stamp of plan time `t` (s) for a plan whose time 0 is `epoch_ns`.
-pub fn stamp(epoch_ns: i64, t: f64) -> Time {
-    Time::from_nanos(epoch_ns + (t * 1e9).round() as i64)
-}
-
 /// The `/polar/trajectory` message of one planned move: stamped at its start, points at their
 /// offsets, joints `bed_theta`, `arm_r`, `z` in SI units.
 pub fn trajectory_message(plan: &PlannedMove, epoch_ns: i64) -> JointTrajectory {
     let t0 = plan.start_time();
     JointTrajectory {
         header: Header {
-            stamp: stamp(epoch_ns, t0),
+            stamp: Time::after(epoch_ns, t0),
             frame_id: "base_link".into(),
         },
         joint_names: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),

@@ -16,14 +16,12 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, Context as _};
 use cell_runtime::{
     now_ns, publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
+    PUBLISH_PATIENCE,
 };
-
-/// How long a publication may wait for a full send window before it is an error.
-const PATIENCE: Duration = Duration::from_secs(30);
 use gcode_streamer::flow::Intake;
 use polar_cell_msgs::{
     DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory,
-    StepSegment,
+    StepSegment, Time,
 };
 
 use crate::steps::{StepGenerator, StepOptions};
@@ -102,7 +100,7 @@ pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, S
     Ok((options, steps))
 }
 
-use crate::messages::{stamp, trajectory_message};
+use crate::messages::trajectory_message;
 
 /// Joint states sampled from plans every `period` of plan time, continuing from `next_t`.
 pub fn sample_joint_states(
@@ -125,7 +123,7 @@ pub fn sample_joint_states(
                 };
                 out.push(JointState {
                     header: Header {
-                        stamp: stamp(epoch_ns, *next_t),
+                        stamp: Time::after(epoch_ns, *next_t),
                         frame_id: String::new(),
                     },
                     name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
@@ -215,7 +213,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             publish(
                 &trajectory_pub,
                 trajectory_message(&plan, epoch_ns),
-                PATIENCE,
+                PUBLISH_PATIENCE,
             )
             .await
             .context("/polar/trajectory")?;
@@ -223,15 +221,15 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 segments.clear();
                 steps.segments(&plan, &mut segments);
                 for mut s in segments.drain(..) {
-                    s.header.stamp = stamp(epoch_ns, plan.start_time());
-                    publish(&steps_pub, s, PATIENCE)
+                    s.header.stamp = Time::after(epoch_ns, plan.start_time());
+                    publish(&steps_pub, s, PUBLISH_PATIENCE)
                         .await
                         .context("/polar/steps")?;
                 }
             }
             sample_joint_states(&plan, js_period, &mut next_state_t, epoch_ns, &mut states);
             for s in states.drain(..) {
-                publish(&joint_states_pub, s, PATIENCE)
+                publish(&joint_states_pub, s, PUBLISH_PATIENCE)
                     .await
                     .context("/joint_states")?;
             }

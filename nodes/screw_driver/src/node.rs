@@ -14,7 +14,9 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _};
-use cell_runtime::{publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params};
+use cell_runtime::{
+    publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, PUBLISH_PATIENCE,
+};
 use gcode_streamer::flow::Intake;
 use polar_cell_msgs::{
     GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory, ScrewCommand, Time,
@@ -23,7 +25,8 @@ use polar_cell_msgs::{
 use crate::fir::{FILTER_1, FILTER_2, FILTER_2_60DB};
 use crate::joint::{Hold, ScrewAngle, ScrewSample};
 use crate::screw::{
-    breakpoints_from, smooth, Command, PinState, PinStrategy, RpmModel, ScrewOptions, TimedMove,
+    breakpoints_from, position_after, smooth, Command, PinState, PinStrategy, RpmModel,
+    ScrewOptions, TimedMove,
 };
 
 /// Default node name.
@@ -31,9 +34,6 @@ pub const NODE_NAME: &str = "screw_driver";
 
 /// The screw's joint in `urdf/polar_cell.urdf`.
 pub const SCREW_JOINT: &str = "screw";
-
-/// How long a publication may wait for a full send window before it is an error.
-const PATIENCE: Duration = Duration::from_secs(30);
 
 pub fn param_specs() -> Vec<ParamSpec> {
     let d = ScrewOptions::default();
@@ -123,15 +123,11 @@ pub fn chunk_commands(
     }
 }
 
-fn stamp(base_ns: i64, t: f64) -> Time {
-    Time::from_nanos(base_ns + (t * 1e9).round() as i64)
-}
-
 /// A command as its message, stamped on the plan timeline starting at `base_ns`.
 pub fn command_message(c: &Command, options: &ScrewOptions, base_ns: i64) -> ScrewCommand {
     ScrewCommand {
         header: Header {
-            stamp: stamp(base_ns, c.t),
+            stamp: Time::after(base_ns, c.t),
             frame_id: String::new(),
         },
         rpm: c.rpm,
@@ -145,7 +141,7 @@ pub fn command_message(c: &Command, options: &ScrewOptions, base_ns: i64) -> Scr
 pub fn joint_state_message(s: &ScrewSample, base_ns: i64) -> JointState {
     JointState {
         header: Header {
-            stamp: stamp(base_ns, s.t),
+            stamp: Time::after(base_ns, s.t),
             frame_id: String::new(),
         },
         name: vec![SCREW_JOINT.to_string()],
@@ -256,16 +252,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             let base = *base_ns.get_or_insert(trajectory.header.stamp.as_nanos());
             timed.push_back(TimedMove::from_trajectory(&m, from, &trajectory, base));
             done_until = m.sequence + 1;
-            if matches!(
-                m.kind,
-                GcodeMove::KIND_RAPID
-                    | GcodeMove::KIND_LINEAR
-                    | GcodeMove::KIND_ARC_CW
-                    | GcodeMove::KIND_ARC_CCW
-                    | GcodeMove::KIND_HOME
-            ) {
-                from = [m.x_m, m.y_m, m.z_m];
-            }
+            from = position_after(&m, from);
         }
         let buffered_s = match (
             timed.front().and_then(|m| m.t.first()),
@@ -288,16 +275,20 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             let base = base_ns.unwrap_or(0);
             for c in &commands {
                 let message = command_message(c, &options, base);
-                publish(&commands_pub, message, PATIENCE)
+                publish(&commands_pub, message, PUBLISH_PATIENCE)
                     .await
                     .context("/screw/command")?;
             }
             if let Some(angle) = angle.as_mut() {
                 angle.extend(&commands, &mut samples);
                 for s in samples.drain(..) {
-                    publish(&joint_states_pub, joint_state_message(&s, base), PATIENCE)
-                        .await
-                        .context("/joint_states")?;
+                    publish(
+                        &joint_states_pub,
+                        joint_state_message(&s, base),
+                        PUBLISH_PATIENCE,
+                    )
+                    .await
+                    .context("/joint_states")?;
                 }
             }
             if let Some(ack) = intake.ack(done_until) {

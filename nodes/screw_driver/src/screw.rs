@@ -143,6 +143,18 @@ impl TimedMove {
     }
 }
 
+/// Where the tool is after `m`, from `from`: the target of a move that goes somewhere (a
+/// line, an arc chord, a home); dwells and G92 leave it where it was.
+pub fn position_after(m: &polar_cell_msgs::GcodeMove, from: [f64; 3]) -> [f64; 3] {
+    use polar_cell_msgs::GcodeMove as M;
+    match m.kind {
+        M::KIND_RAPID | M::KIND_LINEAR | M::KIND_ARC_CW | M::KIND_ARC_CCW | M::KIND_HOME => {
+            [m.x_m, m.y_m, m.z_m]
+        }
+        _ => from,
+    }
+}
+
 /// One command breakpoint.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Command {

@@ -6,8 +6,8 @@ use polar_planner::messages::trajectory_message;
 use polar_planner::{Planner, PlannerOptions};
 use screw_driver::fir::FILTER_1;
 use screw_driver::screw::{
-    breakpoints, integral, integral_held, smooth, Command, PinStrategy, RpmModel, ScrewOptions,
-    TimedMove,
+    breakpoints, integral, integral_held, position_after, smooth, Command, PinStrategy, RpmModel,
+    ScrewOptions, TimedMove,
 };
 
 const E_PER_REV: f64 = 0.002; // ScrewOptions::default()
@@ -45,12 +45,7 @@ fn timed(moves: &[GcodeMove], dwell: f64) -> Vec<TimedMove> {
             // A wall-clock epoch, as the node sees: times must stay exact relative to it.
             let epoch: i64 = 1_795_318_512_024_268_371;
             let t = TimedMove::from_trajectory(m, from, &trajectory_message(p, epoch), epoch);
-            if matches!(
-                m.kind,
-                GcodeMove::KIND_LINEAR | GcodeMove::KIND_RAPID | GcodeMove::KIND_HOME
-            ) {
-                from = [m.x_m, m.y_m, m.z_m];
-            }
+            from = position_after(m, from);
             t
         })
         .collect()

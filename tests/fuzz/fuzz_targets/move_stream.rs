@@ -9,7 +9,7 @@ use polar_cell_msgs::GcodeMove;
 use polar_planner::messages::trajectory_message;
 use polar_planner::{Planner, PlannerOptions};
 use screw_driver::joint::{Hold, ScrewAngle};
-use screw_driver::screw::{breakpoints, ScrewOptions, TimedMove};
+use screw_driver::screw::{breakpoints, position_after, ScrewOptions, TimedMove};
 
 /// A coordinate: mostly inside the work volume, sometimes anything at all.
 fn coordinate(u: &mut Unstructured) -> arbitrary::Result<f64> {
@@ -75,9 +75,7 @@ fuzz_target!(|bytes: &[u8]| {
             &trajectory_message(plan, 0),
             0,
         ));
-        if m.kind <= 3 || m.kind == 5 {
-            from = [m.x_m, m.y_m, m.z_m];
-        }
+        from = position_after(m, from);
     }
     let commands = breakpoints(&timed, &ScrewOptions::default());
     assert!(

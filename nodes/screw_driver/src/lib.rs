@@ -3,8 +3,12 @@
 //!
 //! Pure: no DDS. The node (feature `node`) wires it to topics.
 
+pub mod compensation;
+pub mod extruder;
 pub mod fir;
+pub mod flow;
 pub mod joint;
+pub mod reduced;
 pub mod screw;
 
 #[cfg(feature = "node")]

@@ -8,6 +8,7 @@ mod bag_cmd;
 mod mechanism_cmd;
 mod plot_cmd;
 mod print_cmd;
+mod screw_cmd;
 
 use std::path::PathBuf;
 
@@ -56,6 +57,11 @@ enum Command {
         /// The PNG to write.
         #[arg(long, default_value = "print.png")]
         out: PathBuf,
+    },
+    /// The screw's flow response: Navier–Stokes channel, step responses, reduced models.
+    Screw {
+        #[command(subcommand)]
+        command: screw_cmd::ScrewCommand,
     },
     /// Bag tools.
     Bag {
@@ -129,6 +135,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Check { file } => print_cmd::check(&file),
         Command::Plot { bag, out } => plot_cmd::plot(&bag, &out),
         Command::Mechanism { command } => mechanism_cmd::run(command),
+        Command::Screw { command } => screw_cmd::run(command),
         Command::Bag { command } => match command {
             BagCommand::Info { bag } => bag_cmd::info(&bag),
             BagCommand::Play {

@@ -16,7 +16,7 @@ const FONT_PATHS: &[&str] = &[
     "/usr/share/fonts/dejavu/DejaVuSans.ttf",
 ];
 
-fn register_font() -> anyhow::Result<()> {
+pub fn register_font() -> anyhow::Result<()> {
     let candidates: Vec<String> = std::env::var("POLAR_CELL_FONT")
         .into_iter()
         .chain(FONT_PATHS.iter().map(|s| s.to_string()))

@@ -147,7 +147,29 @@ pub async fn print(
         polar_planner::node::NODE_NAME,
         &planner_specs,
         ros_args,
-        vec![param("pin_open_dwell_s", pin_dwell.to_string())],
+        vec![
+            param("pin_open_dwell_s", pin_dwell.to_string()),
+            // The plan respects the screw the driver runs (its top speed and calibration).
+            param(
+                "screw_max_rpm",
+                format!("{:?}", screw_node.params.f64("max_rpm")),
+            ),
+            param(
+                "screw_e_per_rev_m",
+                format!("{:?}", screw_node.params.f64("e_per_rev_m")),
+            ),
+            param(
+                "screw_flow_tau_s",
+                format!(
+                    "{:?}",
+                    if screw_node.params.bool("flow_compensation") {
+                        screw_node.params.f64("flow_tau_s")
+                    } else {
+                        0.0
+                    }
+                ),
+            ),
+        ],
     )?;
     let consumers = format!(
         "[{:?}, {:?}, {:?}]",

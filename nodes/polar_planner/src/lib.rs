@@ -21,7 +21,9 @@ pub mod steps;
 pub mod timing;
 pub mod urdf;
 
-pub use planner::{PlanError, PlannedMove, Planner, PlannerOptions, TrajPoint, JOINT_NAMES};
+pub use planner::{
+    PlanError, PlannedMove, Planner, PlannerOptions, ScrewLimits, TrajPoint, JOINT_NAMES,
+};
 pub use timing::JointLimits;
 
 #[cfg(feature = "node")]

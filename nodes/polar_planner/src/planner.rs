@@ -57,6 +57,42 @@ pub struct PlannerOptions {
     /// Rest this long before each extruding move that follows a non-extruding one, for the
     /// extruder's pin to open (screw_driver's `stop` strategy; 0: never).
     pub pin_open_dwell_s: f64,
+    /// What the screw can feed: extruding moves are slowed so their material never needs more
+    /// rpm than this (`None`: the plan ignores the screw).
+    pub screw: Option<ScrewLimits>,
+}
+
+/// The screw as the planner must respect it (like Klipper's toolhead checks its extruder).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ScrewLimits {
+    /// rpm the plan may use: the screw's maximum less the headroom its flow compensation needs.
+    pub usable_rpm: f64,
+    /// Filament-equivalent length one revolution feeds (m), as the screw driver's model.
+    pub e_per_rev_m: f64,
+    /// Time constant of the delivered flow (the screw driver's `flow_tau_s`): a prime gets
+    /// time for the flow to rise and to drain before the stage moves on.
+    pub flow_tau_s: f64,
+}
+
+impl ScrewLimits {
+    /// Fastest tool speed (m/s) at which a move feeding `delta_e_m` over `length_m` stays
+    /// within the usable rpm: rpm = 60·v·(ΔE/L)/e_rev.
+    pub fn max_speed(&self, delta_e_m: f64, length_m: f64) -> f64 {
+        if delta_e_m <= 0.0 || length_m <= 0.0 {
+            return f64::INFINITY;
+        }
+        self.usable_rpm * self.e_per_rev_m * length_m / (60.0 * delta_e_m)
+    }
+
+    /// Shortest time (s) in which the screw can feed `delta_e_m` in place (a prime): the
+    /// material at the usable rpm, plus five time constants of the flow, for it to rise and
+    /// to drain to under 1 % before the next move.
+    pub fn min_duration(&self, delta_e_m: f64) -> f64 {
+        if delta_e_m <= 0.0 {
+            return 0.0;
+        }
+        60.0 * delta_e_m / (self.usable_rpm * self.e_per_rev_m) + 5.0 * self.flow_tau_s
+    }
 }
 
 impl Default for PlannerOptions {
@@ -92,6 +128,7 @@ impl Default for PlannerOptions {
             acceleration_safety: 0.9,
             initial_joints: [0.0, 0.0, 0.0],
             pin_open_dwell_s: 0.0,
+            screw: None,
         }
     }
 }
@@ -121,6 +158,9 @@ pub struct PlannedMove {
     /// At least one point; consecutive points with a path between them; a corner between two
     /// moves repeats the time with the velocity jump.
     pub points: Vec<TrajPoint>,
+    /// How much slower than commanded the screw's limit made this move (feed or, for a
+    /// prime, duration ratio > 1); `None` when the screw did not limit it.
+    pub slowed_for_screw: Option<f64>,
 }
 
 impl PlannedMove {
@@ -247,6 +287,20 @@ impl Planner {
                 "acceleration_safety in (0, 1], lookahead_blocks >= 2".into(),
             ));
         }
+        if let Some(screw) = o.screw {
+            if !(screw.usable_rpm.is_finite()
+                && screw.usable_rpm > 0.0
+                && screw.e_per_rev_m.is_finite()
+                && screw.e_per_rev_m > 0.0
+                && screw.flow_tau_s.is_finite()
+                && screw.flow_tau_s >= 0.0)
+            {
+                return Err(PlanError::Options(format!(
+                    "screw limits must be finite, rpm and e_per_rev > 0, flow τ >= 0: usable_rpm {}, e_per_rev_m {}, flow_tau_s {}",
+                    screw.usable_rpm, screw.e_per_rev_m, screw.flow_tau_s
+                )));
+            }
+        }
         let safety = o.acceleration_safety;
         let limits = SpeedLimits {
             joint_velocity: [
@@ -335,6 +389,7 @@ impl Planner {
             delta_e_m: m.delta_e_m,
             extrude: m.extrude,
             points: Vec::new(),
+            slowed_for_screw: None,
         });
         let seq = m.sequence;
         let moves_or_feeds = matches!(
@@ -385,10 +440,20 @@ impl Planner {
                     self.moves.pop_back();
                     return Err(e);
                 }
+                let feeds = m.extrude && m.delta_e_m > 0.0;
+                let screw = self.options.screw.filter(|_| feeds);
                 if length == 0.0 {
                     if m.delta_e_m != 0.0 {
-                        // Extruder only (retract, prime): the stage rests for the E motion.
-                        let duration = m.delta_e_m.abs() / feed;
+                        // Extruder only (retract, prime): the stage rests for the E motion,
+                        // at least as long as the screw needs to feed it.
+                        let mut duration = m.delta_e_m.abs() / feed;
+                        if let Some(screw) = screw {
+                            let needed = screw.min_duration(m.delta_e_m);
+                            if needed > duration {
+                                self.note_slowdown(needed / duration);
+                                duration = needed;
+                            }
+                        }
                         if duration > MAX_REST_S {
                             self.moves.pop_back();
                             return Err(PlanError::RestTooLong {
@@ -409,11 +474,26 @@ impl Planner {
                         );
                     }
                 } else {
+                    let mut feed = feed;
+                    if let Some(screw) = screw {
+                        let fastest = screw.max_speed(m.delta_e_m, length);
+                        if fastest < feed {
+                            self.note_slowdown(feed / fastest);
+                            feed = fastest.max(MIN_FEED_M_PER_S);
+                        }
+                    }
                     self.push_line(seq, target, feed, out);
                 }
             }
         }
         Ok(())
+    }
+
+    /// Record on the move just queued that the screw slowed it by `factor`.
+    fn note_slowdown(&mut self, factor: f64) {
+        if let Some(m) = self.moves.back_mut() {
+            m.slowed_for_screw = Some(factor);
+        }
     }
 
     /// Plan and emit everything queued, ending at rest.

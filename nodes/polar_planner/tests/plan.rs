@@ -292,3 +292,50 @@ fn steps_land_exactly_on_the_final_position() {
     let plan_time = planned.last().unwrap().end_time();
     assert!((total_time - plan_time).abs() < 1e-6 * plan_time);
 }
+
+/// The screw's limit slows an extruding move to exactly the usable rpm, lengthens a prime to
+/// what the screw can feed, and leaves moves within the limit alone.
+#[test]
+fn the_screw_limit_slows_moves_that_would_need_more_rpm() {
+    use polar_planner::ScrewLimits;
+    let screw = ScrewLimits {
+        usable_rpm: 270.0,
+        e_per_rev_m: 0.002,
+        flow_tau_s: 0.03,
+    };
+    // 40 mm at 3000 mm/min feeding 8 mm: 60·0.05·0.2/0.002 = 300 rpm > 270 → slowed to 45 mm/s.
+    // Then a 25 mm prime at 300 mm/min (5 s): the screw needs 60·0.025/(270·0.002) = 2.78 s
+    // and 5τ = 0.15 s for the flow → not slowed; at 3000 mm/min (0.5 s) → 2.93 s. Then a slow
+    // move, not slowed.
+    let src = b"G1 X50 Y0 F3000\nG1 X90 E8 F3000\nG1 E33 F300\nG1 E58 F3000\nG1 X80 E59 F600\n";
+    let moves = moves_of(src);
+    let options = PlannerOptions {
+        screw: Some(screw),
+        ..PlannerOptions::default()
+    };
+    let planned = plan(&moves, options);
+    let rpm_of = |k: usize| -> f64 {
+        let m = &planned[k];
+        let ratio = m.delta_e_m / m.length_m;
+        m.points
+            .iter()
+            .map(|p| 60.0 * p.tool_speed * ratio / 0.002)
+            .fold(0.0, f64::max)
+    };
+    assert!((rpm_of(1) - 270.0).abs() < 1e-6, "{}", rpm_of(1));
+    assert!((planned[1].slowed_for_screw.unwrap() - 300.0 / 270.0).abs() < 1e-9);
+    assert_eq!(planned[2].slowed_for_screw, None);
+    let prime = planned[3].end_time() - planned[3].start_time();
+    assert!(
+        (prime - (60.0 * 0.025 / (270.0 * 0.002) + 0.15)).abs() < 1e-9,
+        "{prime}"
+    );
+    assert!((planned[3].slowed_for_screw.unwrap() - prime / 0.5).abs() < 1e-9);
+    assert_eq!(planned[4].slowed_for_screw, None);
+    assert!(rpm_of(4) < 270.0);
+    // Without the screw the first extruding move runs at its feed.
+    let free = plan(&moves, PlannerOptions::default());
+    assert!(
+        free[1].end_time() - free[1].start_time() < planned[1].end_time() - planned[1].start_time()
+    );
+}

@@ -22,11 +22,12 @@ use polar_cell_msgs::{
     GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory, ScrewCommand, Time,
 };
 
+use crate::compensation::FlowModel;
 use crate::fir::{FILTER_1, FILTER_2, FILTER_2_60DB};
 use crate::joint::{Hold, ScrewAngle, ScrewSample};
 use crate::screw::{
-    breakpoints_from, position_after, smooth, Command, PinState, PinStrategy, RpmModel,
-    ScrewOptions, TimedMove,
+    chunk_commands, position_after, Command, PinState, PinStrategy, RpmModel, ScrewOptions,
+    TimedMove,
 };
 
 /// Default node name.
@@ -37,6 +38,7 @@ pub const SCREW_JOINT: &str = "screw";
 
 pub fn param_specs() -> Vec<ParamSpec> {
     let d = ScrewOptions::default();
+    let flow = FlowModel::default_extruder();
     vec![
         ParamSpec::new("model", ParamValue::String("polar_speed".into()), "rpm model: polar_speed (exact tool speed) or radius (seed eq. 9)"),
         ParamSpec::new("e_per_rev_m", ParamValue::Double(0.002), "filament-equivalent length one screw revolution feeds (polar_speed)").range(1e-9, 1.0),
@@ -48,6 +50,11 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("smoothing", ParamValue::String("none".into()), "none, fir1, fir2 (the seed's 1521 taps) or fir2_60db (1525 taps)"),
         ParamSpec::new("smoothing_period_s", ParamValue::Double(d.smoothing_period_s), "grid of the smoothed commands").range(1e-5, 10.0),
         ParamSpec::new("command_period_s", ParamValue::Double(0.0), "without smoothing: 0 publishes the exact breakpoints (rpm linear between them); > 0 resamples onto this grid, each command the exact average over its interval").range(0.0, 10.0),
+        ParamSpec::new("flow_compensation", ParamValue::Bool(true), "shape rpm so the lagging flow delivers each move's material (needs the reduced model below)"),
+        ParamSpec::new("flow_tau_s", ParamValue::Double(flow.tau_s), "time constant of the delivered flow (default: the extruder model of `polar-cell screw response` at 100 rpm; override with a measured value)").range(0.0, 100.0),
+        ParamSpec::new("flow_dead_time_s", ParamValue::Double(flow.dead_time_s), "dead time of the delivered flow").range(0.0, 100.0),
+        ParamSpec::new("flow_tau_closed_s", ParamValue::Double(flow.tau_closed_s), "decay of the held pressure with the pin closed (back flow through the screw)").range(0.0, 1e4),
+        ParamSpec::new("compensation_period_s", ParamValue::Double(d.compensation_period_s), "grid of the compensated commands when command_period_s is 0").range(1e-5, 10.0),
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.1), "compute commands when no trajectory came for this long").range(0.001, 60.0),
         ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
@@ -86,6 +93,12 @@ pub fn options_from_params(p: &Params) -> anyhow::Result<ScrewOptions> {
         max_rpm_per_s: p.f64("max_rpm_per_s"),
         smoothing,
         smoothing_period_s: p.f64("smoothing_period_s"),
+        compensation: p.bool("flow_compensation").then(|| FlowModel {
+            tau_s: p.f64("flow_tau_s"),
+            dead_time_s: p.f64("flow_dead_time_s"),
+            tau_closed_s: p.f64("flow_tau_closed_s"),
+        }),
+        compensation_period_s: p.f64("compensation_period_s"),
     })
 }
 
@@ -99,27 +112,10 @@ fn model_name(options: &ScrewOptions) -> &'static str {
 /// How the published commands run between each other: raw breakpoints are linear, smoothed
 /// or resampled commands are held.
 pub fn command_hold(options: &ScrewOptions, command_period_s: f64) -> Hold {
-    if options.smoothing.is_some() || command_period_s > 0.0 {
+    if options.smoothing.is_some() || command_period_s > 0.0 || options.compensation.is_some() {
         Hold::ZeroOrder
     } else {
         Hold::FirstOrder
-    }
-}
-
-/// Commands for `chunk`, continuing from `pin` (and updating it).
-pub fn chunk_commands(
-    chunk: &[TimedMove],
-    options: &ScrewOptions,
-    pin: &mut PinState,
-    end_of_input: bool,
-    command_period_s: f64,
-) -> Vec<Command> {
-    let raw = breakpoints_from(chunk, options, pin, end_of_input);
-    match (&options.smoothing, command_period_s) {
-        (Some(taps), _) => smooth(&raw, taps, options.smoothing_period_s),
-        // A fixed rate: exact interval averages (an identity filter), held per interval.
-        (None, period) if period > 0.0 => smooth(&raw, &[1.0], period),
-        (None, _) => raw,
     }
 }
 

@@ -19,6 +19,7 @@
 //! which reproduces the linear speed profile exactly. With smoothing, rpm is first averaged
 //! exactly over a uniform grid, filtered without delay, and held per grid interval.
 
+use crate::compensation::{CompensatorState, FlowModel};
 use crate::fir::filter_zero_phase;
 
 /// How rpm follows the plan.
@@ -49,6 +50,11 @@ pub struct ScrewOptions {
     /// Zero-phase FIR taps applied on a uniform grid of `smoothing_period_s`; `None`: off.
     pub smoothing: Option<Vec<f64>>,
     pub smoothing_period_s: f64,
+    /// Shape rpm so the lagging flow delivers each move's material ([`crate::compensation`]);
+    /// `None`: rpm as if flow followed at once.
+    pub compensation: Option<FlowModel>,
+    /// Grid of the compensated commands (each held over its interval).
+    pub compensation_period_s: f64,
 }
 
 impl Default for ScrewOptions {
@@ -61,6 +67,8 @@ impl Default for ScrewOptions {
             max_rpm_per_s: 0.0,
             smoothing: None,
             smoothing_period_s: 0.001,
+            compensation: None,
+            compensation_period_s: 0.002,
         }
     }
 }
@@ -206,6 +214,8 @@ pub struct PinState {
     pub extruding: bool,
     /// When the pin last closed.
     pub closed_at: f64,
+    /// The modelled delivery, for flow compensation across chunks.
+    pub delivery: CompensatorState,
 }
 
 impl Default for PinState {
@@ -213,6 +223,7 @@ impl Default for PinState {
         PinState {
             extruding: false,
             closed_at: f64::NEG_INFINITY,
+            delivery: CompensatorState::default(),
         }
     }
 }
@@ -311,6 +322,7 @@ pub fn breakpoints_from(
     *state = PinState {
         extruding: previous_extruding,
         closed_at: pin_closed_at,
+        delivery: state.delivery,
     };
     // Plan order is time order, up to the nanosecond rounding of trajectory stamps.
     for i in 1..out.len() {
@@ -336,6 +348,66 @@ pub fn breakpoints_from(
     }
     limit_rate(&mut merged, options.max_rpm_per_s);
     merged
+}
+
+/// The commands published for `chunk`, continuing from `pin` (and updating it): with flow
+/// compensation, held commands shaped by [`crate::compensation::compensate`]; with smoothing,
+/// the filtered grid; with `command_period_s > 0`, exact interval averages held per interval;
+/// otherwise the breakpoints themselves (rpm linear between them).
+pub fn chunk_commands(
+    chunk: &[TimedMove],
+    options: &ScrewOptions,
+    pin: &mut PinState,
+    end_of_input: bool,
+    command_period_s: f64,
+) -> Vec<Command> {
+    let raw = breakpoints_from(chunk, options, pin, end_of_input);
+    let profile = match (&options.smoothing, command_period_s) {
+        (Some(taps), _) => smooth(&raw, taps, options.smoothing_period_s),
+        // A fixed rate: exact interval averages (an identity filter), held per interval.
+        (None, period) if period > 0.0 && options.compensation.is_none() => {
+            smooth(&raw, &[1.0], period)
+        }
+        (None, _) => raw,
+    };
+    match &options.compensation {
+        None => profile,
+        Some(model) => {
+            // Smoothed commands are held: as a profile, each holds until the next.
+            let profile = if options.smoothing.is_some() {
+                held_as_breakpoints(&profile)
+            } else {
+                profile
+            };
+            let period = if command_period_s > 0.0 {
+                command_period_s
+            } else {
+                options.compensation_period_s
+            };
+            crate::compensation::compensate(
+                &profile,
+                period,
+                model,
+                &crate::compensation::CommandLimits {
+                    max_rpm: options.max_rpm,
+                    max_rpm_per_s: options.max_rpm_per_s,
+                },
+                options.pin_open_delay_s,
+                &mut pin.delivery,
+            )
+        }
+    }
+}
+
+/// Held commands as linear breakpoints: each value held to the next command, then a jump.
+fn held_as_breakpoints(held: &[Command]) -> Vec<Command> {
+    let mut out = Vec::with_capacity(2 * held.len());
+    for w in held.windows(2) {
+        out.push(w[0]);
+        out.push(Command { t: w[1].t, ..w[0] });
+    }
+    out.extend(held.last().copied());
+    out
 }
 
 /// Lower rpm where it would change faster than `max_rpm_per_s` (forward and backward), so

@@ -91,17 +91,21 @@ def replay(node: list, plays: list, out: Path, topic: str, settle_s: float):
 def replay_plan(moves_bag: Path, out: Path):
     """Play `moves_bag` into a planner node and record its /polar/trajectory to `out`; the
     planner flushes its lookahead when input stops."""
+    # The golden plan pins the planner without the screw's limits (which slow polartest's
+    # primes); those are tested in Rust (polar_planner/tests/plan.rs) and by test_screw.py.
     planner = [BIN_DIR / "polar_planner", "--ros-args", "-p", "plan_epoch_ns:=0",
                "-p", "acknowledge_moves:=false", "-p", "publish_steps:=false",
-               "-p", "joint_state_period_s:=0.0"]
+               "-p", "joint_state_period_s:=0.0", "-p", "screw_max_rpm:=0.0"]
     replay(planner, [(moves_bag, "/gcode/moves")], out, "/polar/trajectory", 1.0)
 
 
 def replay_screw(moves_bag: Path, trajectory_bag: Path, out: Path):
     """Play recorded moves and trajectories into a screw driver; record /screw/command (it
     computes commands when input stops)."""
+    # Breakpoints as the instant-flow law gives them (flow compensation, tested in Rust and by
+    # test_screw.py, would make this bag a held 2 ms grid).
     screw = [BIN_DIR / "screw_driver", "--ros-args", "-p", "acknowledge_moves:=false",
-             "-p", "idle_flush_s:=1.0"]
+             "-p", "idle_flush_s:=1.0", "-p", "flow_compensation:=false"]
     plays = [(moves_bag, "/gcode/moves"), (trajectory_bag, "/polar/trajectory")]
     replay(screw, plays, out, "/screw/command", 2.5)
 

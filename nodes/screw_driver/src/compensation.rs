@@ -85,8 +85,10 @@ pub struct CompensatorState {
     pub command_rpm: f64,
     /// Desired minus modelled material of the current move (rpm·s).
     pub owed_rpm_s: f64,
-    /// Whether material flowed in the last interval, and when the pin last opened.
+    /// Whether material flowed in the last interval.
     pub pin_open: bool,
+    /// The pin's state at the end of the last chunk, and when it last opened.
+    pub valve_open: bool,
     pub opened_at_s: f64,
 }
 
@@ -174,18 +176,28 @@ pub fn compensate(
     let (Some(first), Some(last)) = (profile.first(), profile.last()) else {
         return Vec::new();
     };
-    // Grid times: uniform, plus every change of the pin, so the pin is never quantised.
-    let mut times: Vec<f64> = Vec::new();
-    let n = ((last.t - first.t) / period_s).ceil().max(0.0) as usize;
-    times.extend((0..=n).map(|k| first.t + k as f64 * period_s));
+    // Grid times: every change of the pin (never quantised), the moment material can flow
+    // after an opening, and a uniform grid while the pin is open (a closed pin, however long,
+    // is one interval).
+    let mut times: Vec<f64> = vec![first.t, last.t];
+    let mut open_since = first.pin_open.then_some(first.t);
+    let grid = |from: f64, to: f64, times: &mut Vec<f64>| {
+        let n = ((to - from) / period_s).ceil().max(0.0) as usize;
+        times.extend((0..n).map(|k| from + k as f64 * period_s));
+    };
     for w in profile.windows(2) {
         if w[0].pin_open != w[1].pin_open {
             times.push(w[1].t);
             if w[1].pin_open {
-                // Material flows once the pin has opened.
                 times.push(w[1].t + pin_open_delay_s);
+                open_since = Some(w[1].t);
+            } else if let Some(from) = open_since.take() {
+                grid(from, w[1].t, &mut times);
             }
         }
+    }
+    if let Some(from) = open_since {
+        grid(from, last.t, &mut times);
     }
     times.sort_by(f64::total_cmp);
     times.dedup_by(|a, b| (*a - *b).abs() < 1e-12);
@@ -198,7 +210,7 @@ pub fn compensate(
     // The intervals, each with the breakpoint in force just after its start (pin, labels),
     // and whether material can flow (the pin open for its delay).
     let mut opened_at = state.opened_at_s;
-    let mut was_open = state.pin_open;
+    let mut was_open = state.valve_open;
     let intervals: Vec<Interval> = times
         .windows(2)
         .filter(|w| w[1] > w[0])
@@ -279,9 +291,9 @@ pub fn compensate(
         rpm: 0.0,
         ..*last
     });
-    if let Some(c) = out.last() {
-        state.command_rpm = c.rpm;
-    }
+    state.command_rpm = 0.0;
+    state.valve_open = last.pin_open;
+    state.pin_open = state.pin_open && last.pin_open;
     out
 }
 

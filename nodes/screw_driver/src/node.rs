@@ -56,6 +56,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("flow_tau_closed_s", ParamValue::Double(flow.tau_closed_s), "decay of the held pressure with the pin closed (back flow through the screw)").range(0.0, 1e4),
         ParamSpec::new("compensation_period_s", ParamValue::Double(d.compensation_period_s), "grid of the compensated commands when command_period_s is 0").range(1e-5, 10.0),
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.1), "compute commands when no trajectory came for this long").range(0.001, 60.0),
+        ParamSpec::new("stall_flush_s", ParamValue::Double(2.0), "with flow compensation: when input pauses before the file is all read, commands are computed up to a closed-pin gap; after this long without input, for everything (the pin closes)").range(0.001, 3600.0),
         ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
         ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of the screw joint's /joint_states samples (0: none)").range(0.0, 10.0),
@@ -214,8 +215,11 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         LogLevel::Info,
         &format!("screw commands, model {}", model_name(&options)),
     );
+    let stall_flush = Duration::from_secs_f64(params.f64("stall_flush_s"));
+    let mut stream_finished = false;
     loop {
         let mut flush_all = false;
+        let mut idle_cut = false;
         tokio::select! {
             taken = moves_sub.async_take() => {
                 let (m, _) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
@@ -230,13 +234,22 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             }
             taken = progress_sub.async_take() => {
                 if let Ok((p, _)) = taken {
+                    // Every move of the file acknowledged by every consumer (us included).
+                    stream_finished |= p.finished;
                     if let Some(ack) = intake.on_progress(&p.consumers, &p.consumer_next_expected) {
                         let _ = acks.publish(ack);
                     }
                 }
             }
             _ = tick.tick() => {
-                flush_all = !timed.is_empty() && last_input.elapsed() >= idle_flush;
+                let idle = !timed.is_empty() && last_input.elapsed() >= idle_flush;
+                // With flow compensation a cut inside a run would close the pin mid-run (and
+                // its reopening delay would starve the next moves): when input pauses, cut
+                // at a closed-pin gap and wait for more, unless the file is all here or the
+                // pause has become a stall.
+                let stalled = last_input.elapsed() >= stall_flush;
+                flush_all = idle && (options.compensation.is_none() || stream_finished || stalled);
+                idle_cut = idle && !flush_all;
                 if let Some(ack) = intake.ack(done_until) {
                     let _ = acks.publish(ack);
                 }
@@ -260,6 +273,8 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         // Full buffer: cut at a safe gap, or (a long print without one) everything.
         let cut = if flush_all {
             Some(timed.len())
+        } else if idle_cut {
+            safe_cut(&timed, options.pin_open_delay_s)
         } else if buffered_s > max_buffer_s {
             safe_cut(&timed, options.pin_open_delay_s).or(Some(timed.len()))
         } else {

@@ -7,9 +7,12 @@ use arbitrary::{Arbitrary, Unstructured};
 use libfuzzer_sys::fuzz_target;
 use polar_cell_msgs::GcodeMove;
 use polar_planner::messages::trajectory_message;
-use polar_planner::{Planner, PlannerOptions};
+use polar_planner::{Planner, PlannerOptions, ScrewLimits};
 use screw_driver::joint::{Hold, ScrewAngle};
-use screw_driver::screw::{breakpoints, position_after, ScrewOptions, TimedMove};
+use screw_driver::compensation::FlowModel;
+use screw_driver::screw::{
+    breakpoints, chunk_commands, position_after, PinState, ScrewOptions, TimedMove,
+};
 
 /// A coordinate: mostly inside the work volume, sometimes anything at all.
 fn coordinate(u: &mut Unstructured) -> arbitrary::Result<f64> {
@@ -47,7 +50,16 @@ fuzz_target!(|bytes: &[u8]| {
             Err(_) => break,
         }
     }
-    let mut planner = Planner::new(PlannerOptions::default()).unwrap();
+    // The planner respects the screw as `print` sets it up.
+    let mut planner = Planner::new(PlannerOptions {
+        screw: Some(ScrewLimits {
+            usable_rpm: 270.0,
+            e_per_rev_m: 0.002,
+            flow_tau_s: 0.03,
+        }),
+        ..PlannerOptions::default()
+    })
+    .unwrap();
     let mut planned = Vec::new();
     let mut accepted = 0;
     for m in &moves {
@@ -94,4 +106,22 @@ fuzz_target!(|bytes: &[u8]| {
     let mut samples = Vec::new();
     angle.extend(&commands, &mut samples);
     assert!(samples.iter().all(|s| s.angle_rad.is_finite()));
+    // Flow compensation: finite commands within [0, max_rpm], in time order, any input.
+    let options = ScrewOptions {
+        compensation: Some(FlowModel {
+            tau_s: 0.03,
+            dead_time_s: 0.0,
+            tau_closed_s: 0.17,
+        }),
+        ..ScrewOptions::default()
+    };
+    let shaped = chunk_commands(&timed, &options, &mut PinState::default(), true, 0.0);
+    assert!(
+        shaped
+            .iter()
+            .all(|c| c.t.is_finite() && c.rpm.is_finite() && (0.0..=options.max_rpm).contains(&c.rpm)),
+        "{shaped:?} from {:?}",
+        &moves[..accepted]
+    );
+    assert!(shaped.windows(2).all(|w| w[1].t >= w[0].t));
 });

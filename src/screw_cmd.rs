@@ -145,6 +145,24 @@ struct Study {
     op: extruder::OperatingPoint,
     samples: Vec<(f64, f64)>,
     fits: Fits,
+    /// The same change as a ramp over `ramp_s`: simulated (normalised) and as the chosen
+    /// reduced model predicts it.
+    ramp_s: f64,
+    ramp: Vec<(f64, f64)>,
+    ramp_predicted: Vec<f64>,
+}
+
+/// A reduced model's response to a unit ramp over `ramp_s`: its step response averaged over
+/// the ramp (superposition of the ramp's steps).
+fn ramp_prediction(model: &reduced::Reduced, ramp_s: f64, t: f64) -> f64 {
+    const PIECES: usize = 400;
+    (0..PIECES)
+        .map(|k| {
+            let a = (k as f64 + 0.5) / PIECES as f64 * ramp_s;
+            model.step(t - a)
+        })
+        .sum::<f64>()
+        / PIECES as f64
 }
 
 fn response(
@@ -238,11 +256,47 @@ fn response(
                 reduced::Reduced::SecondOrder { .. } => "second order",
             }
         );
+        // The same change as a ramp over two linearised time constants.
+        let ramp_s = 2.0 * op.tau_s;
+        let (from_rev, to_rev) = (op_from.screw_rev_per_s, op_to.screw_rev_per_s);
+        let ramp_raw = extruder::response(
+            &params,
+            |t| from_rev + (to_rev - from_rev) * (t / ramp_s).clamp(0.0, 1.0),
+            duration + ramp_s,
+            (duration + ramp_s) / 400.0,
+        )?;
+        let (q0, q1) = (
+            ramp_raw[0].1,
+            params.die_flow(extruder::steady_pressure(&params, &channel, to_rev)),
+        );
+        let ramp: Vec<(f64, f64)> = ramp_raw
+            .iter()
+            .map(|&(t, q)| (t, (q - q0) / (q1 - q0)))
+            .collect();
+        let ramp_predicted: Vec<f64> = ramp
+            .iter()
+            .map(|&(t, _)| ramp_prediction(&fits.chosen.model, ramp_s, t))
+            .collect();
+        let ramp_rms = (ramp
+            .iter()
+            .zip(&ramp_predicted)
+            .map(|(a, b)| (a.1 - b).powi(2))
+            .sum::<f64>()
+            / ramp.len() as f64)
+            .sqrt();
+        println!(
+            "       ramp over {:.1} ms: the chosen model predicts it with rms {:.1e}",
+            ramp_s * 1e3,
+            ramp_rms
+        );
         studies.push(Study {
             rpm: r,
             op,
             samples,
             fits,
+            ramp_s,
+            ramp,
+            ramp_predicted,
         });
     }
     let middle = &studies[studies.len() / 2];
@@ -257,6 +311,16 @@ fn response(
         "Compensation constants at {:.0} rpm (screw_driver parameters): flow_tau_s:={:.5} flow_dead_time_s:={:.5} flow_tau_closed_s:={:.5}",
         middle.rpm, model.tau_s, model.dead_time_s, model.tau_closed_s
     );
+    if set.is_empty()
+        && (e_per_rev_m - 0.002).abs() < 1e-12
+        && (filament_diameter_mm - 1.75).abs() < 1e-12
+    {
+        let d = FlowModel::default_extruder();
+        println!(
+            "The screw driver's defaults: this model linearised at 100 rpm: flow_tau_s {:.5}, flow_dead_time_s {:.5}, flow_tau_closed_s {:.5}",
+            d.tau_s, d.dead_time_s, d.tau_closed_s
+        );
+    }
     plot(&studies, step, out)?;
     println!("Plot: {}", out.display());
     Ok(())
@@ -268,12 +332,12 @@ fn plot(studies: &[Study], step: f64, out: &Path) -> anyhow::Result<()> {
     root.fill(&WHITE)?;
     let (title, body) = root.split_vertically(40);
     title.titled(
-        &format!("Outlet flow after a ×{step} step of screw speed: simulated and reduced models"),
+        &format!("Outlet flow after a ×{step} step and ramp of screw speed: simulated and reduced models"),
         ("sans-serif", 22),
     )?;
     for (area, study) in body.split_evenly((studies.len(), 1)).iter().zip(studies) {
         let normalised = reduced::normalise(&study.samples)?;
-        let t_max = normalised.last().map_or(1.0, |p| p.0) * 1e3;
+        let t_max = study.ramp.last().map_or(1.0, |p| p.0) * 1e3;
         let mut chart = ChartBuilder::on(area)
             .caption(
                 format!(
@@ -290,7 +354,7 @@ fn plot(studies: &[Study], step: f64, out: &Path) -> anyhow::Result<()> {
             .build_cartesian_2d(0.0..t_max, -0.05..1.1)?;
         chart
             .configure_mesh()
-            .x_desc("time after the step (ms)")
+            .x_desc("time after the change starts (ms)")
             .y_desc("fraction of the change")
             .label_style(("sans-serif", 14))
             .draw()?;
@@ -315,6 +379,24 @@ fn plot(studies: &[Study], step: f64, out: &Path) -> anyhow::Result<()> {
                 .label(format!("{name} (rms {:.1e})", fit.rms))
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour));
         }
+        chart
+            .draw_series(LineSeries::new(
+                study.ramp.iter().map(|&(t, s)| (t * 1e3, s)),
+                CYAN.stroke_width(3),
+            ))?
+            .label(format!("ramp over {:.0} ms, simulated", study.ramp_s * 1e3))
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], CYAN));
+        chart
+            .draw_series(LineSeries::new(
+                study
+                    .ramp
+                    .iter()
+                    .zip(&study.ramp_predicted)
+                    .map(|(&(t, _), &p)| (t * 1e3, p)),
+                MAGENTA,
+            ))?
+            .label("ramp, chosen reduced model")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], MAGENTA));
         chart
             .configure_series_labels()
             .position(SeriesLabelPosition::LowerRight)

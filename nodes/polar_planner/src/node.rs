@@ -56,7 +56,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("pin_open_dwell_s", ParamValue::Double(0.0), "rest before each extruding move after a non-extruding one, for the extruder pin (screw_driver's stop strategy; 0: none)").range(0.0, 60.0),
         ParamSpec::new("screw_max_rpm", ParamValue::Double(300.0), "the screw's top speed (screw_driver's max_rpm); extruding moves are slowed so they never need more (0: ignore the screw)").range(0.0, 1e5),
         ParamSpec::new("screw_e_per_rev_m", ParamValue::Double(0.002), "filament-equivalent length one screw revolution feeds (screw_driver's e_per_rev_m)").range(1e-9, 1.0),
-        ParamSpec::new("screw_flow_tau_s", ParamValue::Double(0.03), "time constant of the screw's delivered flow (screw_driver's flow_tau_s when its flow_compensation is on, else 0): primes get five of it to rise and drain").range(0.0, 100.0),
+        ParamSpec::new("screw_flow_tau_s", ParamValue::Double(0.049), "time constant of the screw's delivered flow (screw_driver's flow_tau_s when its flow_compensation is on, else 0): primes get five of it to rise and drain").range(0.0, 100.0),
         ParamSpec::new("screw_rpm_headroom", ParamValue::Double(0.1), "fraction of screw_max_rpm the plan leaves free for the screw's flow compensation").range(0.0, 0.99),
     ]
 }

@@ -4,8 +4,8 @@
 //! incompressible Navier–Stokes equations to study how the outlet flow follows the screw.
 //! Solving them for the melt channel of the screw unrolled (the channel between the moving
 //! barrel and the screw root, [`channel_from_navier_stokes`]) answers the first half: the
-//! channel flow settles `H²/(π²ν)` after a change of wall speed — about 10⁻⁷ s for a polymer
-//! melt (ν = μ/ρ ≈ 0.5 m²/s), a million times faster than anything a printer sees. An
+//! channel flow settles in about `H²/(π²ν)` after a change of wall speed — 5·10⁻⁸ s for a
+//! polymer melt (ν = μ/ρ ≈ 1.8 m²/s), a million times faster than anything a printer sees. An
 //! incompressible melt would follow the screw at once. The lag a printer shows comes from the
 //! melt's compressibility: the melt between the screw and the nozzle exit is a spring
 //! (capacitance `C = V/K`, K the bulk modulus), charged by the screw's net flow and discharged
@@ -16,8 +16,8 @@
 //! ```
 //!
 //! with α the drag flow per revolution and β the pressure back-flow conductance of the
-//! metering channel (Tadmor & Klein's flat-channel flows with their shape factors for the
-//! flight walls; the flat-channel parts are what the Navier–Stokes solver reproduces), and
+//! metering channel (the flat-channel flows with the standard shape factors for the flight
+//! walls; the flat-channel parts are what the Navier–Stokes solver reproduces), and
 //! `Q_die` the power-law flow through the nozzle bore. Linearised at an operating point the
 //! outlet flow is first order with `τ = C / (β + dQ_die/dP)`; a shear-thinning melt
 //! (n < 1) makes the nozzle's conductance grow with the flow, so τ falls as the flow rises.
@@ -53,7 +53,8 @@ pub struct ExtruderParams {
 
 impl Default for ExtruderParams {
     /// A small pellet screw (16 mm, square pitch) with a 0.8 mm nozzle and PLA-like melt at
-    /// about 200 °C; see the README ("Screw flow response") for where each value comes from.
+    /// about 200 °C; the README ("Screw flow response and compensation") says where each
+    /// value comes from.
     fn default() -> Self {
         ExtruderParams {
             barrel_diameter_m: 0.016,
@@ -65,10 +66,10 @@ impl Default for ExtruderParams {
             nozzle_length_m: 0.002,
             chamber_volume_m3: 0.3e-6,
             melt_density_kg_per_m3: 1100.0,
-            melt_viscosity_pa_s: 1000.0,
+            melt_viscosity_pa_s: 1945.0,
             melt_consistency_pa_sn: 6000.0,
-            melt_flow_index: 0.4,
-            melt_bulk_modulus_pa: 1.5e9,
+            melt_flow_index: 0.35,
+            melt_bulk_modulus_pa: 0.71e9,
         }
     }
 }

@@ -89,12 +89,12 @@ fn compensation_delivers_each_moves_material_where_the_lag_did_not() {
             "{name}: {} missed",
             shaped_missed.len()
         );
-        // What still misses are fine lines (under 0.02 mm of filament, or shorter than the
-        // command grid), or the last move before the pin cuts the flow, within 2 %.
+        // What still misses are fine lines (under 0.02 mm of filament), or short moves the
+        // flow cannot change within (a tenth of a millimetre in a quarter of τ), within 5 %.
         for m in &shaped_missed {
             let wanted_mm = m.wanted_rpm_s / 60.0 * 0.002 * 1e3;
             assert!(
-                wanted_mm < 0.02 || m.error().abs() < 0.02,
+                wanted_mm < 0.02 || m.error().abs() < 0.05,
                 "{name} line {}: {wanted_mm} mm, {:+.2} %",
                 m.source_line,
                 m.error() * 100.0

@@ -2,50 +2,23 @@
 //! planner (with the screw's limits) → JointTrajectory → TimedMove → commands → the reduced
 //! flow model → material per extruding move.
 
-use gcode_streamer::{parse_all, InterpreterOptions};
-use polar_planner::messages::trajectory_message;
-use polar_planner::{Planner, PlannerOptions, ScrewLimits};
+mod common;
+
+use polar_planner::{PlannerOptions, ScrewLimits};
 use screw_driver::compensation::{material_per_move, FlowModel, MoveMaterial};
-use screw_driver::screw::{position_after, ScrewOptions, TimedMove};
+use screw_driver::screw::{ScrewOptions, TimedMove};
 
 fn timed(name: &str, model: &FlowModel) -> (Vec<TimedMove>, Vec<Option<f64>>) {
-    let path = format!(
-        "{}/../../../shared/fixtures/gcode/{name}",
-        env!("CARGO_MANIFEST_DIR")
-    );
-    let moves = parse_all(
-        &std::fs::read(path).unwrap(),
-        name,
-        InterpreterOptions::default(),
-    )
-    .unwrap()
-    .0;
     let screw = ScrewOptions::default();
-    let mut planner = Planner::new(PlannerOptions {
+    let options = PlannerOptions {
         screw: Some(ScrewLimits {
             usable_rpm: 0.9 * screw.max_rpm,
             e_per_rev_m: 0.002,
             flow_tau_s: model.tau_s,
         }),
         ..PlannerOptions::default()
-    })
-    .unwrap();
-    let mut plans = Vec::new();
-    for m in &moves {
-        planner.push(m, &mut plans).unwrap();
-    }
-    planner.flush(&mut plans);
-    let mut from = [0.0; 3];
-    let timed = moves
-        .iter()
-        .zip(&plans)
-        .map(|(m, p)| {
-            let epoch: i64 = 1_795_318_512_024_268_371;
-            let t = TimedMove::from_trajectory(m, from, &trajectory_message(p, epoch), epoch);
-            from = position_after(m, from);
-            t
-        })
-        .collect();
+    };
+    let (timed, plans) = common::plan_and_time(&common::fixture(name), options);
     (timed, plans.iter().map(|p| p.slowed_for_screw).collect())
 }
 

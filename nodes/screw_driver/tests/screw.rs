@@ -1,54 +1,28 @@
 //! Screw commands against hand-computed values and against the G-code's material, through
 //! the same path the node takes: plan -> JointTrajectory -> TimedMove -> commands.
 
+mod common;
+
 use gcode_streamer::{parse_all, GcodeMove, InterpreterOptions};
-use polar_planner::messages::trajectory_message;
-use polar_planner::{Planner, PlannerOptions};
+use polar_planner::PlannerOptions;
 use screw_driver::fir::FILTER_1;
 use screw_driver::screw::{
-    breakpoints, integral, integral_held, position_after, smooth, Command, PinStrategy, RpmModel,
-    ScrewOptions, TimedMove,
+    breakpoints, integral, integral_held, smooth, Command, PinStrategy, RpmModel, ScrewOptions,
+    TimedMove,
 };
 
 const E_PER_REV: f64 = 0.002; // ScrewOptions::default()
 
 fn fixture(name: &str) -> Vec<GcodeMove> {
-    let path = format!(
-        "{}/../../../shared/fixtures/gcode/{name}",
-        env!("CARGO_MANIFEST_DIR")
-    );
-    parse_all(
-        &std::fs::read(path).unwrap(),
-        name,
-        InterpreterOptions::default(),
-    )
-    .unwrap()
-    .0
+    common::fixture(name)
 }
 
 fn timed(moves: &[GcodeMove], dwell: f64) -> Vec<TimedMove> {
-    let mut planner = Planner::new(PlannerOptions {
+    let options = PlannerOptions {
         pin_open_dwell_s: dwell,
         ..PlannerOptions::default()
-    })
-    .unwrap();
-    let mut plans = Vec::new();
-    for m in moves {
-        planner.push(m, &mut plans).unwrap();
-    }
-    planner.flush(&mut plans);
-    let mut from = [0.0; 3];
-    moves
-        .iter()
-        .zip(&plans)
-        .map(|(m, p)| {
-            // A wall-clock epoch, as the node sees: times must stay exact relative to it.
-            let epoch: i64 = 1_795_318_512_024_268_371;
-            let t = TimedMove::from_trajectory(m, from, &trajectory_message(p, epoch), epoch);
-            from = position_after(m, from);
-            t
-        })
-        .collect()
+    };
+    common::plan_and_time(moves, options).0
 }
 
 fn deposited_m(rpm_s: f64) -> f64 {

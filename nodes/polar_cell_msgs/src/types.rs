@@ -320,6 +320,39 @@ pub struct StepSegment {
 }
 ros_message!(StepSegment => schema::STEP_SEGMENT);
 
+impl StepSegment {
+    /// The fields the pulses depend on, for the shared step core; refuses a segment whose axis
+    /// arrays are not exactly the core's three axes.
+    pub fn step_fields(&self) -> Result<step_core::SegmentFields, step_core::SegmentError> {
+        use step_core::{SegmentError, MAX_AXES};
+        let axes = |field, len| {
+            if len == MAX_AXES {
+                Ok(())
+            } else {
+                Err(SegmentError::AxisCount { field, len })
+            }
+        };
+        axes("step_counts", self.step_counts.len())?;
+        axes("directions", self.directions.len())?;
+        Ok(step_core::SegmentFields {
+            step_counts: std::array::from_fn(|k| self.step_counts[k]),
+            directions: std::array::from_fn(|k| self.directions[k]),
+            dominant_axis: self.dominant_axis,
+            first_period_ticks: self.first_period_ticks,
+            ramp_r: self.ramp_r,
+            cruise_period_ticks: self.cruise_period_ticks,
+            accelerate_steps: self.accelerate_steps,
+            cruise_steps: self.cruise_steps,
+            decelerate_steps: self.decelerate_steps,
+        })
+    }
+
+    /// The segment in the step core's fixed-point form, validated.
+    pub fn compile(&self) -> Result<step_core::Segment, step_core::SegmentError> {
+        step_core::Segment::from_fields(&self.step_fields()?)
+    }
+}
+
 /// `polar_cell_msgs/msg/ScrewCommand`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ScrewCommand {

@@ -15,28 +15,7 @@ use polar_cell_msgs::StepSegment;
 
 use crate::planner::{PlannedMove, JOINT_NAMES};
 
-/// Step resolution and timer.
-#[derive(Clone, Debug, PartialEq)]
-pub struct StepOptions {
-    /// Steps per rad of `bed_theta`, per m of `arm_r`, per m of `z`.
-    pub steps_per_unit: [f64; 3],
-    /// Step timer frequency (Hz).
-    pub timer_hz: f64,
-}
-
-impl Default for StepOptions {
-    fn default() -> Self {
-        StepOptions {
-            // 200-step motor, 16 microsteps, 10:1 bed reduction; 80 steps/mm arm; 400 steps/mm z.
-            steps_per_unit: [
-                200.0 * 16.0 * 10.0 / std::f64::consts::TAU,
-                80_000.0,
-                400_000.0,
-            ],
-            timer_hz: 1e6,
-        }
-    }
-}
+pub use step_core::StepOptions;
 
 /// Turns plans into [`StepSegment`]s, keeping the absolute step position.
 #[derive(Clone, Debug)]
@@ -238,46 +217,49 @@ pub struct Pulse {
     pub t: f64,
 }
 
-/// Regenerate the pulses of a segment as a microcontroller would: additions and
-/// multiplications only (plus one division per pulse to report seconds).
-pub fn decode(seg: &StepSegment, out: &mut Vec<Pulse>) {
-    let n = seg.accelerate_steps + seg.cruise_steps + seg.decelerate_steps;
-    if n == 0 {
-        return;
-    }
-    let dominant = seg.dominant_axis as usize;
-    let total = seg.step_counts[dominant] as u64;
-    let mut done = [0u64; 8];
-    let mut ticks = 0.0f64;
-    let mut p = if seg.cruise_steps == n {
-        seg.cruise_period_ticks
-    } else {
-        seg.first_period_ticks
-    };
-    for i in 1..=n as u64 {
-        ticks += p;
-        let t = ticks / seg.timer_frequency_hz;
+/// Why a segment's pulses cannot be regenerated.
+#[derive(Debug, thiserror::Error)]
+pub enum DecodeError {
+    #[error("step segment of move {move_sequence} (line {source_line}): {source}")]
+    Segment {
+        move_sequence: u64,
+        source_line: u32,
+        source: step_core::SegmentError,
+    },
+    #[error("step segment of move {move_sequence} (line {source_line}): {source}")]
+    Fault {
+        move_sequence: u64,
+        source_line: u32,
+        source: step_core::StepFault,
+    },
+}
+
+/// Regenerate the pulses of a segment exactly as the executor and the microcontroller do —
+/// by the shared fixed-point [`step_core`] — reporting each pulse's time in seconds.
+pub fn decode(seg: &StepSegment, out: &mut Vec<Pulse>) -> Result<(), DecodeError> {
+    let (move_sequence, source_line) = (seg.move_sequence, seg.source_line);
+    let segment = seg.compile().map_err(|source| DecodeError::Segment {
+        move_sequence,
+        source_line,
+        source,
+    })?;
+    let seconds_per_q32 = 1.0 / (seg.timer_frequency_hz * (1u64 << 32) as f64);
+    let mut train = step_core::PulseTrain::new(&segment);
+    while let Some(pulse) = train.next_pulse().map_err(|source| DecodeError::Fault {
+        move_sequence,
+        source_line,
+        source,
+    })? {
+        let t = pulse.time_q32 as f64 * seconds_per_q32;
+        // Dominant first, then the followers, as they are numbered.
+        let dominant = segment.dominant_axis as usize;
         out.push(Pulse { axis: dominant, t });
-        for (k, &count) in seg.step_counts.iter().enumerate() {
-            if k == dominant || k >= done.len() {
-                continue;
-            }
-            let count = count as u64;
-            if count * i >= total * done[k] + total {
-                done[k] += 1;
-                out.push(Pulse { axis: k, t });
-            }
+        for axis in (0..step_core::MAX_AXES).filter(|&k| k != dominant && pulse.axes >> k & 1 == 1)
+        {
+            out.push(Pulse { axis, t });
         }
-        let m = if i < seg.accelerate_steps as u64 {
-            -seg.ramp_r
-        } else if i < (seg.accelerate_steps + seg.cruise_steps) as u64 {
-            0.0
-        } else {
-            seg.ramp_r
-        };
-        let mp2 = m * p * p;
-        p *= 1.0 + mp2 + 1.5 * mp2 * mp2;
     }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -294,13 +276,14 @@ mod tests {
             let steps = part.end - part.start;
             let mut seg = StepSegment {
                 step_counts: vec![steps, 0, 0],
+                directions: vec![1; 3],
                 dominant_axis: 0,
                 timer_frequency_hz: f,
                 ..Default::default()
             };
             fill_timing(&mut seg, &part, a, f);
             let mut pulses = Vec::new();
-            decode(&seg, &mut pulses);
+            decode(&seg, &mut pulses).unwrap();
             assert_eq!(pulses.len() as u32, steps);
             times.extend(pulses.iter().map(|p| t0 + p.t));
             t0 += part.duration_s;
@@ -373,6 +356,7 @@ mod tests {
     fn pulse_distribution_lands_exactly_on_counts() {
         let seg = StepSegment {
             step_counts: vec![1000, 357, 1],
+            directions: vec![1; 3],
             dominant_axis: 0,
             timer_frequency_hz: 1e6,
             cruise_period_ticks: 100.0,
@@ -380,7 +364,7 @@ mod tests {
             ..Default::default()
         };
         let mut pulses = Vec::new();
-        decode(&seg, &mut pulses);
+        decode(&seg, &mut pulses).unwrap();
         let count = |k| pulses.iter().filter(|p| p.axis == k).count();
         assert_eq!((count(0), count(1), count(2)), (1000, 357, 1));
         // After dominant step n, axis 1 has made floor(357 n / 1000) steps.

@@ -1,0 +1,18 @@
+//! The executor of the polar cell: the machine itself, in software.
+//!
+//! The planner sends step segments (`/polar/steps`) and the screw driver screw commands
+//! (`/screw/command`), both ahead of time. The executor plays them on a monotonic clock: it
+//! regenerates every pulse with the same fixed-point [`step_core`] a microcontroller runs, so
+//! the executed position at any instant is the step count reached by then, and the screw's
+//! angle integrates the rpm actually executed.
+//!
+//! * [`player`] — the segment queue and the pulse clock: position, velocity, underrun, e-stop;
+//! * [`screw`] — screw commands on the plan timeline, executed as time passes.
+//!
+//! Pure: no DDS, no clock of its own — the caller says what time it is.
+
+pub mod player;
+pub mod screw;
+
+pub use player::{Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
+pub use screw::ScrewTrack;

@@ -7,9 +7,10 @@ use arbitrary::{Arbitrary, Unstructured};
 use libfuzzer_sys::fuzz_target;
 use polar_cell_msgs::GcodeMove;
 use polar_planner::messages::trajectory_message;
+use polar_planner::steps::{decode, StepGenerator, StepOptions};
 use polar_planner::{Planner, PlannerOptions, ScrewLimits};
-use screw_driver::joint::{Hold, ScrewAngle};
 use screw_driver::compensation::FlowModel;
+use screw_driver::joint::{Hold, ScrewAngle};
 use screw_driver::screw::{
     breakpoints, chunk_commands, position_after, PinState, ScrewOptions, TimedMove,
 };
@@ -106,6 +107,26 @@ fuzz_target!(|bytes: &[u8]| {
     let mut samples = Vec::new();
     angle.extend(&commands, &mut samples);
     assert!(samples.iter().all(|s| s.angle_rad.is_finite()));
+    // Whatever the planner plans, the machine can step: every segment compiles for the
+    // shared step core and steps to its counts without a fault. Pulses cost time: plans of up
+    // to 10 s only.
+    if planned.last().map_or(0.0, |p| p.end_time()) <= 10.0 {
+        let mut generator = StepGenerator::new(
+            StepOptions::default(),
+            PlannerOptions::default().initial_joints,
+        );
+        let (mut segments, mut pulses) = (Vec::new(), Vec::new());
+        for plan in &planned {
+            segments.clear();
+            generator.segments(plan, &mut segments);
+            for seg in &segments {
+                pulses.clear();
+                if let Err(err) = decode(seg, &mut pulses) {
+                    panic!("{err}: {seg:?} from {:?}", &moves[..accepted]);
+                }
+            }
+        }
+    }
     // Flow compensation: finite commands within [0, max_rpm], in time order, any input. Its
     // grid is 2 ms while the pin is open: short plans only, to keep the run fast.
     if commands.last().map_or(0.0, |c| c.t) > 60.0 {
@@ -121,9 +142,9 @@ fuzz_target!(|bytes: &[u8]| {
     };
     let shaped = chunk_commands(&timed, &options, &mut PinState::default(), true, 0.0);
     assert!(
-        shaped
-            .iter()
-            .all(|c| c.t.is_finite() && c.rpm.is_finite() && (0.0..=options.max_rpm).contains(&c.rpm)),
+        shaped.iter().all(|c| c.t.is_finite()
+            && c.rpm.is_finite()
+            && (0.0..=options.max_rpm).contains(&c.rpm)),
         "{shaped:?} from {:?}",
         &moves[..accepted]
     );

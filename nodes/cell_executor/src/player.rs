@@ -1,13 +1,31 @@
-//! The segment queue and the pulse clock.
+//! The segment queue and the pulse clock, with feed hold along the path.
 //!
-//! Segments play back to back: each starts where the previous one ended, so the machine
-//! timeline is the plan's timeline. When the queue runs dry the machine waits (an *underrun*:
-//! the planner always hands over a plan that ends at rest, so waiting is safe), and the next
-//! segment starts when it is first seen — never in the past, so no pulse is ever fired late
-//! to catch up.
+//! # Two clocks
 //!
-//! Times are timer ticks in Q32 (`_q32`), as in [`step_core`]; the caller's clock is the
-//! only clock.
+//! Segments play back to back on the *plan clock* τ: segment `k` starts where `k − 1` ended,
+//! and each pulse has a plan time. The *machine clock* is the caller's. Between them stands
+//! the feed scale σ ∈ [0, 1]: `dτ/dt = σ`. At σ = 1 the machine runs the plan as planned; a
+//! feed hold brings σ to 0 and the machine stops **on the path** — the same pulses, later —
+//! and a resume brings it back to 1. That one mechanism serves pause, cancel (hold, then
+//! drop what is queued) and underrun (hold before the queued plan runs out, resume when
+//! enough has arrived).
+//!
+//! # Limits during a hold
+//!
+//! With τ scaled, a joint's acceleration is `σ²·q̈ + σ̇·q̇` (plan-time derivatives). Inside a
+//! segment every axis is a fixed fraction `c_j = T_j/N` of the dominant one, so the limits
+//! `|c_j·(σ²·a + σ̇·R)| ≤ A_j` (dominant rate `R` steps/s, acceleration `a`, both in plan
+//! time) become one interval for σ̇:
+//!
+//! ```text
+//! (−A − σ²·a)/R  ≤  σ̇  ≤  (A − σ²·a)/R,     A = min_j A_j / c_j   (dominant steps/s²)
+//! ```
+//!
+//! A hold takes the lower end, a resume the upper end: the fastest stop and start the limits
+//! allow, every joint within its acceleration limit, velocities never above the plan's. The
+//! planner leaves a margin (it plans to a fraction of each limit), so a hold can always begin.
+//!
+//! Times are timer ticks in Q32 (`_q32`), as in [`step_core`].
 
 use std::collections::VecDeque;
 
@@ -20,18 +38,25 @@ const ONE_TICK_Q32: f64 = (1u64 << step_core::TICK_FRACTION_BITS) as f64;
 #[derive(Clone, Debug, PartialEq)]
 pub struct PlayerOptions {
     pub steps: StepOptions,
+    /// Joint acceleration limits (rad/s², m/s², m/s²) a feed hold or resume keeps to.
+    pub acceleration_limits: [f64; MAX_AXES],
     /// Segments queued ahead of execution at most (the bound on memory and plan-ahead).
     pub queue_capacity: usize,
     /// Absolute step position of each axis before the first segment.
     pub initial_steps: [i64; MAX_AXES],
+    /// Longest stretch of machine time over which σ is held constant (s): the control period
+    /// of the hold.
+    pub control_period_s: f64,
 }
 
-impl Default for PlayerOptions {
-    fn default() -> Self {
+impl PlayerOptions {
+    pub fn new(steps: StepOptions, acceleration_limits: [f64; MAX_AXES]) -> PlayerOptions {
         PlayerOptions {
-            steps: StepOptions::default(),
+            steps,
+            acceleration_limits,
             queue_capacity: 4096,
             initial_steps: [0; MAX_AXES],
+            control_period_s: 0.001,
         }
     }
 }
@@ -80,7 +105,7 @@ pub enum PlayerError {
 #[derive(Clone, Debug, PartialEq)]
 pub struct SegmentJob {
     pub segment: Segment,
-    /// Length on the timeline (Q32 ticks): pulses may end a little before it (a pause
+    /// Length on the plan clock (Q32 ticks): pulses may end a little before it (a pause
     /// segment has none at all).
     pub duration_q32: u64,
     pub move_sequence: u64,
@@ -97,8 +122,7 @@ impl SegmentJob {
             source,
         })?;
         // Step counts and ramps are in ticks of the segment's timer: they must be ours.
-        let dominant = msg.step_counts.get(msg.dominant_axis as usize).copied();
-        if dominant.unwrap_or(0) > 0 && msg.timer_frequency_hz != timer_hz {
+        if segment.dominant_steps() > 0 && msg.timer_frequency_hz != timer_hz {
             return Err(PlayerError::TimerMismatch {
                 move_sequence,
                 source_line,
@@ -139,18 +163,30 @@ pub struct Edge {
 pub enum PlayerState {
     /// Nothing to play: not started, finished, or starved (see [`Player::underruns`]).
     Idle,
-    /// Playing a segment.
+    /// Playing segments (σ may be below 1 while a hold or resume is under way).
     Running,
+    /// Held on the path: σ = 0 with segments still to play.
+    Held,
     /// Stopped at once (emergency stop or a step fault): nothing plays until [`Player::reset`].
     Stopped,
+}
+
+/// Why the feed is being held.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HoldReason {
+    /// Asked for (pause); lasts until [`Player::resume`].
+    Pause,
+    /// Asked for, and what is queued is dropped once at rest.
+    Cancel,
+    /// The queued plan ran short; resumes by itself when enough has arrived.
+    Underrun,
 }
 
 #[derive(Clone, Debug)]
 struct Active {
     job: SegmentJob,
     train: PulseTrain,
-    start_q32: u64,
-    /// Plan time at the segment's start (Q32 ticks since the first segment).
+    /// Plan time at the segment's start (Q32 ticks).
     plan_start_q32: u64,
 }
 
@@ -163,11 +199,17 @@ pub struct Player {
     active: Option<Active>,
     position_steps: [i64; MAX_AXES],
     state: PlayerState,
-    /// Where the next segment may start on the machine timeline.
-    next_start_q32: u64,
-    /// Plan time executed by the end of the last finished segment.
+    /// The plan clock τ (Q32 ticks).
+    plan_q32: u64,
+    /// Plan time at the end of the last finished segment.
     plan_done_q32: u64,
     now_q32: u64,
+    last_edge_q32: u64,
+    /// Feed scale σ and what it is heading for.
+    feed: f64,
+    hold: Option<HoldReason>,
+    /// A resume waits until this machine time (the pin's opening delay) before σ rises.
+    resume_at_q32: u64,
     completed: u64,
     last_completed: Option<(u64, u32)>,
     underruns: u64,
@@ -182,9 +224,13 @@ impl Player {
             active: None,
             position_steps: options.initial_steps,
             state: PlayerState::Idle,
-            next_start_q32: 0,
+            plan_q32: 0,
             plan_done_q32: 0,
             now_q32: 0,
+            last_edge_q32: 0,
+            feed: 1.0,
+            hold: None,
+            resume_at_q32: 0,
             completed: 0,
             last_completed: None,
             underruns: 0,
@@ -212,8 +258,8 @@ impl Player {
         Ok(())
     }
 
-    /// Say that no more segments will come: running dry from now on is the end, not an
-    /// underrun.
+    /// Say that no more segments will come: the plan ends at rest where it ends, so running
+    /// to its end is neither an underrun nor a reason to hold.
     pub fn finish_input(&mut self) {
         self.input_finished = true;
     }
@@ -226,9 +272,105 @@ impl Player {
     /// Plan time queued but not executed yet (Q32 ticks): the plan-ahead.
     pub fn ahead_q32(&self) -> u64 {
         let remaining = self.active.as_ref().map_or(0, |a| {
-            (a.start_q32 + a.job.duration_q32).saturating_sub(self.now_q32)
+            (a.plan_start_q32 + a.job.duration_q32).saturating_sub(self.plan_q32)
         });
         self.queued_q32 + remaining
+    }
+
+    /// Begin a feed hold: decelerate along the path to rest and stay there.
+    pub fn pause(&mut self) {
+        if self.hold != Some(HoldReason::Cancel) {
+            self.hold = Some(HoldReason::Pause);
+        }
+    }
+
+    /// End a pause (or an underrun hold): after `delay_s` of machine time at rest (the pin's
+    /// opening delay, so material flows when motion restarts), accelerate back to the plan.
+    pub fn resume(&mut self, delay_s: f64) {
+        if matches!(self.hold, Some(HoldReason::Pause | HoldReason::Underrun)) {
+            self.hold = None;
+            self.resume_at_q32 = self.now_q32 + self.ticks_q32(delay_s.max(0.0));
+        }
+    }
+
+    /// Decelerate along the path to rest, then drop everything queued.
+    pub fn cancel(&mut self) {
+        self.hold = Some(HoldReason::Cancel);
+    }
+
+    /// The hold in force, if any (a hold may still be decelerating).
+    pub fn hold(&self) -> Option<HoldReason> {
+        self.hold
+    }
+
+    /// The feed scale σ: machine speed as a fraction of the plan's.
+    pub fn feed(&self) -> f64 {
+        self.feed
+    }
+
+    fn ticks_q32(&self, seconds: f64) -> u64 {
+        (seconds * self.options.steps.timer_hz * ONE_TICK_Q32).round() as u64
+    }
+
+    /// Start the next queued segment if none is playing; false if there is none.
+    fn ensure_active(&mut self) -> bool {
+        if self.active.is_some() {
+            return true;
+        }
+        let Some(job) = self.queue.pop_front() else {
+            return false;
+        };
+        self.queued_q32 -= job.duration_q32;
+        self.active = Some(Active {
+            train: PulseTrain::new(&job.segment),
+            job,
+            plan_start_q32: self.plan_done_q32,
+        });
+        true
+    }
+
+    /// The σ̇ interval at the current point of the plan (per second of machine time).
+    fn feed_rate_bounds(&self) -> (f64, f64) {
+        let Some(active) = self
+            .active
+            .as_ref()
+            .filter(|a| a.job.segment.dominant_steps() > 0)
+        else {
+            return (f64::NEG_INFINITY, f64::INFINITY); // at rest in the plan: no constraint
+        };
+        let seg = &active.job.segment;
+        let hz = self.options.steps.timer_hz;
+        let rate = hz * ONE_TICK_Q32 / active.train.period_q32() as f64;
+        let total = seg.dominant_steps() as f64;
+        let mut limit = f64::INFINITY;
+        for k in 0..MAX_AXES {
+            if seg.step_counts[k] > 0 {
+                let a = self.options.acceleration_limits[k] * self.options.steps.steps_per_unit[k];
+                limit = limit.min(a * total / seg.step_counts[k] as f64);
+            }
+        }
+        // r = (r·p²)/p² in steps per tick², times f² for steps/s² of plan time.
+        let period_ticks = active.train.period_q32() as f64 / ONE_TICK_Q32;
+        let r =
+            active.train.ramp_q62() as f64 / (1u64 << 62) as f64 / (period_ticks * period_ticks);
+        let accel = r * hz * hz * active.train.phase() as f64;
+        let s2a = self.feed * self.feed * accel;
+        (
+            ((-limit - s2a) / rate).min(0.0),
+            ((limit - s2a) / rate).max(0.0),
+        )
+    }
+
+    /// Plan time a hold begun now would still consume before rest, with a margin (the
+    /// constraint ahead may be tighter than here), in Q32 ticks.
+    fn stopping_plan_q32(&self) -> u64 {
+        let (lo, _) = self.feed_rate_bounds();
+        if !lo.is_finite() || lo >= 0.0 {
+            return 0;
+        }
+        let stop_s = self.feed / -lo;
+        // ∫σ dt under a linear ramp is σ·T/2; twice that, and two control periods.
+        self.ticks_q32(self.feed * stop_s + 2.0 * self.options.control_period_s)
     }
 
     /// Play everything due up to machine time `now_q32` (which must not go back), handing each
@@ -238,35 +380,99 @@ impl Player {
         now_q32: u64,
         mut on_edge: impl FnMut(Edge),
     ) -> Result<(), PlayerError> {
-        self.now_q32 = self.now_q32.max(now_q32);
-        let now = self.now_q32;
-        while self.state != PlayerState::Stopped {
-            let Some(active) = self.active.as_mut() else {
-                let Some(job) = self.queue.pop_front() else {
-                    if self.state == PlayerState::Running && !self.input_finished {
-                        self.underruns += 1;
-                    }
-                    self.state = PlayerState::Idle;
-                    return Ok(());
-                };
-                self.queued_q32 -= job.duration_q32;
-                // Back to back while running; after waiting, from now — never in the past.
-                let start_q32 = if self.state == PlayerState::Running {
-                    self.next_start_q32
-                } else {
-                    self.next_start_q32.max(now)
-                };
-                self.active = Some(Active {
-                    train: PulseTrain::new(&job.segment),
-                    job,
-                    start_q32,
-                    plan_start_q32: self.plan_done_q32,
-                });
+        if self.state == PlayerState::Idle {
+            // Waiting, at no cost however long; what arrived starts now, never in the past.
+            self.now_q32 = self.now_q32.max(now_q32);
+            if self.ensure_active() {
+                self.last_edge_q32 = self.now_q32;
                 self.state = PlayerState::Running;
+            }
+            return Ok(());
+        }
+        let period_q32 = self.ticks_q32(self.options.control_period_s).max(1);
+        while self.now_q32 < now_q32 && self.state != PlayerState::Stopped {
+            if !self.ensure_active() {
+                if !self.input_finished && self.feed > 0.0 {
+                    self.underruns += 1; // ran dry while moving: a hold came too late
+                }
+                self.state = PlayerState::Idle;
+                break;
+            }
+            let t0 = self.now_q32;
+            let t1 = now_q32.min(t0 + period_q32);
+            self.step_feed(t0, t1, &mut on_edge)?;
+            self.now_q32 = t1;
+        }
+        self.now_q32 = self.now_q32.max(now_q32);
+        Ok(())
+    }
+
+    /// One control period `[t0, t1]` of machine time.
+    fn step_feed(
+        &mut self,
+        t0: u64,
+        t1: u64,
+        on_edge: &mut impl FnMut(Edge),
+    ) -> Result<(), PlayerError> {
+        // Hold before the queued plan runs out; resume once enough is queued again.
+        if !self.input_finished {
+            let needed = self.stopping_plan_q32();
+            if self.hold.is_none() && self.ahead_q32() <= needed && self.feed > 0.0 {
+                self.hold = Some(HoldReason::Underrun);
+                self.underruns += 1;
+            } else if self.hold == Some(HoldReason::Underrun)
+                && self.ahead_q32() > 2 * needed + self.ticks_q32(0.5)
+            {
+                self.hold = None;
+            }
+        } else if self.hold == Some(HoldReason::Underrun) && self.input_finished {
+            self.hold = None;
+        }
+        let h = (t1 - t0) as f64 / ONE_TICK_Q32 / self.options.steps.timer_hz;
+        let (lo, hi) = self.feed_rate_bounds();
+        let feed0 = self.feed;
+        self.feed = if self.hold.is_some() {
+            (feed0 + lo * h).max(0.0)
+        } else if t0 >= self.resume_at_q32 {
+            (feed0 + hi * h).min(1.0)
+        } else {
+            feed0
+        };
+        let advance_q32 = ((feed0 + self.feed) / 2.0 * (t1 - t0) as f64) as u64;
+        if self.hold == Some(HoldReason::Cancel) && self.feed == 0.0 && feed0 == 0.0 {
+            self.drop_plan();
+            return Ok(());
+        }
+        self.state = if self.feed == 0.0 {
+            PlayerState::Held
+        } else {
+            PlayerState::Running
+        };
+        let (plan0, plan1) = (self.plan_q32, self.plan_q32 + advance_q32);
+        // Machine time of plan time τ within this period (σ taken as linear in it); never
+        // before the previous edge (a segment's last pulses may run past its end).
+        let machine_at = |tau: u64, last: u64| -> u64 {
+            let t = if advance_q32 == 0 {
+                t1
+            } else {
+                let into = (tau.max(plan0) - plan0) as u128 * (t1 - t0) as u128;
+                t0 + (into / advance_q32 as u128) as u64
+            };
+            t.max(last)
+        };
+        loop {
+            let Some(active) = self.active.as_mut() else {
+                if !self.ensure_active() {
+                    // Ran dry inside the period: the plan clock stops at the plan's end.
+                    self.plan_q32 = self.plan_done_q32;
+                    return Ok(());
+                }
                 continue;
             };
             while let Some(t) = active.train.next_time_q32() {
-                if active.start_q32 + t > now {
+                let tau = active.plan_start_q32 + t;
+                if tau > plan1 {
+                    self.plan_q32 = plan1;
                     return Ok(());
                 }
                 let pulse = match active.train.next_pulse() {
@@ -287,23 +493,36 @@ impl Player {
                         self.position_steps[k] += if negative >> k & 1 == 1 { -1 } else { 1 };
                     }
                 }
+                self.last_edge_q32 = machine_at(tau, self.last_edge_q32);
                 on_edge(Edge {
-                    time_q32: active.start_q32 + pulse.time_q32,
+                    time_q32: self.last_edge_q32,
                     axes: pulse.axes,
                     negative,
                 });
             }
-            let end_q32 = active.start_q32 + active.job.duration_q32;
-            if end_q32 > now {
+            let end_q32 = active.plan_start_q32 + active.job.duration_q32;
+            if end_q32 > plan1 {
+                self.plan_q32 = plan1;
                 return Ok(());
             }
-            self.next_start_q32 = end_q32;
-            self.plan_done_q32 = active.plan_start_q32 + active.job.duration_q32;
+            self.plan_done_q32 = end_q32;
+            self.plan_q32 = end_q32;
             self.completed += 1;
             self.last_completed = Some((active.job.move_sequence, active.job.source_line));
             self.active = None;
         }
-        Ok(())
+    }
+
+    /// Drop what is queued and the rest of the segment in progress (at rest, after a cancel).
+    fn drop_plan(&mut self) {
+        self.active = None;
+        self.queue.clear();
+        self.queued_q32 = 0;
+        self.plan_done_q32 = self.plan_q32;
+        self.hold = None;
+        self.feed = 1.0;
+        self.state = PlayerState::Idle;
+        self.input_finished = false;
     }
 
     /// Stop at once: the segment in progress and everything queued are dropped, the position
@@ -312,6 +531,9 @@ impl Player {
         self.active = None;
         self.queue.clear();
         self.queued_q32 = 0;
+        self.plan_done_q32 = self.plan_q32;
+        self.feed = 0.0;
+        self.hold = None;
         self.state = PlayerState::Stopped;
     }
 
@@ -319,6 +541,7 @@ impl Player {
     pub fn reset(&mut self) {
         if self.state == PlayerState::Stopped {
             self.state = PlayerState::Idle;
+            self.feed = 1.0;
             self.input_finished = false;
         }
     }
@@ -339,15 +562,20 @@ impl Player {
         })
     }
 
-    /// Executed joint velocities: the current step rate of each axis (rad/s, m/s, m/s); zero
-    /// when no pulse train is running.
+    /// Executed joint velocities: σ times the current step rate of each axis (rad/s, m/s,
+    /// m/s; after a segment's last pulse, its last rate); zero when no segment with steps
+    /// is playing.
     pub fn velocity(&self) -> [f64; MAX_AXES] {
-        let Some(active) = self.active.as_ref().filter(|a| !a.train.is_done()) else {
+        let Some(active) = self
+            .active
+            .as_ref()
+            .filter(|a| a.job.segment.dominant_steps() > 0 && self.state != PlayerState::Stopped)
+        else {
             return [0.0; MAX_AXES];
         };
         let seg = &active.job.segment;
-        let dominant_rate =
-            self.options.steps.timer_hz * ONE_TICK_Q32 / active.train.period_q32() as f64;
+        let dominant_rate = self.feed * self.options.steps.timer_hz * ONE_TICK_Q32
+            / active.train.period_q32() as f64;
         let total = seg.dominant_steps() as f64;
         std::array::from_fn(|k| {
             let rate = dominant_rate * seg.step_counts[k] as f64 / total;
@@ -355,19 +583,10 @@ impl Player {
         })
     }
 
-    /// Plan time reached at machine time `now_q32` (Q32 ticks since the first segment's start):
-    /// it stands still while the machine waits.
+    /// The plan clock (Q32 ticks since the first segment's start): it stands still while the
+    /// machine is held or waits.
     pub fn plan_time_q32(&self) -> u64 {
-        match &self.active {
-            Some(a) => {
-                a.plan_start_q32
-                    + self
-                        .now_q32
-                        .saturating_sub(a.start_q32)
-                        .min(a.job.duration_q32)
-            }
-            None => self.plan_done_q32,
-        }
+        self.plan_q32
     }
 
     /// The segment playing now: its move and source line.
@@ -382,7 +601,7 @@ impl Player {
         (self.completed, self.last_completed)
     }
 
-    /// Times the queue ran dry while the input was not finished.
+    /// Times the queued plan ran short while the input was not finished (each began a hold).
     pub fn underruns(&self) -> u64 {
         self.underruns
     }

@@ -61,18 +61,27 @@ fn planned_at(planned: &[PlannedMove], t: f64) -> [f64; 3] {
     std::array::from_fn(|j| h00 * a.q[j] + h10 * h * a.qd[j] + h01 * b.q[j] + h11 * h * b.qd[j])
 }
 
+fn acceleration_limits() -> [f64; 3] {
+    std::array::from_fn(|k| PlannerOptions::default().joints[k].acceleration)
+}
+
+fn initial_steps() -> [i64; 3] {
+    let steps = StepOptions::default();
+    std::array::from_fn(|k| {
+        (PlannerOptions::default().initial_joints[k] * steps.steps_per_unit[k]).round() as i64
+    })
+}
+
 #[test]
 fn the_executor_plays_both_fixtures_on_the_decoders_ticks_and_on_the_plan() {
     for name in ["polartest.gcode", "finger.gcode"] {
         let (planned, segments, generator) = plan_fixture(name);
         let steps = StepOptions::default();
-        let initial_steps = std::array::from_fn(|k| {
-            (PlannerOptions::default().initial_joints[k] * steps.steps_per_unit[k]).round() as i64
-        });
+        let initial_steps = initial_steps();
         let mut player = Player::new(PlayerOptions {
-            steps: steps.clone(),
-            queue_capacity: 64,
+            queue_capacity: 1024,
             initial_steps,
+            ..PlayerOptions::new(steps.clone(), acceleration_limits())
         });
 
         // What the planner's decoder says, per axis, on the same back-to-back timeline.
@@ -165,4 +174,89 @@ fn the_executor_plays_both_fixtures_on_the_decoders_ticks_and_on_the_plan() {
             );
         }
     }
+}
+
+/// Play `segments` in 1 ms periods, calling `each_ms(player, ms)`; every edge's axes and
+/// directions in order, and the player at the end.
+fn play_all(
+    segments: &[StepSegment],
+    mut each_ms: impl FnMut(&mut Player, u64),
+) -> (Vec<(u8, u8)>, Player) {
+    let steps = StepOptions::default();
+    let mut player = Player::new(PlayerOptions {
+        queue_capacity: 1024,
+        initial_steps: initial_steps(),
+        ..PlayerOptions::new(steps.clone(), acceleration_limits())
+    });
+    let mut feed = segments
+        .iter()
+        .map(|s| SegmentJob::from_message(s, steps.timer_hz).unwrap())
+        .peekable();
+    let (mut edges, mut ms) = (Vec::new(), 0u64);
+    loop {
+        while player.free_slots() > 0 {
+            match feed.next() {
+                Some(job) => player.push(job).unwrap(),
+                None => {
+                    player.finish_input();
+                    break;
+                }
+            }
+        }
+        player
+            .advance_to((ms * 1000) << 32, |e| edges.push((e.axes, e.negative)))
+            .unwrap();
+        each_ms(&mut player, ms);
+        if player.state() == PlayerState::Idle && feed.peek().is_none() && ms > 0 {
+            return (edges, player);
+        }
+        ms += 1;
+    }
+}
+
+/// Paused three times and resumed, finger prints the very same steps in the same order and
+/// ends on the same position; each pause comes to rest within v/A + 20 ms, held still.
+#[test]
+fn pausing_and_resuming_finger_three_times_steps_exactly_as_without() {
+    let (_, segments, generator) = plan_fixture("finger.gcode");
+    let (plain, plain_player) = play_all(&segments, |_, _| {});
+    let limits = acceleration_limits();
+    let mut stops = Vec::new();
+    let mut pending: Option<(u64, f64, [i64; 3])> = None;
+    let (paused, paused_player) = play_all(&segments, |player, ms| {
+        if [20_000, 60_000, 120_000].contains(&ms) {
+            let v = player.velocity();
+            let bound = (0..3).map(|k| v[k].abs() / limits[k]).fold(0.0, f64::max) + 0.02;
+            player.pause();
+            pending = Some((ms, bound, player.position_steps()));
+        }
+        if let Some((at, bound, _)) = pending {
+            if player.state() == PlayerState::Held {
+                stops.push(((ms - at) as f64 * 1e-3, bound, player.position_steps()));
+                pending = None;
+            }
+        }
+        if let Some(&(_, _, held)) = stops.last() {
+            if ms == 20_500 || ms == 60_500 || ms == 120_500 {
+                assert_eq!(player.position_steps(), held, "still while held");
+                player.resume(0.25);
+            }
+        }
+    });
+    assert_eq!(stops.len(), 3, "{stops:?}");
+    for (took_s, bound_s, _) in &stops {
+        assert!(
+            took_s <= bound_s,
+            "rest after {took_s} s, bound {bound_s} s"
+        );
+    }
+    eprintln!(
+        "finger paused thrice: stops took {:?} s (bounds v/A + 20 ms)",
+        stops.iter().map(|s| (s.0, s.1)).collect::<Vec<_>>()
+    );
+    assert_eq!(paused.len(), plain.len());
+    assert!(paused == plain, "the same steps in the same order");
+    assert_eq!(paused_player.position_steps(), generator.position());
+    assert_eq!(plain_player.position_steps(), generator.position());
+    assert_eq!(paused_player.underruns(), 0);
 }

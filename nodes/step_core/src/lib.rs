@@ -325,6 +325,24 @@ impl PulseTrain {
         self.period_q32
     }
 
+    /// `r·p²` for the current period (Q62): with [`PulseTrain::period_q32`] it gives the
+    /// dominant acceleration `r` (steps per tick²) to a host.
+    pub fn ramp_q62(&self) -> u64 {
+        self.ramp_q62
+    }
+
+    /// The ramp phase the current period belongs to: +1 speeding up, 0 cruising, −1 slowing.
+    pub fn phase(&self) -> i8 {
+        let seg = &self.segment;
+        if self.step < seg.accelerate_steps {
+            1
+        } else if self.step < seg.accelerate_steps.saturating_add(seg.cruise_steps) {
+            0
+        } else {
+            -1
+        }
+    }
+
     /// Whether every pulse has been produced.
     pub fn is_done(&self) -> bool {
         self.step >= self.segment.dominant_steps()

@@ -1,6 +1,12 @@
 use super::*;
 
 const Q32: u64 = 1 << 32;
+/// The planner's default joint accelerations (rad/s², m/s², m/s²).
+const LIMITS: [f64; 3] = [40.0, 3.0, 0.5];
+
+fn options() -> PlayerOptions {
+    PlayerOptions::new(StepOptions::default(), LIMITS)
+}
 
 /// `steps` dominant steps on `axis` (negative if `reverse`), cruising at `period` whole ticks,
 /// lasting exactly `steps·period` ticks.
@@ -36,11 +42,39 @@ fn collect(player: &mut Player, now_ticks: u64) -> Vec<Edge> {
     edges
 }
 
+/// Play in 1 ms periods until `until_ticks`, calling `each_ms` after each, and return every
+/// edge and the executed velocity of each period.
+fn play(
+    player: &mut Player,
+    from_ticks: u64,
+    until_ticks: u64,
+    mut each_ms: impl FnMut(&mut Player, u64),
+) -> (Vec<Edge>, Vec<[f64; 3]>) {
+    let (mut edges, mut velocities) = (Vec::new(), Vec::new());
+    let mut t = from_ticks;
+    while t < until_ticks {
+        t += 1000;
+        player.advance_to(t * Q32, |e| edges.push(e)).unwrap();
+        velocities.push(player.velocity());
+        each_ms(player, t);
+    }
+    (edges, velocities)
+}
+
+/// Worst |Δv/Δt| of each joint between consecutive 1 ms samples, as a fraction of its limit.
+fn worst_acceleration(velocities: &[[f64; 3]]) -> f64 {
+    velocities
+        .windows(2)
+        .flat_map(|w| (0..3).map(move |k| (w[1][k] - w[0][k]).abs() / 1e-3 / LIMITS[k]))
+        .fold(0.0, f64::max)
+}
+
 #[test]
 fn segments_play_back_to_back_on_the_callers_clock() {
-    let mut player = Player::new(PlayerOptions::default());
+    let mut player = Player::new(options());
     player.push(cruise(0, 100, 1000, false, 1)).unwrap();
     player.push(cruise(1, 50, 400, true, 2)).unwrap();
+    player.finish_input();
     assert_eq!(player.ahead_q32(), (100_000 + 20_000) * Q32);
     // The first segment starts when it is first played: at tick 5000.
     assert!(collect(&mut player, 5000).is_empty());
@@ -63,11 +97,11 @@ fn segments_play_back_to_back_on_the_callers_clock() {
     assert_eq!(player.position_steps(), [100, -10, 0]);
     assert!((player.velocity()[1] + 2500.0 / spu[1]).abs() < 1e-12);
     assert_eq!(player.completed(), (1, Some((1, 11))));
-    // To the end: the queue ran dry with the input open: one underrun, at rest.
+    // To the end of the input: at rest, no underrun.
     collect(&mut player, 200_000);
     assert_eq!(player.position_steps(), [100, -50, 0]);
     assert_eq!(player.state(), PlayerState::Idle);
-    assert_eq!(player.underruns(), 1);
+    assert_eq!(player.underruns(), 0);
     assert_eq!(player.velocity(), [0.0; 3]);
     assert_eq!(player.plan_time_q32(), 120_000 * Q32);
     assert_eq!(player.ahead_q32(), 0);
@@ -75,37 +109,155 @@ fn segments_play_back_to_back_on_the_callers_clock() {
 
 #[test]
 fn after_waiting_the_next_segment_starts_now_never_in_the_past() {
-    let mut player = Player::new(PlayerOptions::default());
+    let mut player = Player::new(options());
     player.push(cruise(2, 10, 100, false, 1)).unwrap();
+    player.finish_input();
     collect(&mut player, 0);
-    collect(&mut player, 5_000); // ended at 1000, starved since
+    collect(&mut player, 5_000); // ended at 1000, idle since
+    assert_eq!(player.state(), PlayerState::Idle);
     player.push(cruise(2, 10, 100, false, 2)).unwrap();
-    let edges = collect(&mut player, 5_000);
-    assert!(edges.is_empty());
+    assert!(collect(&mut player, 5_000).is_empty());
     let edges = collect(&mut player, 5_900);
     assert_eq!(edges.first().unwrap().time_q32, 5_100 * Q32);
     assert_eq!(edges.len(), 9);
     // Plan time stood still while waiting: 1000 ticks of the first, 900 of the second.
     assert_eq!(player.plan_time_q32(), 1_900 * Q32);
+    assert_eq!(player.underruns(), 0);
+}
+
+/// A plan that runs short (input still open) is held on the path before its end, within the
+/// acceleration limits, and resumes by itself when enough has arrived.
+#[test]
+fn a_short_plan_is_held_before_its_end_and_resumes_when_enough_arrives() {
+    let mut player = Player::new(options());
+    // The arm at 2500 steps/s (31 mm/s) for 0.8 s.
+    player.push(cruise(1, 2000, 400, false, 1)).unwrap();
+    collect(&mut player, 0);
+    let (edges, velocities) = play(&mut player, 0, 1_000_000, |_, _| {});
+    assert_eq!(player.state(), PlayerState::Held);
+    assert_eq!(player.hold(), Some(HoldReason::Underrun));
     assert_eq!(player.underruns(), 1);
+    assert_eq!(player.velocity(), [0.0; 3]);
+    // v²/2a = 2500²/(2·240 000) = 13 steps of braking: held a few steps short of the end.
+    let held_at = player.position_steps()[1];
+    assert!((1980..2000).contains(&held_at), "{held_at}");
+    assert_eq!(edges.len() as i64, held_at);
+    let worst = worst_acceleration(&velocities);
+    assert!(worst <= 1.0 + 1e-9, "{worst}");
+    // Another 0.8 s arrives: it resumes, plays both to the end (now input is finished).
+    player.push(cruise(1, 2000, 400, false, 2)).unwrap();
     player.finish_input();
-    assert_eq!(collect(&mut player, 7_000).len(), 1);
+    // (The synthetic plan ends at speed: check the limits over the resume only.)
+    let (mut edges, velocities) = play(&mut player, 1_000_000, 1_500_000, |_, _| {});
+    assert!(worst_acceleration(&velocities) <= 1.0 + 1e-9);
+    assert!(velocities[0][1] < velocities[20][1] && velocities[50][1] > 0.031);
+    edges.extend(play(&mut player, 1_500_000, 3_000_000, |_, _| {}).0);
+    assert_eq!(player.position_steps(), [0, 4000, 0]);
+    assert_eq!(edges.len() as i64, 4000 - held_at);
     assert_eq!(player.state(), PlayerState::Idle);
-    assert_eq!(
-        player.underruns(),
-        1,
-        "running dry after the last input is the end"
+    assert_eq!(player.underruns(), 1);
+}
+
+/// Pause: rest within v/A (+ one control period) of the request, on the path, within the
+/// limits; resume after the pin's delay replays exactly the same steps.
+#[test]
+fn a_pause_stops_on_the_path_within_v_over_a_and_resume_replays_the_same_steps() {
+    let uninterrupted = {
+        let mut player = Player::new(options());
+        player.push(cruise(0, 20_000, 50, true, 1)).unwrap();
+        player.finish_input();
+        collect(&mut player, 0);
+        play(&mut player, 0, 1_100_000, |_, _| {}).0
+    };
+    assert_eq!(uninterrupted.len(), 20_000);
+
+    let mut player = Player::new(options());
+    player.push(cruise(0, 20_000, 50, true, 1)).unwrap();
+    player.finish_input();
+    collect(&mut player, 0);
+    let spu = StepOptions::default().steps_per_unit[0];
+    let v = 20_000.0 / spu; // rad/s
+    let (mut paused_at, mut rest_at, mut resumed_at) = (None, None, None);
+    let (edges, velocities) = play(&mut player, 0, 2_000_000, |p, t| {
+        if t == 300_000 {
+            p.pause();
+            paused_at = Some(t);
+        }
+        if paused_at.is_some() && rest_at.is_none() && p.velocity()[0] == 0.0 {
+            rest_at = Some(t);
+            assert_eq!(p.state(), PlayerState::Held);
+        }
+        if t == 800_000 {
+            p.resume(0.25);
+            resumed_at = Some(p.position_steps());
+        }
+    });
+    let stop_s = (rest_at.unwrap() - paused_at.unwrap()) as f64 * 1e-6;
+    assert!(
+        stop_s <= v / LIMITS[0] + 1e-3,
+        "{stop_s} s for {} s",
+        v / LIMITS[0]
     );
+    assert!(
+        stop_s >= v / LIMITS[0] - 1e-3,
+        "{stop_s} s: faster than the limit allows"
+    );
+    // Through the stop, the hold and the resume (the synthetic plan itself ends at speed).
+    assert!(worst_acceleration(&velocities[..1500]) <= 1.0 + 1e-9);
+    // Nothing moved while held, nor during the pin's 0.25 s after the resume.
+    let held = resumed_at.unwrap()[0];
+    let quiet = edges
+        .iter()
+        .filter(|e| e.time_q32 > rest_at.unwrap() * Q32 && e.time_q32 <= 1_050_000 * Q32)
+        .count();
+    assert_eq!(quiet, 0);
+    assert!(held < 0 && held > -20_000);
+    // The same steps in the same order, ending at the same place.
+    assert_eq!(edges.len(), uninterrupted.len());
+    assert!(edges
+        .iter()
+        .zip(&uninterrupted)
+        .all(|(a, b)| (a.axes, a.negative) == (b.axes, b.negative)));
+    assert!(edges.windows(2).all(|w| w[0].time_q32 <= w[1].time_q32));
+    assert_eq!(player.position_steps(), [-20_000, 0, 0]);
+}
+
+#[test]
+fn a_cancel_stops_on_the_path_then_drops_the_rest() {
+    let mut player = Player::new(options());
+    player.push(cruise(0, 20_000, 50, false, 1)).unwrap();
+    player.push(cruise(0, 20_000, 50, false, 2)).unwrap();
+    player.finish_input();
+    collect(&mut player, 0);
+    let (_, velocities) = play(&mut player, 0, 600_000, |p, t| {
+        if t == 300_000 {
+            p.cancel();
+        }
+    });
+    assert!(velocities[299][0] > 0.0 && velocities[450][0] == 0.0);
+    assert!(worst_acceleration(&velocities) <= 1.0 + 1e-9);
+    assert_eq!(player.state(), PlayerState::Idle);
+    assert_eq!(player.ahead_q32(), 0);
+    let stopped = player.position_steps();
+    // 0.3 s at 20 000 steps/s, then v²/2A = 20 000²/(2·40·5093) = 982 steps of braking.
+    assert!((6_950..7_020).contains(&stopped[0]), "{stopped:?}");
+    // A new plan plays from where it stopped.
+    player.push(cruise(0, 10, 100, false, 3)).unwrap();
+    player.finish_input();
+    collect(&mut player, 700_000);
+    collect(&mut player, 710_000);
+    assert_eq!(player.position_steps()[0], stopped[0] + 10);
 }
 
 #[test]
 fn an_emergency_stop_drops_everything_and_holds_until_reset() {
     let mut player = Player::new(PlayerOptions {
         initial_steps: [7, 0, -3],
-        ..PlayerOptions::default()
+        ..options()
     });
     player.push(cruise(0, 100, 100, false, 1)).unwrap();
     player.push(cruise(0, 100, 100, false, 2)).unwrap();
+    player.finish_input();
     collect(&mut player, 0);
     collect(&mut player, 2_550);
     assert_eq!(player.position_steps(), [32, 0, -3]);
@@ -121,6 +273,7 @@ fn an_emergency_stop_drops_everything_and_holds_until_reset() {
     );
     player.reset();
     player.push(cruise(0, 1, 100, false, 3)).unwrap();
+    player.finish_input();
     assert_eq!(collect(&mut player, 50_000).len(), 0);
     assert_eq!(collect(&mut player, 50_100).len(), 1);
     assert_eq!(player.position_steps(), [33, 0, -3]);
@@ -130,7 +283,7 @@ fn an_emergency_stop_drops_everything_and_holds_until_reset() {
 fn the_queue_is_bounded() {
     let mut player = Player::new(PlayerOptions {
         queue_capacity: 2,
-        ..PlayerOptions::default()
+        ..options()
     });
     player.push(cruise(0, 1, 100, false, 1)).unwrap();
     player.push(cruise(0, 1, 100, false, 2)).unwrap();
@@ -201,7 +354,7 @@ fn a_step_fault_stops_the_machine_and_names_the_move() {
         ..Default::default()
     })
     .unwrap();
-    let mut player = Player::new(PlayerOptions::default());
+    let mut player = Player::new(options());
     player
         .push(SegmentJob {
             segment,
@@ -210,6 +363,7 @@ fn a_step_fault_stops_the_machine_and_names_the_move() {
             source_line: 90,
         })
         .unwrap();
+    player.finish_input();
     collect(&mut player, 0);
     let err = player.advance_to(2_000_000 * Q32, |_| {}).unwrap_err();
     assert!(matches!(

@@ -7,12 +7,15 @@
 //! angle integrates the rpm actually executed.
 //!
 //! * [`player`] — the segment queue and the pulse clock: position, velocity, underrun, e-stop;
-//! * [`screw`] — screw commands on the plan timeline, executed as time passes.
+//! * [`screw`] — screw commands on the plan timeline, executed as time passes;
+//! * [`session`] — both joined on one plan clock: messages in, the executed state out.
 //!
 //! Pure: no DDS, no clock of its own — the caller says what time it is.
 
 pub mod player;
 pub mod screw;
+pub mod session;
 
-pub use player::{Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
+pub use player::{HoldReason, Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
 pub use screw::ScrewTrack;
+pub use session::{ExecError, Executor, ExecutorOptions, MachineState};

@@ -47,16 +47,24 @@ pub struct PlayerOptions {
     /// Longest stretch of machine time over which σ is held constant (s): the control period
     /// of the hold.
     pub control_period_s: f64,
+    /// Machine time a resume waits at rest with the pin reopened before motion restarts (the
+    /// pin's opening delay, so material flows exactly where it stopped).
+    pub pin_open_delay_s: f64,
 }
 
 impl PlayerOptions {
-    pub fn new(steps: StepOptions, acceleration_limits: [f64; MAX_AXES]) -> PlayerOptions {
+    pub fn new(
+        steps: StepOptions,
+        acceleration_limits: [f64; MAX_AXES],
+        pin_open_delay_s: f64,
+    ) -> PlayerOptions {
         PlayerOptions {
             steps,
             acceleration_limits,
             queue_capacity: 4096,
             initial_steps: [0; MAX_AXES],
             control_period_s: 0.001,
+            pin_open_delay_s,
         }
     }
 }
@@ -284,12 +292,28 @@ impl Player {
         }
     }
 
-    /// End a pause (or an underrun hold): after `delay_s` of machine time at rest (the pin's
-    /// opening delay, so material flows when motion restarts), accelerate back to the plan.
-    pub fn resume(&mut self, delay_s: f64) {
+    /// End a pause (or an underrun hold): after the pin's opening delay at rest (the pin
+    /// reopened, so material flows when motion restarts), accelerate back to the plan.
+    pub fn resume(&mut self) {
         if matches!(self.hold, Some(HoldReason::Pause | HoldReason::Underrun)) {
-            self.hold = None;
-            self.resume_at_q32 = self.now_q32 + self.ticks_q32(delay_s.max(0.0));
+            self.release();
+        }
+    }
+
+    fn release(&mut self) {
+        self.hold = None;
+        if self.feed == 0.0 {
+            self.resume_at_q32 = self.now_q32 + self.ticks_q32(self.options.pin_open_delay_s);
+        }
+    }
+
+    /// Whether the pin may be open: while moving, and while waiting to resume (its delay);
+    /// not while held, stopped or idle.
+    pub fn pin_allowed(&self) -> bool {
+        match self.state {
+            PlayerState::Running => true,
+            PlayerState::Held => self.hold.is_none(),
+            PlayerState::Idle | PlayerState::Stopped => false,
         }
     }
 
@@ -423,10 +447,10 @@ impl Player {
             } else if self.hold == Some(HoldReason::Underrun)
                 && self.ahead_q32() > 2 * needed + self.ticks_q32(0.5)
             {
-                self.hold = None;
+                self.release();
             }
         } else if self.hold == Some(HoldReason::Underrun) && self.input_finished {
-            self.hold = None;
+            self.release();
         }
         let h = (t1 - t0) as f64 / ONE_TICK_Q32 / self.options.steps.timer_hz;
         let (lo, hi) = self.feed_rate_bounds();

@@ -1,10 +1,12 @@
 //! Screw commands executed on the plan timeline.
 //!
-//! The screw driver stamps each command with the plan time from which it holds. The executor
-//! applies a command when its plan time is reached *by execution*, and the screw's angle
-//! integrates the rpm executed. Plan time stands still while the machine waits for input;
-//! then the screw is stopped and the pin closed (the safe state), whatever was commanded, and
-//! the command resumes with the motion.
+//! The screw driver's commands are breakpoints on the plan timeline: rpm is linear between
+//! consecutive commands (constant after the last one known), the pin switches at a command.
+//! The executor follows them as *execution* reaches their plan time. Under a feed scale σ the
+//! screw turns at σ times the planned rpm, so material per length of path is kept through a
+//! hold; its angle therefore integrates the planned rpm over plan time. Held or waiting, the
+//! screw is stopped and the pin closed (the safe state); the pin reopens before motion
+//! resumes, by its delay, so material flows again exactly where it stopped.
 
 use std::collections::VecDeque;
 
@@ -44,7 +46,8 @@ pub struct ScrewTrack {
     /// The command in force at `plan_q32`.
     commanded: ScrewStep,
     plan_q32: u64,
-    running: bool,
+    feed: f64,
+    pin_allowed: bool,
     angle_rad: f64,
 }
 
@@ -61,7 +64,8 @@ impl ScrewTrack {
                 source_line: 0,
             },
             plan_q32: 0,
-            running: false,
+            feed: 0.0,
+            pin_allowed: false,
             angle_rad: 0.0,
         }
     }
@@ -100,18 +104,32 @@ impl ScrewTrack {
         self.capacity - self.queue.len()
     }
 
-    /// Execute up to plan time `plan_now_q32`; `running` says whether the machine is playing
-    /// segments (plan time then advances with machine time).
-    pub fn advance(&mut self, plan_now_q32: u64, running: bool) {
-        let rad_per_tick_q32 = std::f64::consts::TAU / 60.0 / self.timer_hz / ONE_TICK_Q32;
+    /// The planned rpm at plan time `plan_q32` (≥ the command in force): linear towards the
+    /// next queued command.
+    fn rpm_at(&self, plan_q32: u64) -> f64 {
+        let from = &self.commanded;
+        match self.queue.front() {
+            Some(next) if next.plan_q32 > from.plan_q32 => {
+                let s = (plan_q32.saturating_sub(from.plan_q32)) as f64
+                    / (next.plan_q32 - from.plan_q32) as f64;
+                from.rpm + (next.rpm - from.rpm) * s.min(1.0)
+            }
+            _ => from.rpm,
+        }
+    }
+
+    /// Execute up to plan time `plan_now_q32` at feed scale `feed`; `pin_allowed` is false
+    /// while the machine is held or waiting (the pin then stays closed).
+    pub fn advance(&mut self, plan_now_q32: u64, feed: f64, pin_allowed: bool) {
+        let rad_per_rpm_tick_q32 = std::f64::consts::TAU / 60.0 / self.timer_hz / ONE_TICK_Q32;
         while self.plan_q32 < plan_now_q32 {
             let next_change = self
                 .queue
                 .front()
                 .map_or(u64::MAX, |s| s.plan_q32.max(self.plan_q32));
             let until = next_change.min(plan_now_q32);
-            self.angle_rad +=
-                self.commanded.rpm * (until - self.plan_q32) as f64 * rad_per_tick_q32;
+            let mean_rpm = (self.rpm_at(self.plan_q32) + self.rpm_at(until)) / 2.0;
+            self.angle_rad += mean_rpm * (until - self.plan_q32) as f64 * rad_per_rpm_tick_q32;
             self.plan_q32 = until;
             if until == next_change {
                 self.commanded = self.queue.pop_front().expect("a change was due");
@@ -125,17 +143,19 @@ impl ScrewTrack {
         {
             self.commanded = self.queue.pop_front().expect("checked");
         }
-        self.running = running;
+        self.feed = feed;
+        self.pin_allowed = pin_allowed;
     }
 
-    /// The rpm and pin actually executed: the command in force while running, else stopped
-    /// and closed.
+    /// The rpm and pin actually executed: σ times the planned rpm, the pin as commanded unless
+    /// held; stopped and closed when held or waiting.
     pub fn executed(&self) -> (f64, bool) {
-        if self.running {
-            (self.commanded.rpm, self.commanded.pin_open)
+        let rpm = if self.feed > 0.0 {
+            self.feed * self.rpm_at(self.plan_q32)
         } else {
-            (0.0, false)
-        }
+            0.0
+        };
+        (rpm, self.pin_allowed && self.commanded.pin_open)
     }
 
     /// The command in force on the plan timeline (whether or not the machine runs).
@@ -153,7 +173,8 @@ impl ScrewTrack {
         self.queue.clear();
         self.commanded.rpm = 0.0;
         self.commanded.pin_open = false;
-        self.running = false;
+        self.feed = 0.0;
+        self.pin_allowed = false;
     }
 }
 
@@ -176,7 +197,7 @@ mod tests {
         }
     }
 
-    /// The angle is the integral of a piecewise-constant rpm, whatever the advance steps.
+    /// The angle is the integral of the piecewise-linear rpm, whatever the advance steps.
     #[test]
     fn the_angle_integrates_the_commands_exactly_across_any_advance_steps() {
         let commands = [
@@ -185,8 +206,8 @@ mod tests {
             step(0.5, 0.0, false),
             step(0.75, 30.0, true),
         ];
-        // ∫ rpm/60·2π dt over 1 s: 0.25·(1 + 2 + 0 + 0.5)·2π
-        let exact = 0.25 * 3.5 * std::f64::consts::TAU;
+        // ∫ rpm dt (rpm·s): trapezoids 22.5 + 15 + 3.75, then 30 held for 0.25 s: 7.5.
+        let exact = 48.75 / 60.0 * std::f64::consts::TAU;
         for stride_s in [0.001, 0.0137, 0.25, 0.3, 1.0] {
             let mut track = ScrewTrack::new(HZ, 16);
             for c in commands {
@@ -195,7 +216,7 @@ mod tests {
             let mut t: f64 = 0.0;
             while t < 1.0 {
                 t = (t + stride_s).min(1.0);
-                track.advance(q32(t), true);
+                track.advance(q32(t), 1.0, true);
             }
             assert!(
                 (track.angle_rad() - exact).abs() < 1e-9,
@@ -204,20 +225,33 @@ mod tests {
             );
             assert_eq!(track.executed(), (30.0, true));
         }
+        // Half way between two commands, the rpm is half way.
+        let mut track = ScrewTrack::new(HZ, 16);
+        for c in commands {
+            track.push(c).unwrap();
+        }
+        track.advance(q32(0.375), 1.0, true);
+        assert!((track.executed().0 - 60.0).abs() < 1e-9);
+        assert!(track.executed().1);
     }
 
     #[test]
-    fn waiting_stops_the_screw_and_closes_the_pin_until_motion_resumes() {
+    fn a_hold_scales_the_rpm_and_closes_the_pin_until_motion_resumes() {
         let mut track = ScrewTrack::new(HZ, 4);
         track.push(step(0.0, 90.0, true)).unwrap();
-        track.advance(q32(0.1), true);
+        track.advance(q32(0.1), 1.0, true);
         assert_eq!(track.executed(), (90.0, true));
-        track.advance(q32(0.1), false); // plan time stands still: starved
+        track.advance(q32(0.15), 0.5, true); // decelerating: half the speed, half the rpm
+        assert_eq!(track.executed(), (45.0, true));
+        track.advance(q32(0.2), 0.0, false); // held: plan time stands still
         assert_eq!(track.executed(), (0.0, false));
         assert_eq!(track.commanded().rpm, 90.0);
-        track.advance(q32(0.2), true);
+        track.advance(q32(0.2), 0.0, true); // resuming: the pin opens before motion
+        assert_eq!(track.executed(), (0.0, true));
+        track.advance(q32(0.3), 1.0, true);
         assert_eq!(track.executed(), (90.0, true));
-        assert!((track.angle_rad() - 0.2 * 1.5 * std::f64::consts::TAU).abs() < 1e-9);
+        // The angle follows plan time: 0.3 s at 90 rpm, however it was executed.
+        assert!((track.angle_rad() - 0.3 * 1.5 * std::f64::consts::TAU).abs() < 1e-9);
     }
 
     #[test]

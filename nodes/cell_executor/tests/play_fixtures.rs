@@ -81,7 +81,7 @@ fn the_executor_plays_both_fixtures_on_the_decoders_ticks_and_on_the_plan() {
         let mut player = Player::new(PlayerOptions {
             queue_capacity: 1024,
             initial_steps,
-            ..PlayerOptions::new(steps.clone(), acceleration_limits())
+            ..PlayerOptions::new(steps.clone(), acceleration_limits(), 0.25)
         });
 
         // What the planner's decoder says, per axis, on the same back-to-back timeline.
@@ -186,7 +186,7 @@ fn play_all(
     let mut player = Player::new(PlayerOptions {
         queue_capacity: 1024,
         initial_steps: initial_steps(),
-        ..PlayerOptions::new(steps.clone(), acceleration_limits())
+        ..PlayerOptions::new(steps.clone(), acceleration_limits(), 0.25)
     });
     let mut feed = segments
         .iter()
@@ -239,7 +239,7 @@ fn pausing_and_resuming_finger_three_times_steps_exactly_as_without() {
         if let Some(&(_, _, held)) = stops.last() {
             if ms == 20_500 || ms == 60_500 || ms == 120_500 {
                 assert_eq!(player.position_steps(), held, "still while held");
-                player.resume(0.25);
+                player.resume();
             }
         }
     });

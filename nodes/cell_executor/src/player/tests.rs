@@ -5,7 +5,7 @@ const Q32: u64 = 1 << 32;
 const LIMITS: [f64; 3] = [40.0, 3.0, 0.5];
 
 fn options() -> PlayerOptions {
-    PlayerOptions::new(StepOptions::default(), LIMITS)
+    PlayerOptions::new(StepOptions::default(), LIMITS, 0.25)
 }
 
 /// `steps` dominant steps on `axis` (negative if `reverse`), cruising at `period` whole ticks,
@@ -144,13 +144,17 @@ fn a_short_plan_is_held_before_its_end_and_resumes_when_enough_arrives() {
     assert_eq!(edges.len() as i64, held_at);
     let worst = worst_acceleration(&velocities);
     assert!(worst <= 1.0 + 1e-9, "{worst}");
+    assert!(!player.pin_allowed(), "held: the pin is closed");
     // Another 0.8 s arrives: it resumes, plays both to the end (now input is finished).
     player.push(cruise(1, 2000, 400, false, 2)).unwrap();
     player.finish_input();
     // (The synthetic plan ends at speed: check the limits over the resume only.)
     let (mut edges, velocities) = play(&mut player, 1_000_000, 1_500_000, |_, _| {});
     assert!(worst_acceleration(&velocities) <= 1.0 + 1e-9);
-    assert!(velocities[0][1] < velocities[20][1] && velocities[50][1] > 0.031);
+    // At rest for the pin's 0.25 s (it reopens first), then up to speed in v/A = 10.4 ms.
+    assert!(velocities[..249].iter().all(|v| v[1] == 0.0));
+    assert!(velocities[252][1] > 0.0 && velocities[252][1] < velocities[256][1]);
+    assert!(velocities[265][1] > 0.031);
     edges.extend(play(&mut player, 1_500_000, 3_000_000, |_, _| {}).0);
     assert_eq!(player.position_steps(), [0, 4000, 0]);
     assert_eq!(edges.len() as i64, 4000 - held_at);
@@ -188,7 +192,7 @@ fn a_pause_stops_on_the_path_within_v_over_a_and_resume_replays_the_same_steps()
             assert_eq!(p.state(), PlayerState::Held);
         }
         if t == 800_000 {
-            p.resume(0.25);
+            p.resume();
             resumed_at = Some(p.position_steps());
         }
     });

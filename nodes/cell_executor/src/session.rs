@@ -1,0 +1,229 @@
+//! The executor's session: planned messages in, the executed machine state out.
+//!
+//! It joins the [`Player`] (steps) and the [`ScrewTrack`] (screw) on one plan timeline. Both
+//! upstream nodes stamp their messages with `epoch + plan time`; the session learns the epoch
+//! from the first step segment (its stamp is its move's start, and the session knows where on
+//! the plan clock that segment starts), so screw commands land on the same clock whichever
+//! arrives first.
+//!
+//! The caller's clock is nanoseconds of a monotonic clock (`on_tick(now_ns)`); the first tick
+//! is machine time 0.
+
+use polar_cell_msgs::{ScrewCommand, StepSegment};
+
+use crate::player::{HoldReason, Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
+use crate::screw::{ScrewError, ScrewStep, ScrewTrack};
+
+const Q32: u128 = 1 << step_core::TICK_FRACTION_BITS;
+
+/// How the session is set up.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExecutorOptions {
+    pub player: PlayerOptions,
+    /// Screw commands queued ahead of execution at most (besides those waiting for the
+    /// first segment).
+    pub screw_queue_capacity: usize,
+}
+
+impl ExecutorOptions {
+    pub fn new(player: PlayerOptions) -> ExecutorOptions {
+        ExecutorOptions {
+            screw_queue_capacity: player.queue_capacity,
+            player,
+        }
+    }
+}
+
+/// What the session refuses.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ExecError {
+    #[error(transparent)]
+    Player(#[from] PlayerError),
+    #[error(transparent)]
+    Screw(#[from] ScrewError),
+    #[error("{count} screw commands arrived before any step segment: more than can be held ({capacity})")]
+    TooManyEarly { count: usize, capacity: usize },
+    #[error("the machine clock went back: {now_ns} ns after {last_ns} ns")]
+    ClockWentBack { now_ns: i64, last_ns: i64 },
+}
+
+/// The executed state at the last tick.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MachineState {
+    /// `bed_theta` (rad), `arm_r` (m), `z` (m), `screw` (rad): the URDF's four joints.
+    pub positions: [f64; 4],
+    /// Their velocities (rad/s, m/s, m/s, rad/s).
+    pub velocities: [f64; 4],
+    pub screw_rpm: f64,
+    pub pin_open: bool,
+    pub state: PlayerState,
+    pub hold: Option<HoldReason>,
+    /// Feed scale σ.
+    pub feed: f64,
+    /// Machine time since the first tick (s) and plan time executed (s).
+    pub machine_time_s: f64,
+    pub plan_time_s: f64,
+    /// The move and G-code line playing now.
+    pub current: Option<(u64, u32)>,
+}
+
+/// Messages in, executed state out.
+#[derive(Clone, Debug)]
+pub struct Executor {
+    player: Player,
+    screw: ScrewTrack,
+    timer_hz: f64,
+    epoch_ns: Option<i64>,
+    early_screw: Vec<ScrewCommand>,
+    origin_ns: Option<i64>,
+    last_ns: i64,
+}
+
+impl Executor {
+    pub fn new(options: ExecutorOptions) -> Executor {
+        let timer_hz = options.player.steps.timer_hz;
+        Executor {
+            screw: ScrewTrack::new(timer_hz, options.screw_queue_capacity),
+            player: Player::new(options.player),
+            timer_hz,
+            epoch_ns: None,
+            early_screw: Vec::new(),
+            origin_ns: None,
+            last_ns: 0,
+        }
+    }
+
+    pub fn player(&self) -> &Player {
+        &self.player
+    }
+
+    /// Nanoseconds to Q32 ticks (negative, i.e. before the plan's start: 0).
+    fn ns_to_q32(&self, plan_ns: i64) -> u64 {
+        let ns = plan_ns.max(0) as u128;
+        (ns * self.timer_hz as u128 * Q32 / 1_000_000_000) as u64
+    }
+
+    /// Queue a planned step segment.
+    pub fn on_segment(&mut self, msg: &StepSegment) -> Result<(), ExecError> {
+        let job = SegmentJob::from_message(msg, self.timer_hz)?;
+        if self.epoch_ns.is_none() {
+            // Its stamp is its move's start: where the plan clock will reach it.
+            let start_q32 = self.player.plan_time_q32() + self.player.ahead_q32();
+            let start_ns =
+                (start_q32 as u128 * 1_000_000_000 / (self.timer_hz as u128 * Q32)) as i64;
+            let epoch = msg.header.stamp.as_nanos() - start_ns;
+            self.epoch_ns = Some(epoch);
+            for early in std::mem::take(&mut self.early_screw) {
+                self.push_screw(&early, epoch)?;
+            }
+        }
+        self.player.push(job)?;
+        Ok(())
+    }
+
+    fn push_screw(&mut self, msg: &ScrewCommand, epoch_ns: i64) -> Result<(), ExecError> {
+        let plan_q32 = self.ns_to_q32(msg.header.stamp.as_nanos() - epoch_ns);
+        self.screw.push(ScrewStep {
+            plan_q32,
+            rpm: msg.rpm,
+            pin_open: msg.pin_open,
+            source_line: msg.source_line,
+        })?;
+        Ok(())
+    }
+
+    /// Queue a screw command.
+    pub fn on_screw(&mut self, msg: &ScrewCommand) -> Result<(), ExecError> {
+        match self.epoch_ns {
+            Some(epoch) => self.push_screw(msg, epoch),
+            None if self.early_screw.len() < self.screw.free_slots() => {
+                self.early_screw.push(msg.clone());
+                Ok(())
+            }
+            None => Err(ExecError::TooManyEarly {
+                count: self.early_screw.len() + 1,
+                capacity: self.screw.free_slots(),
+            }),
+        }
+    }
+
+    /// Free places for step segments and screw commands.
+    pub fn free_slots(&self) -> (usize, usize) {
+        (
+            self.player.free_slots(),
+            self.screw
+                .free_slots()
+                .saturating_sub(self.early_screw.len()),
+        )
+    }
+
+    /// Say that the plan is complete: it ends at rest where it ends.
+    pub fn finish_input(&mut self) {
+        self.player.finish_input();
+    }
+
+    /// Execute up to `now_ns` (monotonic clock).
+    pub fn on_tick(&mut self, now_ns: i64) -> Result<(), ExecError> {
+        let origin = *self.origin_ns.get_or_insert(now_ns);
+        if now_ns < self.last_ns {
+            return Err(ExecError::ClockWentBack {
+                now_ns,
+                last_ns: self.last_ns,
+            });
+        }
+        self.last_ns = now_ns;
+        let now_q32 = self.ns_to_q32(now_ns - origin);
+        let result = self.player.advance_to(now_q32, |_| {});
+        self.screw.advance(
+            self.player.plan_time_q32(),
+            self.player.feed(),
+            self.player.pin_allowed(),
+        );
+        if result.is_err() {
+            self.screw.stop();
+        }
+        Ok(result?)
+    }
+
+    pub fn pause(&mut self) {
+        self.player.pause();
+    }
+
+    pub fn resume(&mut self) {
+        self.player.resume();
+    }
+
+    pub fn cancel(&mut self) {
+        self.player.cancel();
+    }
+
+    /// Stop stepping at once, screw stopped, pin closed.
+    pub fn emergency_stop(&mut self) {
+        self.player.emergency_stop();
+        self.screw.stop();
+    }
+
+    pub fn reset(&mut self) {
+        self.player.reset();
+    }
+
+    /// The executed state at the last tick.
+    pub fn state(&self) -> MachineState {
+        let p = self.player.position();
+        let v = self.player.velocity();
+        let (screw_rpm, pin_open) = self.screw.executed();
+        let seconds = |q32: u64| q32 as f64 / Q32 as f64 / self.timer_hz;
+        MachineState {
+            positions: [p[0], p[1], p[2], self.screw.angle_rad()],
+            velocities: [v[0], v[1], v[2], screw_rpm * std::f64::consts::TAU / 60.0],
+            screw_rpm,
+            pin_open,
+            state: self.player.state(),
+            hold: self.player.hold(),
+            feed: self.player.feed(),
+            machine_time_s: (self.last_ns - self.origin_ns.unwrap_or(self.last_ns)) as f64 * 1e-9,
+            plan_time_s: seconds(self.player.plan_time_q32()),
+            current: self.player.current(),
+        }
+    }
+}

@@ -12,10 +12,10 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context as _};
+use cell_runtime::flow::{AckTracker, Verdict};
 use cell_runtime::{
     now_ns, reliable_qos, transient_local_qos, CellNode, LogLevel, ParamSpec, ParamValue,
 };
-use gcode_streamer::flow::{AckTracker, Verdict};
 use polar_cell_msgs::{
     cdr, Clock, DiagnosticArray, GcodeAck, GcodeMove, GcodeProgress, JointState, JointTrajectory,
     Log, PoseStamped, RosMessage, ScrewCommand, StepSegment, StringMsg,
@@ -237,7 +237,7 @@ fn spawn_moves_consumer(
                             return;
                         }
                         if let Some(ack) = tracker.ack_due(false) {
-                            let _ = acks.publish(ack);
+                            let _ = acks.publish(GcodeAck::from(ack));
                         }
                     }
                     Err(e) => tracing::warn!("recorder: /gcode/moves read error: {e:?}"),
@@ -246,7 +246,7 @@ fn spawn_moves_consumer(
                     if tracker.on_progress(&p.consumers, &p.consumer_next_expected) {
                         // Confirm the resume point: the streamer starts sending on this.
                         if let Some(ack) = tracker.ack_due(true) {
-                            let _ = acks.publish(ack);
+                            let _ = acks.publish(GcodeAck::from(ack));
                         }
                     }
                     if let Some(channel) = progress_channel {
@@ -259,11 +259,11 @@ fn spawn_moves_consumer(
                 _ = tick.tick() => {
                     idle_ticks += 1;
                     if tracker.needs_hello() {
-                        let _ = acks.publish(tracker.hello());
+                        let _ = acks.publish(GcodeAck::from(tracker.hello()));
                     } else if idle_ticks >= 2 {
                         // Idle: repeat the acknowledgement (recovers a lost one, reports gaps).
                         if let Some(ack) = tracker.ack_due(true) {
-                            let _ = acks.publish(ack);
+                            let _ = acks.publish(GcodeAck::from(ack));
                         }
                     }
                 },

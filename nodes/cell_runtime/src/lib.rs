@@ -1,12 +1,14 @@
 //! The runtime every node of the cell shares.
 //!
 //! Pure parts (unit-tested without DDS): [`args`] (the ROS command line), [`params`] (typed,
-//! validated parameters from files and overrides), [`names`] (expansion and remapping).
+//! validated parameters from files and overrides), [`names`] (expansion and remapping),
+//! [`flow`] (lossless flow control of a pipeline link).
 //! DDS parts: [`dds`] (participant on loopback, ROS-default QoS, node with declared parameters,
 //! diagnostics, rosout, shutdown on SIGINT/SIGTERM).
 
 pub mod args;
 pub mod dds;
+pub mod flow;
 pub mod names;
 pub mod params;
 

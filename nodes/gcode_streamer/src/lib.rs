@@ -3,12 +3,10 @@
 //! * [`lexer`] splits a line into words (comments, checksums, packed words);
 //! * [`interp`] is the modal machine that turns words into [`GcodeMove`]s in SI units;
 //! * [`reader`] streams a file of any length line by line;
-//! * [`flow`] is the lossless flow control between the streamer and its consumers.
 //!
 //! No DDS, no files, no async here: bytes in, moves out. The node binary wires it to topics.
 
 pub mod error;
-pub mod flow;
 pub mod interp;
 pub mod lexer;
 pub mod reader;

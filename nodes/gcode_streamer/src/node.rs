@@ -15,8 +15,8 @@ use cell_runtime::{
 };
 use polar_cell_msgs::{DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, Time};
 
-use crate::flow::{SendWindow, WindowOptions};
 use crate::{Event, GcodeError, GcodeReader, InterpreterOptions};
+use cell_runtime::flow::{SendWindow, WindowOptions};
 
 /// Default node name.
 pub const NODE_NAME: &str = "gcode_streamer";
@@ -194,7 +194,7 @@ pub async fn stream(
         // Acknowledgements.
         while let Some((ack, _)) = acks.take().context("reading /gcode/ack")? {
             progress_due |= ack.resume;
-            window.on_ack(&ack, now);
+            window.on_ack(&(&ack).into(), now);
         }
         // Parser output into the window.
         while window.has_room() && !eof {
@@ -302,7 +302,7 @@ pub async fn stream(
             let wait = tokio::time::timeout(Duration::from_millis(2), acks.async_take()).await;
             if let Ok(Ok((ack, _))) = wait {
                 progress_due |= ack.resume;
-                window.on_ack(&ack, start.elapsed());
+                window.on_ack(&(&ack).into(), start.elapsed());
             }
         } else {
             tokio::task::yield_now().await;

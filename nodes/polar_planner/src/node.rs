@@ -14,11 +14,11 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
+use cell_runtime::flow::Intake;
 use cell_runtime::{
     now_ns, publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
     PUBLISH_PATIENCE,
 };
-use gcode_streamer::flow::Intake;
 use polar_cell_msgs::{
     DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory,
     StepSegment, Time,
@@ -203,7 +203,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             taken = progress_sub.async_take() => {
                 if let Ok((p, _)) = taken {
                     if let Some(ack) = intake.on_progress(&p.consumers, &p.consumer_next_expected) {
-                        let _ = acks.publish(ack);
+                        let _ = acks.publish(GcodeAck::from(ack));
                     }
                 }
             }
@@ -214,7 +214,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 // Announce until the resume point is known; then repeat the acknowledgement
                 // (recovers a lost one).
                 if let Some(ack) = intake.ack(planned_until) {
-                    let _ = acks.publish(ack);
+                    let _ = acks.publish(GcodeAck::from(ack));
                 }
             }
         }
@@ -252,7 +252,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         }
         // Acknowledge what is planned and published; the lookahead queue is not.
         if let Some(ack) = intake.ack(planned_until) {
-            let _ = acks.publish(ack);
+            let _ = acks.publish(GcodeAck::from(ack));
         }
         if last_diagnostics.elapsed() >= Duration::from_secs(1) {
             last_diagnostics = Instant::now();

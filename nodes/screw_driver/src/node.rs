@@ -14,10 +14,10 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _};
+use cell_runtime::flow::Intake;
 use cell_runtime::{
     publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, PUBLISH_PATIENCE,
 };
-use gcode_streamer::flow::Intake;
 use polar_cell_msgs::{
     GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory, ScrewCommand, Time,
 };
@@ -237,7 +237,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     // Every move of the file acknowledged by every consumer (us included).
                     stream_finished |= p.finished;
                     if let Some(ack) = intake.on_progress(&p.consumers, &p.consumer_next_expected) {
-                        let _ = acks.publish(ack);
+                        let _ = acks.publish(GcodeAck::from(ack));
                     }
                 }
             }
@@ -251,7 +251,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 flush_all = idle && (options.compensation.is_none() || stream_finished || stalled);
                 idle_cut = idle && !flush_all;
                 if let Some(ack) = intake.ack(done_until) {
-                    let _ = acks.publish(ack);
+                    let _ = acks.publish(GcodeAck::from(ack));
                 }
             }
         }
@@ -303,7 +303,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 }
             }
             if let Some(ack) = intake.ack(done_until) {
-                let _ = acks.publish(ack);
+                let _ = acks.publish(GcodeAck::from(ack));
             }
         }
     }

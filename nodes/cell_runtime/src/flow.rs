@@ -1,7 +1,8 @@
-//! Lossless flow control between the streamer and the consumers of `/gcode/moves`, without I/O.
+//! Lossless flow control over a pipeline link, without I/O: one implementation for every
+//! link (today `/gcode/moves`; any message type with a sequence number, [`Sequenced`]).
 //!
-//! Go-back-N over a reliable-but-volatile DDS topic. The streamer ([`SendWindow`]) keeps at
-//! most `window` moves that some consumer has not acknowledged. Each consumer ([`AckTracker`])
+//! Go-back-N over a reliable-but-volatile DDS topic. The producer ([`SendWindow`]) keeps at
+//! most `window` messages that some consumer has not acknowledged. Each consumer ([`AckTracker`])
 //! processes moves strictly in sequence order, drops duplicates, and on a gap (a move lost
 //! before the DDS reader matched, say) keeps acknowledging the first missing sequence number.
 //! When acknowledgements stop advancing for `resend_after`, the streamer goes back to the
@@ -16,10 +17,51 @@ use std::time::Duration;
 
 use polar_cell_msgs::{GcodeAck, GcodeMove};
 
-/// Options of the streamer's window.
+/// A message that travels a flow-controlled link: numbered 0, 1, 2, … by its producer.
+pub trait Sequenced {
+    fn sequence(&self) -> u64;
+}
+
+impl Sequenced for GcodeMove {
+    fn sequence(&self) -> u64 {
+        self.sequence
+    }
+}
+
+/// A consumer's acknowledgement: everything before `next_expected` is done; `resume`
+/// announces a (re)started consumer that wants to learn its resume point.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Ack {
+    /// The consumer's fully qualified node name.
+    pub consumer: String,
+    pub next_expected: u64,
+    pub resume: bool,
+}
+
+impl From<&GcodeAck> for Ack {
+    fn from(ack: &GcodeAck) -> Ack {
+        Ack {
+            consumer: ack.consumer.clone(),
+            next_expected: ack.next_expected,
+            resume: ack.resume,
+        }
+    }
+}
+
+impl From<Ack> for GcodeAck {
+    fn from(ack: Ack) -> GcodeAck {
+        GcodeAck {
+            consumer: ack.consumer,
+            next_expected: ack.next_expected,
+            resume: ack.resume,
+        }
+    }
+}
+
+/// Options of a producer's window.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WindowOptions {
-    /// Most moves in flight (sent or queued, not acknowledged by every consumer).
+    /// Most messages in flight (sent or queued, not acknowledged by every consumer).
     pub window: usize,
     /// Go back to the oldest unacknowledged move when no acknowledgement advanced for this long.
     pub resend_after: Duration,
@@ -45,11 +87,11 @@ struct ConsumerState {
     ready: bool,
 }
 
-/// The streamer's side: a bounded buffer of unacknowledged moves.
+/// The producer's side: a bounded buffer of unacknowledged messages.
 #[derive(Debug)]
-pub struct SendWindow {
+pub struct SendWindow<T> {
     options: WindowOptions,
-    buffer: VecDeque<GcodeMove>,
+    buffer: VecDeque<T>,
     /// Sequence number of `buffer[0]`.
     base: u64,
     next_to_send: u64,
@@ -58,7 +100,7 @@ pub struct SendWindow {
     resends: u64,
 }
 
-impl SendWindow {
+impl<T: Sequenced + Clone> SendWindow<T> {
     /// A window gated by the named consumers (fully qualified node names).
     pub fn new(options: WindowOptions, consumers: &[String]) -> Self {
         SendWindow {
@@ -85,16 +127,16 @@ impl SendWindow {
         self.buffer.len() < self.options.window
     }
 
-    /// Queue the next move; its sequence number must follow the previous one.
-    pub fn push(&mut self, mv: GcodeMove) {
-        debug_assert_eq!(mv.sequence, self.base + self.buffer.len() as u64);
-        self.buffer.push_back(mv);
+    /// Queue the next message; its sequence number must follow the previous one.
+    pub fn push(&mut self, message: T) {
+        debug_assert_eq!(message.sequence(), self.base + self.buffer.len() as u64);
+        self.buffer.push_back(message);
     }
 
     /// The next move to put on the wire, if any, without consuming it: call
     /// [`Self::mark_sent`] once it is actually published. Sending only starts once every
     /// consumer has announced itself, so nothing is published into a reader not yet matched.
-    pub fn peek_next(&self) -> Option<&GcodeMove> {
+    pub fn peek_next(&self) -> Option<&T> {
         if !self.all_present() {
             return None;
         }
@@ -110,7 +152,7 @@ impl SendWindow {
     }
 
     /// Peek and mark sent in one step (for callers whose send cannot fail).
-    pub fn next_to_send(&mut self) -> Option<GcodeMove> {
+    pub fn next_to_send(&mut self) -> Option<T> {
         let m = self.peek_next()?.clone();
         self.next_to_send += 1;
         Some(m)
@@ -123,7 +165,7 @@ impl SendWindow {
 
     /// Apply an acknowledgement received at monotonic time `now`. Unknown consumers are
     /// ignored (returns false) so a stray node cannot stall or speed up the stream.
-    pub fn on_ack(&mut self, ack: &GcodeAck, now: Duration) -> bool {
+    pub fn on_ack(&mut self, ack: &Ack, now: Duration) -> bool {
         let Some(c) = self.consumers.iter_mut().find(|c| c.name == ack.consumer) else {
             return false;
         };
@@ -246,8 +288,8 @@ impl AckTracker {
     }
 
     /// The announcement to publish (repeatedly) until the resume point is known.
-    pub fn hello(&self) -> GcodeAck {
-        GcodeAck {
+    pub fn hello(&self) -> Ack {
+        Ack {
             consumer: self.consumer.clone(),
             next_expected: self.next_expected,
             resume: true,
@@ -296,7 +338,7 @@ impl AckTracker {
     /// The acknowledgement to publish now, if one is due: after `ack_every` new moves, or any
     /// time `force` is set (idle timer; repeating an unchanged acknowledgement is harmless and
     /// recovers a lost one).
-    pub fn ack_due(&mut self, force: bool) -> Option<GcodeAck> {
+    pub fn ack_due(&mut self, force: bool) -> Option<Ack> {
         if !self.resume_point_known {
             return None;
         }
@@ -305,7 +347,7 @@ impl AckTracker {
             return None;
         }
         self.last_acked = self.next_expected;
-        Some(GcodeAck {
+        Some(Ack {
             consumer: self.consumer.clone(),
             next_expected: self.next_expected,
             resume: false,
@@ -316,13 +358,13 @@ impl AckTracker {
     /// later than they receive it (a planner's lookahead): only finished moves are
     /// acknowledged, so a restart resumes with the unfinished ones. Never beyond what was
     /// received.
-    pub fn ack_processed(&mut self, processed_until: u64) -> Option<GcodeAck> {
+    pub fn ack_processed(&mut self, processed_until: u64) -> Option<Ack> {
         if !self.resume_point_known {
             return None;
         }
         let next_expected = processed_until.min(self.next_expected).max(self.last_acked);
         self.last_acked = next_expected;
-        Some(GcodeAck {
+        Some(Ack {
             consumer: self.consumer.clone(),
             next_expected,
             resume: false,
@@ -335,7 +377,7 @@ impl AckTracker {
     }
 }
 
-/// How a node takes in `/gcode/moves`: as a flow-control consumer ([`AckTracker`]), or —
+/// How a node takes in a link: as a flow-control consumer ([`AckTracker`]), or —
 /// replaying a bag, with no streamer to acknowledge — simply in sequence order from 0.
 #[derive(Debug, Clone)]
 pub struct Intake {
@@ -365,7 +407,7 @@ impl Intake {
     }
 
     /// A progress report arrived: the confirmation to publish when it told the resume point.
-    pub fn on_progress(&mut self, consumers: &[String], next_expected: &[u64]) -> Option<GcodeAck> {
+    pub fn on_progress(&mut self, consumers: &[String], next_expected: &[u64]) -> Option<Ack> {
         let t = self.tracker.as_mut()?;
         if t.on_progress(consumers, next_expected) {
             t.ack_due(true)
@@ -376,7 +418,7 @@ impl Intake {
 
     /// What to publish now, given that every move before `processed_until` is finished: the
     /// announcement until the resume point is known, then the acknowledgement.
-    pub fn ack(&mut self, processed_until: u64) -> Option<GcodeAck> {
+    pub fn ack(&mut self, processed_until: u64) -> Option<Ack> {
         let t = self.tracker.as_mut()?;
         if t.needs_hello() {
             Some(t.hello())
@@ -501,7 +543,7 @@ mod tests {
             w.push(mv(s));
         }
         assert!(!w.has_room());
-        let ack = |name: &str, n| GcodeAck {
+        let ack = |name: &str, n| Ack {
             consumer: name.into(),
             next_expected: n,
             resume: false,

@@ -47,9 +47,18 @@ enum Command {
         /// No progress bar (for logs and CI).
         #[arg(long)]
         no_progress: bool,
+        /// Skip the pre-flight (planning the whole file before anything moves).
+        #[arg(long)]
+        no_preflight: bool,
     },
-    /// Parse a G-code file without DDS: counts, warnings, the first error.
-    Check { file: String },
+    /// Check a G-code file without DDS: parse it (counts, warnings, the first error), then
+    /// plan it whole as a print would (pre-flight: reach, limits, steps).
+    Check {
+        file: String,
+        /// Parse only.
+        #[arg(long)]
+        parse_only: bool,
+    },
     /// Plot r, θ, tool speed and screw rpm against time from a recorded print.
     Plot {
         /// The bag (file or directory).
@@ -131,8 +140,9 @@ async fn main() -> anyhow::Result<()> {
             bag,
             bag_dir,
             no_progress,
-        } => print_cmd::print(&file, &bag, bag_dir, !no_progress, &ros_args).await,
-        Command::Check { file } => print_cmd::check(&file),
+            no_preflight,
+        } => print_cmd::print(&file, &bag, bag_dir, !no_progress, !no_preflight, &ros_args).await,
+        Command::Check { file, parse_only } => print_cmd::check(&file, parse_only, &ros_args),
         Command::Plot { bag, out } => plot_cmd::plot(&bag, &out),
         Command::Mechanism { command } => mechanism_cmd::run(command),
         Command::Screw { command } => screw_cmd::run(command),

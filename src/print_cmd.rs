@@ -50,6 +50,30 @@ fn start_node(
     )?)
 }
 
+/// What the planner must know of the screw driver it plans for: the pin's rest (its `stop`
+/// strategy), the screw's top speed and calibration, and its flow time constant when the
+/// driver compensates the flow.
+fn planner_overrides(screw: &cell_runtime::Params) -> Vec<ParamOverride> {
+    let pin_dwell = match screw.string("pin_strategy") {
+        "stop" => screw.f64("pin_open_delay_s"),
+        _ => 0.0,
+    };
+    let flow_tau = if screw.bool("flow_compensation") {
+        screw.f64("flow_tau_s")
+    } else {
+        0.0
+    };
+    vec![
+        param("pin_open_dwell_s", pin_dwell.to_string()),
+        param("screw_max_rpm", format!("{:?}", screw.f64("max_rpm"))),
+        param(
+            "screw_e_per_rev_m",
+            format!("{:?}", screw.f64("e_per_rev_m")),
+        ),
+        param("screw_flow_tau_s", format!("{flow_tau:?}")),
+    ]
+}
+
 /// What a node task that should run until the print ends means when it ends first.
 fn stopped(
     name: &str,
@@ -105,6 +129,7 @@ pub async fn print(
     bag: &Path,
     bag_dir: bool,
     show_progress: bool,
+    run_preflight: bool,
     ros_args: &RosArgs,
 ) -> anyhow::Result<()> {
     let recorder_specs = cell_bag::node::param_specs();
@@ -120,6 +145,27 @@ pub async fn print(
             &screw_specs,
         ],
     )?;
+    // Before any node starts (no DDS, no bag): the whole file with the parameters the nodes
+    // will get.
+    if run_preflight && file != "-" {
+        let resolve = |name: &str, specs: &[ParamSpec], ours| {
+            cell_runtime::resolve_node(name, specs, &args_for(ros_args, name, specs, ours))
+                .map(|(_, params)| params)
+        };
+        let screw = resolve(screw_driver::node::NODE_NAME, &screw_specs, vec![])?;
+        let planner = resolve(
+            polar_planner::node::NODE_NAME,
+            &planner_specs,
+            planner_overrides(&screw),
+        )?;
+        let streamer = resolve(gcode_streamer::node::NODE_NAME, &streamer_specs, vec![])?;
+        let started = std::time::Instant::now();
+        let report = preflight(file, &streamer, &planner)?;
+        eprintln!(
+            "{file}: pre-flight passed: {}",
+            describe(&report, started.elapsed())
+        );
+    }
     let (input, total) = open_input(file)?;
 
     let recorder_node = start_node(
@@ -138,38 +184,11 @@ pub async fn print(
         ros_args,
         vec![],
     )?;
-    // The stop strategy needs the planner to rest for the pin.
-    let pin_dwell = match screw_node.params.string("pin_strategy") {
-        "stop" => screw_node.params.f64("pin_open_delay_s"),
-        _ => 0.0,
-    };
     let mut planner_node = start_node(
         polar_planner::node::NODE_NAME,
         &planner_specs,
         ros_args,
-        vec![
-            param("pin_open_dwell_s", pin_dwell.to_string()),
-            // The plan respects the screw the driver runs (its top speed and calibration).
-            param(
-                "screw_max_rpm",
-                format!("{:?}", screw_node.params.f64("max_rpm")),
-            ),
-            param(
-                "screw_e_per_rev_m",
-                format!("{:?}", screw_node.params.f64("e_per_rev_m")),
-            ),
-            param(
-                "screw_flow_tau_s",
-                format!(
-                    "{:?}",
-                    if screw_node.params.bool("flow_compensation") {
-                        screw_node.params.f64("flow_tau_s")
-                    } else {
-                        0.0
-                    }
-                ),
-            ),
-        ],
+        planner_overrides(&screw_node.params),
     )?;
     let consumers = format!(
         "[{:?}, {:?}, {:?}]",
@@ -177,6 +196,12 @@ pub async fn print(
         planner_node.fully_qualified_name(),
         screw_node.fully_qualified_name()
     );
+    let mut streamer = start_node(
+        gcode_streamer::node::NODE_NAME,
+        &streamer_specs,
+        ros_args,
+        vec![param("consumers", consumers)],
+    )?;
     let mut screw = tokio::spawn(async move {
         let result = screw_driver::node::run(&mut screw_node).await;
         (screw_node, result)
@@ -185,12 +210,6 @@ pub async fn print(
         let result = polar_planner::node::run(&mut planner_node).await;
         (planner_node, result)
     });
-    let mut streamer = start_node(
-        gcode_streamer::node::NODE_NAME,
-        &streamer_specs,
-        ros_args,
-        vec![param("consumers", consumers)],
-    )?;
 
     let bar = if show_progress {
         let bar = ProgressBar::new(total.max(1));
@@ -257,10 +276,57 @@ pub async fn print(
     }
 }
 
-/// `polar-cell check FILE`: the parser alone.
-pub fn check(file: &str) -> anyhow::Result<()> {
+/// The whole file through the planner and the step core as the print would run it (the
+/// streamer's interpreter options, the planner's options), before anything moves: a file that
+/// would fail later — a move beyond the arm's reach at its very end — is refused now, with its
+/// line, joint and value. Constant memory; the cost is one planning pass (README).
+fn preflight(
+    file: &str,
+    streamer: &cell_runtime::Params,
+    planner: &cell_runtime::Params,
+) -> anyhow::Result<polar_planner::PreflightReport> {
+    let (options, steps) = polar_planner::node::options_from_params(planner)?;
+    let interpreter = gcode_streamer::node::interpreter_options(streamer)?;
     let (input, _) = open_input(file)?;
-    let mut reader = GcodeReader::new(input, file, Default::default());
+    let mut reader = GcodeReader::new(input, file, interpreter);
+    let mut check = polar_planner::Preflight::new(options, steps)?;
+    for event in reader.by_ref() {
+        if let Event::Move(m) = event? {
+            check
+                .push(&m)
+                .with_context(|| format!("{file}: pre-flight refuses the print"))?;
+        }
+    }
+    Ok(check
+        .finish()
+        .with_context(|| format!("{file}: pre-flight refuses the print"))?)
+}
+
+fn describe(report: &polar_planner::PreflightReport, took: Duration) -> String {
+    let t = report.plan_time_s;
+    format!(
+        "{} moves, {:.0}:{:02.0}:{:04.1} of machine time, {} step segments; checked in {:.2} s",
+        report.moves,
+        (t / 3600.0).floor(),
+        (t % 3600.0 / 60.0).floor(),
+        t % 60.0,
+        report.segments,
+        took.as_secs_f64()
+    )
+}
+
+/// `polar-cell check FILE`: the parser, then (unless `parse_only`) the pre-flight with the
+/// parameters the print's nodes would get from the same ROS arguments.
+pub fn check(file: &str, parse_only: bool, ros_args: &RosArgs) -> anyhow::Result<()> {
+    let (input, _) = open_input(file)?;
+    let streamer_specs = gcode_streamer::node::param_specs();
+    let (_, streamer) =
+        cell_runtime::resolve_node(gcode_streamer::node::NODE_NAME, &streamer_specs, ros_args)?;
+    let mut reader = GcodeReader::new(
+        input,
+        file,
+        gcode_streamer::node::interpreter_options(&streamer)?,
+    );
     let mut moves = 0u64;
     let mut warnings = 0u64;
     for event in reader.by_ref() {
@@ -277,5 +343,16 @@ pub fn check(file: &str) -> anyhow::Result<()> {
         reader.lines_read(),
         reader.bytes_read()
     );
+    if !parse_only && file != "-" {
+        let planner_specs = polar_planner::node::param_specs();
+        let (_, planner) =
+            cell_runtime::resolve_node(polar_planner::node::NODE_NAME, &planner_specs, ros_args)?;
+        let started = std::time::Instant::now();
+        let report = preflight(file, &streamer, &planner)?;
+        println!(
+            "{file}: pre-flight passed: {}",
+            describe(&report, started.elapsed())
+        );
+    }
     Ok(())
 }

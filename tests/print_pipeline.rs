@@ -124,3 +124,81 @@ fn unknown_parameter_is_an_error_that_names_it() {
         "{stderr}"
     );
 }
+
+/// A file whose very last move leaves the arm's reach is refused by the pre-flight, naming the
+/// line, the joint and where it would go — before any node starts: no bag is even created.
+/// `--no-preflight` starts the print, which then fails at that move.
+#[test]
+fn a_file_leaving_the_reach_at_its_end_is_refused_before_anything_moves() {
+    let fixture =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/polartest.gcode");
+    let dir = std::env::temp_dir().join(format!("polar-cell-preflight-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let gcode = dir.join("beyond.gcode");
+    let mut text = std::fs::read_to_string(&fixture).unwrap();
+    let last_line = text.lines().count() + 1;
+    text.push_str("G1 X120 Y120 F3000\n"); // r = 169.7 mm > 150 mm
+    std::fs::write(&gcode, text).unwrap();
+    let bag = dir.join("refused.mcap");
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .env("ROS_DOMAIN_ID", "44")
+        .arg("print")
+        .arg(&gcode)
+        .arg("--bag")
+        .arg(&bag)
+        .arg("--no-progress")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "{stderr}");
+    assert!(stderr.contains("pre-flight refuses the print"), "{stderr}");
+    assert!(
+        stderr.contains(&format!("(line {last_line}): arm_r would reach 0.169706")),
+        "{stderr}"
+    );
+    assert!(!bag.exists(), "nothing started, no bag");
+    // The same through `check`.
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .arg("check")
+        .arg(&gcode)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success());
+    assert!(stderr.contains(&format!("(line {last_line}): arm_r")), "{stderr}");
+    // Without it the print starts, and the planner stops at that move after the whole part.
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .env("ROS_DOMAIN_ID", "44")
+        .arg("print")
+        .arg(&gcode)
+        .arg("--bag")
+        .arg(&bag)
+        .args(["--no-progress", "--no-preflight"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "{stderr}");
+    assert!(stderr.contains(&format!("(line {last_line}): arm_r")), "{stderr}");
+    assert!(bag.exists(), "this time the print had started");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The pre-flight of a good file reports its machine time before the print starts.
+#[test]
+fn the_preflight_reports_the_machine_time_of_a_good_file() {
+    let fixture =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .arg("check")
+        .arg(&fixture)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(out.status.success(), "{stdout}");
+    // finger's plan with the screw's limits: 168.1 s (the planner's own tests: 165.8 s
+    // without them).
+    assert!(
+        stdout.contains("pre-flight passed: 1778 moves, 0:02:48.1 of machine time"),
+        "{stdout}"
+    );
+}

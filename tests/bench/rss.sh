@@ -36,7 +36,7 @@ with open(path, "w") as f:
         i += 1
 PY
   size=$(stat -c %s "$work/in.gcode")
-  check=$(peak_kb "$bin" check "$work/in.gcode")
+  check=$(peak_kb "$bin" check --parse-only "$work/in.gcode")
   if [[ $(id -u) == 0 ]] && unshare -n true 2>/dev/null; then
     print=$(unshare -n bash -c "ip link set lo up; ip link set lo multicast on; $(declare -f peak_kb); work=$work; peak_kb $bin print $work/in.gcode --bag $work/out.mcap --no-progress")
   else

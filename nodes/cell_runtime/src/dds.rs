@@ -146,6 +146,34 @@ impl Drop for SpinnerExit {
     }
 }
 
+/// The names and parameters the node `default_name` gets from the ROS command line (remaps,
+/// parameter files, `-p`), without DDS: what [`CellNode::start`] resolves, for tools that
+/// need a node's configuration without running it (pre-flight).
+pub fn resolve_node(
+    default_name: &str,
+    specs: &[ParamSpec],
+    ros_args: &RosArgs,
+) -> Result<(NameResolver, Params), RuntimeError> {
+    let node_name = ros_args.node_name(default_name);
+    let namespace = ros_args.namespace(default_name, "/");
+    let names = NameResolver::new(&node_name, &namespace, &ros_args.remaps)?;
+    let mut files = Vec::new();
+    for path in &ros_args.params_files {
+        let text = std::fs::read_to_string(path).map_err(|e| RuntimeError::ParamsFile {
+            path: path.clone(),
+            problem: e.to_string(),
+        })?;
+        files.push((path.clone(), text));
+    }
+    let params = Params::resolve(
+        specs,
+        &names.fully_qualified_node_name(),
+        &files,
+        &ros_args.params,
+    )?;
+    Ok((names, params))
+}
+
 impl CellNode {
     /// Start a node that takes nothing but ROS arguments from its command line `argv`
     /// (without the program name): anything else is an error.
@@ -183,21 +211,7 @@ impl CellNode {
     ) -> Result<CellNode, RuntimeError> {
         let node_name = ros_args.node_name(default_name);
         let namespace = ros_args.namespace(default_name, "/");
-        let names = NameResolver::new(&node_name, &namespace, &ros_args.remaps)?;
-        let mut files = Vec::new();
-        for path in &ros_args.params_files {
-            let text = std::fs::read_to_string(path).map_err(|e| RuntimeError::ParamsFile {
-                path: path.clone(),
-                problem: e.to_string(),
-            })?;
-            files.push((path.clone(), text));
-        }
-        let params = Params::resolve(
-            specs,
-            &names.fully_qualified_node_name(),
-            &files,
-            &ros_args.params,
-        )?;
+        let (names, params) = resolve_node(default_name, specs, ros_args)?;
         // Parameters are read at start-up; the validator (which ros2-client also runs on the
         // declarations) accepts exactly the resolved values and refuses any later change.
         let declared: std::collections::BTreeMap<String, ParameterValue> = params

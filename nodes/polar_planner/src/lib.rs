@@ -6,6 +6,7 @@
 //! * [`planner`] — the lookahead planner (centre handling, corners, dwells);
 //! * [`steps`] — corrected Leib ramp and seed-001 pulse distribution, and their decoder;
 //! * [`check`] — independent checks of a plan: path deviation and limits;
+//! * [`preflight`] — a whole file planned and cut into steps before anything moves;
 //! * [`urdf`] — the joint limits from the printer's URDF.
 //!
 //! Pure: no DDS, no files. The node (feature `node`) wires it to topics.
@@ -17,6 +18,7 @@ pub mod check;
 pub mod messages;
 pub mod path;
 pub mod planner;
+pub mod preflight;
 pub mod steps;
 pub mod timing;
 pub mod urdf;
@@ -24,6 +26,7 @@ pub mod urdf;
 pub use planner::{
     PlanError, PlannedMove, Planner, PlannerOptions, ScrewLimits, TrajPoint, JOINT_NAMES,
 };
+pub use preflight::{Preflight, PreflightError, PreflightReport};
 pub use timing::JointLimits;
 
 #[cfg(feature = "node")]

@@ -1,0 +1,154 @@
+//! Pre-flight: the whole file through the planner and the step core before anything moves.
+//!
+//! A print that would fail at its last move (a point beyond the arm's reach, a feed the planner
+//! refuses) must be refused before the first one moves the machine. [`Preflight`] plans every
+//! move with the print's own options, cuts the plan into step segments and converts each for
+//! the step core, keeping nothing but counters: memory does not grow with the file.
+
+use polar_cell_msgs::{GcodeMove, StepSegment};
+
+use crate::planner::{PlanError, PlannedMove, Planner, PlannerOptions};
+use crate::steps::{StepGenerator, StepOptions};
+
+/// What a file asks of the machine, when it passes.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PreflightReport {
+    pub moves: u64,
+    /// Machine time of the whole plan (s).
+    pub plan_time_s: f64,
+    pub segments: u64,
+    /// Steps each axis makes (either direction).
+    pub steps: [u64; 3],
+    /// Range of each joint over the plan: (min, max) of `bed_theta` (rad), `arm_r`, `z` (m).
+    pub joint_ranges: [(f64, f64); 3],
+}
+
+/// Why a file is refused.
+#[derive(Debug, thiserror::Error)]
+pub enum PreflightError {
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+    #[error("move {sequence} (line {line}): its steps cannot be played: {source}")]
+    Steps {
+        sequence: u64,
+        line: u32,
+        source: step_core::SegmentError,
+    },
+}
+
+/// Plans moves one by one and forgets them.
+pub struct Preflight {
+    planner: Planner,
+    generator: StepGenerator,
+    report: PreflightReport,
+    planned: Vec<PlannedMove>,
+    segments: Vec<StepSegment>,
+}
+
+impl Preflight {
+    pub fn new(options: PlannerOptions, steps: StepOptions) -> Result<Preflight, PlanError> {
+        let initial = options.initial_joints;
+        Ok(Preflight {
+            planner: Planner::new(options)?,
+            generator: StepGenerator::new(steps, initial),
+            report: PreflightReport {
+                joint_ranges: std::array::from_fn(|j| (initial[j], initial[j])),
+                ..PreflightReport::default()
+            },
+            planned: Vec::new(),
+            segments: Vec::new(),
+        })
+    }
+
+    /// Check the next move (and whatever the planner finishes with it).
+    pub fn push(&mut self, m: &GcodeMove) -> Result<(), PreflightError> {
+        self.report.moves += 1;
+        self.planner.push(m, &mut self.planned)?;
+        self.drain()
+    }
+
+    /// Check the end of the plan and report.
+    pub fn finish(mut self) -> Result<PreflightReport, PreflightError> {
+        self.planner.flush(&mut self.planned);
+        self.drain()?;
+        Ok(self.report)
+    }
+
+    fn drain(&mut self) -> Result<(), PreflightError> {
+        for plan in self.planned.drain(..) {
+            for p in &plan.points {
+                for j in 0..3 {
+                    let (lo, hi) = &mut self.report.joint_ranges[j];
+                    *lo = lo.min(p.q[j]);
+                    *hi = hi.max(p.q[j]);
+                }
+            }
+            self.report.plan_time_s = plan.end_time();
+            self.segments.clear();
+            self.generator.segments(&plan, &mut self.segments);
+            for seg in &self.segments {
+                seg.compile().map_err(|source| PreflightError::Steps {
+                    sequence: plan.sequence,
+                    line: plan.source_line,
+                    source,
+                })?;
+                for (total, &count) in self.report.steps.iter_mut().zip(&seg.step_counts) {
+                    *total += count as u64;
+                }
+            }
+            self.report.segments += self.segments.len() as u64;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use polar_cell_msgs::GcodeMove as M;
+
+    fn line(sequence: u64, x_m: f64, y_m: f64, source_line: u32) -> GcodeMove {
+        GcodeMove {
+            sequence,
+            source_line,
+            kind: M::KIND_LINEAR,
+            x_m,
+            y_m,
+            feedrate_m_per_s: 0.05,
+            axes: M::AXIS_X | M::AXIS_Y,
+            ..GcodeMove::default()
+        }
+    }
+
+    #[test]
+    fn a_move_beyond_the_arms_reach_is_refused_with_its_line_joint_and_value() {
+        let mut preflight =
+            Preflight::new(PlannerOptions::default(), StepOptions::default()).unwrap();
+        preflight.push(&line(0, 0.05, 0.0, 3)).unwrap();
+        preflight.push(&line(1, 0.0, 0.10, 4)).unwrap();
+        let err = preflight.push(&line(2, 0.12, 0.12, 57)).unwrap_err();
+        let text = err.to_string();
+        // √(0.12² + 0.12²) = 0.1697 m, beyond the URDF's 0.15 m.
+        assert!(text.contains("line 57") && text.contains("arm_r"), "{text}");
+        assert!(text.contains("0.169706"), "{text}");
+    }
+
+    #[test]
+    fn a_good_file_reports_its_time_steps_and_ranges() {
+        let mut preflight =
+            Preflight::new(PlannerOptions::default(), StepOptions::default()).unwrap();
+        preflight.push(&line(0, 0.05, 0.0, 1)).unwrap();
+        preflight.push(&line(1, -0.05, 0.0, 2)).unwrap();
+        let report = preflight.finish().unwrap();
+        assert_eq!(report.moves, 2);
+        assert!(
+            report.plan_time_s > 2.0 && report.plan_time_s < 4.0,
+            "{report:?}"
+        );
+        // Out to r = 50 mm (80 steps/mm: 4000 steps), through the centre and out again: the
+        // arm makes 3 × 4000 steps whichever way the centre is crossed.
+        assert_eq!(report.steps[1], 12_000, "{report:?}");
+        let (lo, hi) = report.joint_ranges[1];
+        assert!(lo.abs() < 1e-12 && (hi - 0.05).abs() < 1e-12, "{report:?}");
+    }
+}

@@ -165,7 +165,10 @@ fn a_file_leaving_the_reach_at_its_end_is_refused_before_anything_moves() {
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
     assert!(!out.status.success());
-    assert!(stderr.contains(&format!("(line {last_line}): arm_r")), "{stderr}");
+    assert!(
+        stderr.contains(&format!("(line {last_line}): arm_r")),
+        "{stderr}"
+    );
     // Without it the print starts, and the planner stops at that move after the whole part.
     let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
         .env("ROS_DOMAIN_ID", "44")
@@ -178,7 +181,10 @@ fn a_file_leaving_the_reach_at_its_end_is_refused_before_anything_moves() {
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
     assert!(!out.status.success(), "{stderr}");
-    assert!(stderr.contains(&format!("(line {last_line}): arm_r")), "{stderr}");
+    assert!(
+        stderr.contains(&format!("(line {last_line}): arm_r")),
+        "{stderr}"
+    );
     assert!(bag.exists(), "this time the print had started");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -128,8 +128,20 @@ fn quiet_mcap_panics() {
     }));
 }
 
+/// Output piped into a reader that stops early (`polar-cell bag info X | head`) ends the
+/// process quietly, as it does any Unix tool, instead of panicking on the failed write: Rust
+/// ignores SIGPIPE by default. DDS uses UDP, which never raises it.
+fn default_sigpipe() {
+    // SAFETY: `signal` with SIG_DFL has no memory-safety preconditions; it is set before any
+    // output is written.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
+    default_sigpipe();
     cell_runtime::init_logging("warn,polar_cell=info");
     quiet_mcap_panics();
     let (argv, ros_args) = split_ros_args()?;

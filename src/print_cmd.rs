@@ -166,6 +166,23 @@ pub async fn print(
             describe(&report, started.elapsed())
         );
     }
+    // The nodes of one process share its command line: an unprefixed node rename would give
+    // them all one name (and the print would wait for consumers that never appear).
+    if let Some(rename) = ros_args
+        .remaps
+        .iter()
+        .find(|r| r.node.is_none() && r.from == "__node")
+    {
+        bail!(
+            "-r __node:={0} would give every node of this print the name {0:?}; rename one \
+             with -r NODE:__node:={0} (NODE: {1}, {2}, {3} or {4})",
+            rename.to,
+            gcode_streamer::node::NODE_NAME,
+            polar_planner::node::NODE_NAME,
+            screw_driver::node::NODE_NAME,
+            cell_bag::node::NODE_NAME,
+        );
+    }
     let (input, total) = open_input(file)?;
 
     let recorder_node = start_node(
@@ -250,9 +267,8 @@ pub async fn print(
     let recorded = recorder.stop().await.context("finishing the bag")?;
     match outcome {
         None => {
-            eprintln!("interrupted; the bag was finished");
             print_summary(&recorded);
-            Ok(())
+            bail!("interrupted before the end of {file}; the bag was finished")
         }
         Some(Err(e)) => {
             print_summary(&recorded);
@@ -297,9 +313,9 @@ fn preflight(
                 .with_context(|| format!("{file}: pre-flight refuses the print"))?;
         }
     }
-    Ok(check
+    check
         .finish()
-        .with_context(|| format!("{file}: pre-flight refuses the print"))?)
+        .with_context(|| format!("{file}: pre-flight refuses the print"))
 }
 
 fn describe(report: &polar_planner::PreflightReport, took: Duration) -> String {

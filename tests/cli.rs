@@ -1,0 +1,102 @@
+//! The command-line tool as a shell user meets it: pipes, wrong remaps, interruptions.
+
+use std::io::Write;
+use std::os::unix::process::ExitStatusExt;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// `polar-cell bag info BAG | head` where the reader has already gone: the write fails and
+/// the tool ends quietly by SIGPIPE, like any Unix tool — no panic message, no exit 101.
+#[test]
+fn output_into_a_closed_pipe_ends_quietly() {
+    let bag = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/polartest_moves.mcap");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .args(["bag", "info"])
+        .arg(&bag)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take()); // the reader end closes before anything is written
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        out.status.signal(),
+        Some(libc::SIGPIPE),
+        "{:?} {stderr}",
+        out.status
+    );
+    assert!(stderr.is_empty(), "{stderr}");
+}
+
+/// An unprefixed `-r __node:=NAME` would name every node of the print alike: refused at once.
+#[test]
+fn an_unprefixed_node_rename_is_refused_at_once() {
+    let fixture =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/polartest.gcode");
+    let started = Instant::now();
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .env("ROS_DOMAIN_ID", "45")
+        .arg("print")
+        .arg(&fixture)
+        .args([
+            "--bag",
+            "/dev/null",
+            "--no-progress",
+            "--ros-args",
+            "-r",
+            "__node:=foo",
+        ])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("rename one with -r NODE:__node:=foo (NODE: gcode_streamer,"),
+        "{stderr}"
+    );
+    assert!(started.elapsed() < Duration::from_secs(5));
+}
+
+/// A print stopped by SIGINT finishes its bag and exits non-zero.
+#[test]
+fn an_interrupted_print_finishes_its_bag_and_exits_non_zero() {
+    let dir = std::env::temp_dir().join(format!("polar-cell-sigint-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let gcode = dir.join("long.gcode");
+    let mut f = std::io::BufWriter::new(std::fs::File::create(&gcode).unwrap());
+    for i in 0..400_000 {
+        let a = i as f64 * 0.01;
+        writeln!(f, "G1 X{:.3} Y{:.3} F3000", 30.0 * a.cos(), 30.0 * a.sin()).unwrap();
+    }
+    drop(f);
+    let bag = dir.join("interrupted.mcap");
+    let child = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .env("ROS_DOMAIN_ID", "46")
+        .arg("print")
+        .arg(&gcode)
+        .arg("--bag")
+        .arg(&bag)
+        .args(["--no-progress", "--no-preflight"])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    // SAFETY: sending a signal to our own child process.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("interrupted before the end of"), "{stderr}");
+    let bytes = std::fs::read(&bag).unwrap();
+    let contents = cell_bag::read_bag(&bytes).unwrap();
+    let moves = contents
+        .info
+        .topics
+        .iter()
+        .find(|t| t.name == "/gcode/moves")
+        .map_or(0, |t| t.message_count);
+    assert!(moves > 0 && moves < 400_000, "{moves} moves recorded");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -276,8 +276,9 @@ def test_print_nodes_appear_under_their_default_names(polar_cell, tmp_path):
         # SIGINT: the nodes shut down cleanly and the bag is finished.
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=30)
-    assert proc.returncode == 0, err
-    assert "interrupted; the bag was finished" in err
+    # An interrupted print says so and exits non-zero, with its bag finished.
+    assert proc.returncode == 1, err
+    assert "interrupted before the end of" in err and "the bag was finished" in err
     assert_readable_by_independent_readers(tmp_path / "x.mcap")
     assert ("/", "gcode_streamer") in nodes, sorted(nodes)
     assert ("/", "bag_recorder") in nodes, sorted(nodes)

@@ -8,8 +8,9 @@ use std::process::Command;
 use cell_bag::read_bag;
 use polar_cell_msgs::{cdr, GcodeMove};
 
-/// Tests run in parallel: each uses its own DDS domain so their nodes never meet.
-fn print(domain: u16, gcode: &Path, bag: &Path, extra: &[&str]) -> String {
+/// `polar-cell print GCODE --bag BAG --no-progress EXTRA…` on DDS domain `domain` (tests run
+/// in parallel: each uses its own domain so their nodes never meet): success and stderr.
+fn run_print(domain: u16, gcode: &Path, bag: &Path, extra: &[&str]) -> (bool, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
         .env("ROS_DOMAIN_ID", domain.to_string())
         .arg("print")
@@ -20,8 +21,16 @@ fn print(domain: u16, gcode: &Path, bag: &Path, extra: &[&str]) -> String {
         .args(extra)
         .output()
         .expect("running polar-cell");
-    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(out.status.success(), "polar-cell print failed:\n{stderr}");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// A print that must succeed: its stderr.
+fn print(domain: u16, gcode: &Path, bag: &Path, extra: &[&str]) -> String {
+    let (ok, stderr) = run_print(domain, gcode, bag, extra);
+    assert!(ok, "polar-cell print failed:\n{stderr}");
     stderr
 }
 
@@ -99,16 +108,10 @@ fn small_window_forces_flow_control_and_still_loses_nothing() {
 fn failing_print(ros_args: &[&str]) -> String {
     let fixture =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
-    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
-        .env("ROS_DOMAIN_ID", "43")
-        .arg("print")
-        .arg(&fixture)
-        .args(["--bag", "/dev/null", "--no-progress", "--ros-args"])
-        .args(ros_args)
-        .output()
-        .unwrap();
-    assert!(!out.status.success());
-    String::from_utf8_lossy(&out.stderr).into_owned()
+    let extra: Vec<&str> = ["--ros-args"].iter().chain(ros_args).copied().collect();
+    let (ok, stderr) = run_print(43, &fixture, Path::new("/dev/null"), &extra);
+    assert!(!ok, "{stderr}");
+    stderr
 }
 
 #[test]
@@ -140,17 +143,8 @@ fn a_file_leaving_the_reach_at_its_end_is_refused_before_anything_moves() {
     text.push_str("G1 X120 Y120 F3000\n"); // r = 169.7 mm > 150 mm
     std::fs::write(&gcode, text).unwrap();
     let bag = dir.join("refused.mcap");
-    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
-        .env("ROS_DOMAIN_ID", "44")
-        .arg("print")
-        .arg(&gcode)
-        .arg("--bag")
-        .arg(&bag)
-        .arg("--no-progress")
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(!out.status.success(), "{stderr}");
+    let (ok, stderr) = run_print(44, &gcode, &bag, &[]);
+    assert!(!ok, "{stderr}");
     assert!(stderr.contains("pre-flight refuses the print"), "{stderr}");
     assert!(
         stderr.contains(&format!("(line {last_line}): arm_r would reach 0.169706")),
@@ -170,17 +164,8 @@ fn a_file_leaving_the_reach_at_its_end_is_refused_before_anything_moves() {
         "{stderr}"
     );
     // Without it the print starts, and the planner stops at that move after the whole part.
-    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
-        .env("ROS_DOMAIN_ID", "44")
-        .arg("print")
-        .arg(&gcode)
-        .arg("--bag")
-        .arg(&bag)
-        .args(["--no-progress", "--no-preflight"])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(!out.status.success(), "{stderr}");
+    let (ok, stderr) = run_print(44, &gcode, &bag, &["--no-preflight"]);
+    assert!(!ok, "{stderr}");
     assert!(
         stderr.contains(&format!("(line {last_line}): arm_r")),
         "{stderr}"

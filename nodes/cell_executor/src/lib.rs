@@ -16,6 +16,6 @@ pub mod player;
 pub mod screw;
 pub mod session;
 
-pub use player::{HoldReason, Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
+pub use player::{Edge, HoldReason, Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
 pub use screw::ScrewTrack;
 pub use session::{ExecError, Executor, ExecutorOptions, MachineState};

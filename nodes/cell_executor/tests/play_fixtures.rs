@@ -1,38 +1,18 @@
 //! The executor plays the real fixtures' plans: every step edge on the tick the planner's
 //! decoder gives, the executed position on the planned path, the end exactly on the plan's
-//! final step position.
+//! final step position; paused and resumed, the very same steps.
 
-use cell_executor::{Player, PlayerOptions, PlayerState, SegmentJob};
-use gcode_streamer::{parse_all, InterpreterOptions};
-use polar_cell_msgs::StepSegment;
-use polar_planner::steps::{decode, Pulse, StepGenerator, StepOptions};
-use polar_planner::{PlannedMove, Planner, PlannerOptions};
+// Joint-indexed comparisons read best with explicit indices.
+#![allow(clippy::needless_range_loop)]
+
+mod common;
+
+use cell_executor::{PlayerState, SegmentJob};
+use common::{acceleration_limits, plan_fixture, play_all};
+use polar_planner::steps::{decode, Pulse, StepOptions};
+use polar_planner::PlannedMove;
 
 const Q32: f64 = (1u64 << 32) as f64;
-
-fn plan_fixture(name: &str) -> (Vec<PlannedMove>, Vec<StepSegment>, StepGenerator) {
-    let path = format!(
-        "{}/../../../shared/fixtures/gcode/{name}",
-        env!("CARGO_MANIFEST_DIR")
-    );
-    let src = std::fs::read(path).unwrap();
-    let moves = parse_all(&src, name, InterpreterOptions::default())
-        .unwrap()
-        .0;
-    let options = PlannerOptions::default();
-    let mut planner = Planner::new(options.clone()).unwrap();
-    let mut planned = Vec::new();
-    for m in &moves {
-        planner.push(m, &mut planned).unwrap();
-    }
-    planner.flush(&mut planned);
-    let mut generator = StepGenerator::new(StepOptions::default(), options.initial_joints);
-    let mut segments = Vec::new();
-    for p in &planned {
-        generator.segments(p, &mut segments);
-    }
-    (planned, segments, generator)
-}
 
 /// The plan's joint position at plan time `t` (cubic Hermite between plan points).
 fn planned_at(planned: &[PlannedMove], t: f64) -> [f64; 3] {
@@ -61,85 +41,50 @@ fn planned_at(planned: &[PlannedMove], t: f64) -> [f64; 3] {
     std::array::from_fn(|j| h00 * a.q[j] + h10 * h * a.qd[j] + h01 * b.q[j] + h11 * h * b.qd[j])
 }
 
-fn acceleration_limits() -> [f64; 3] {
-    std::array::from_fn(|k| PlannerOptions::default().joints[k].acceleration)
-}
-
-fn initial_steps() -> [i64; 3] {
-    let steps = StepOptions::default();
-    std::array::from_fn(|k| {
-        (PlannerOptions::default().initial_joints[k] * steps.steps_per_unit[k]).round() as i64
-    })
-}
-
 #[test]
 fn the_executor_plays_both_fixtures_on_the_decoders_ticks_and_on_the_plan() {
+    let steps = StepOptions::default();
     for name in ["polartest.gcode", "finger.gcode"] {
-        let (planned, segments, generator) = plan_fixture(name);
-        let steps = StepOptions::default();
-        let initial_steps = initial_steps();
-        let mut player = Player::new(PlayerOptions {
-            queue_capacity: 1024,
-            initial_steps,
-            ..PlayerOptions::new(steps.clone(), acceleration_limits(), 0.25)
-        });
-
+        let fixture = plan_fixture(name);
         // What the planner's decoder says, per axis, on the same back-to-back timeline.
         let mut expected: [Vec<f64>; 3] = Default::default();
         let mut start_q32 = 0u64;
         let mut pulses: Vec<Pulse> = Vec::new();
-        let jobs: Vec<SegmentJob> = segments
-            .iter()
-            .map(|s| SegmentJob::from_message(s, steps.timer_hz).unwrap())
-            .collect();
-        for (seg, job) in segments.iter().zip(&jobs) {
+        for seg in &fixture.segments {
             pulses.clear();
             decode(seg, &mut pulses).unwrap();
             for p in &pulses {
                 expected[p.axis].push(start_q32 as f64 / Q32 + p.t * steps.timer_hz);
             }
-            start_q32 += job.duration_q32;
+            start_q32 += SegmentJob::from_message(seg, steps.timer_hz)
+                .unwrap()
+                .duration_q32;
         }
-
-        // Play in 1 ms control periods, keeping the queue topped up; sample the executed
-        // position every 20 ms (50 Hz) against the plan.
+        // Play in 1 ms control periods; sample the executed position every 20 ms (50 Hz)
+        // against the plan.
         let mut executed: [Vec<f64>; 3] = Default::default();
-        let mut feed = jobs.into_iter().peekable();
-        let (mut now_ticks, mut worst_steps) = (0u64, [0.0f64; 3]);
-        loop {
-            while player.free_slots() > 0 {
-                match feed.next() {
-                    Some(job) => player.push(job).unwrap(),
-                    None => {
-                        player.finish_input();
-                        break;
+        let mut worst_steps = [0.0f64; 3];
+        let player = play_all(
+            &fixture.segments,
+            |edge| {
+                for (k, times) in executed.iter_mut().enumerate() {
+                    if edge.axes >> k & 1 == 1 {
+                        times.push(edge.time_q32 as f64 / Q32);
                     }
                 }
-            }
-            player
-                .advance_to(now_ticks << 32, |edge| {
-                    for (k, times) in executed.iter_mut().enumerate() {
-                        if edge.axes >> k & 1 == 1 {
-                            times.push(edge.time_q32 as f64 / Q32);
-                        }
+            },
+            |player, ms| {
+                if ms % 20 == 0 {
+                    let plan_t = player.plan_time_q32() as f64 / Q32 / steps.timer_hz;
+                    let q = planned_at(&fixture.planned, plan_t);
+                    let at = player.position_steps();
+                    for k in 0..3 {
+                        let off = (at[k] as f64 - q[k] * steps.steps_per_unit[k]).abs();
+                        worst_steps[k] = worst_steps[k].max(off);
                     }
-                })
-                .unwrap();
-            if now_ticks % 20_000 == 0 {
-                let plan_t = player.plan_time_q32() as f64 / Q32 / steps.timer_hz;
-                let q = planned_at(&planned, plan_t);
-                let at = player.position_steps();
-                for k in 0..3 {
-                    let off = (at[k] as f64 - q[k] * steps.steps_per_unit[k]).abs();
-                    worst_steps[k] = worst_steps[k].max(off);
                 }
-            }
-            if player.state() == PlayerState::Idle && feed.peek().is_none() {
-                break;
-            }
-            now_ticks += 1000;
-        }
-
+            },
+        );
         let mut worst_tick = 0.0f64;
         for k in 0..3 {
             assert_eq!(executed[k].len(), expected[k].len(), "{name}: axis {k}");
@@ -147,14 +92,14 @@ fn the_executor_plays_both_fixtures_on_the_decoders_ticks_and_on_the_plan() {
                 worst_tick = worst_tick.max((e - x).abs());
             }
         }
-        assert_eq!(player.position_steps(), generator.position(), "{name}");
+        assert_eq!(player.position_steps(), fixture.end_steps, "{name}");
         assert_eq!(player.underruns(), 0);
-        let plan_end = planned.last().unwrap().end_time();
+        let plan_end = fixture.planned.last().unwrap().end_time();
         let played = player.plan_time_q32() as f64 / Q32 / steps.timer_hz;
         eprintln!(
             "{name}: {} segments, {} edges, {plan_end:.3} s; worst edge vs decoder {worst_tick:.2e} \
              ticks; worst executed − planned position at 50 Hz (steps) {worst_steps:.2?}",
-            segments.len(),
+            fixture.segments.len(),
             executed.iter().map(Vec::len).sum::<usize>(),
         );
         assert!(
@@ -176,73 +121,45 @@ fn the_executor_plays_both_fixtures_on_the_decoders_ticks_and_on_the_plan() {
     }
 }
 
-/// Play `segments` in 1 ms periods, calling `each_ms(player, ms)`; every edge's axes and
-/// directions in order, and the player at the end.
-fn play_all(
-    segments: &[StepSegment],
-    mut each_ms: impl FnMut(&mut Player, u64),
-) -> (Vec<(u8, u8)>, Player) {
-    let steps = StepOptions::default();
-    let mut player = Player::new(PlayerOptions {
-        queue_capacity: 1024,
-        initial_steps: initial_steps(),
-        ..PlayerOptions::new(steps.clone(), acceleration_limits(), 0.25)
-    });
-    let mut feed = segments
-        .iter()
-        .map(|s| SegmentJob::from_message(s, steps.timer_hz).unwrap())
-        .peekable();
-    let (mut edges, mut ms) = (Vec::new(), 0u64);
-    loop {
-        while player.free_slots() > 0 {
-            match feed.next() {
-                Some(job) => player.push(job).unwrap(),
-                None => {
-                    player.finish_input();
-                    break;
-                }
-            }
-        }
-        player
-            .advance_to((ms * 1000) << 32, |e| edges.push((e.axes, e.negative)))
-            .unwrap();
-        each_ms(&mut player, ms);
-        if player.state() == PlayerState::Idle && feed.peek().is_none() && ms > 0 {
-            return (edges, player);
-        }
-        ms += 1;
-    }
-}
-
 /// Paused three times and resumed, finger prints the very same steps in the same order and
 /// ends on the same position; each pause comes to rest within v/A + 20 ms, held still.
 #[test]
 fn pausing_and_resuming_finger_three_times_steps_exactly_as_without() {
-    let (_, segments, generator) = plan_fixture("finger.gcode");
-    let (plain, plain_player) = play_all(&segments, |_, _| {});
+    let fixture = plan_fixture("finger.gcode");
+    let mut plain = Vec::new();
+    let plain_player = play_all(
+        &fixture.segments,
+        |e| plain.push((e.axes, e.negative)),
+        |_, _| {},
+    );
     let limits = acceleration_limits();
     let mut stops = Vec::new();
-    let mut pending: Option<(u64, f64, [i64; 3])> = None;
-    let (paused, paused_player) = play_all(&segments, |player, ms| {
-        if [20_000, 60_000, 120_000].contains(&ms) {
-            let v = player.velocity();
-            let bound = (0..3).map(|k| v[k].abs() / limits[k]).fold(0.0, f64::max) + 0.02;
-            player.pause();
-            pending = Some((ms, bound, player.position_steps()));
-        }
-        if let Some((at, bound, _)) = pending {
-            if player.state() == PlayerState::Held {
-                stops.push(((ms - at) as f64 * 1e-3, bound, player.position_steps()));
-                pending = None;
+    let mut pending: Option<(u64, f64)> = None;
+    let mut paused = Vec::new();
+    let paused_player = play_all(
+        &fixture.segments,
+        |e| paused.push((e.axes, e.negative)),
+        |player, ms| {
+            if [20_000, 60_000, 120_000].contains(&ms) {
+                let v = player.velocity();
+                let bound = (0..3).map(|k| v[k].abs() / limits[k]).fold(0.0, f64::max) + 0.02;
+                player.pause();
+                pending = Some((ms, bound));
             }
-        }
-        if let Some(&(_, _, held)) = stops.last() {
-            if ms == 20_500 || ms == 60_500 || ms == 120_500 {
-                assert_eq!(player.position_steps(), held, "still while held");
-                player.resume();
+            if let Some((at, bound)) = pending {
+                if player.state() == PlayerState::Held {
+                    stops.push(((ms - at) as f64 * 1e-3, bound, player.position_steps()));
+                    pending = None;
+                }
             }
-        }
-    });
+            if let Some(&(_, _, held)) = stops.last() {
+                if ms == 20_500 || ms == 60_500 || ms == 120_500 {
+                    assert_eq!(player.position_steps(), held, "still while held");
+                    player.resume();
+                }
+            }
+        },
+    );
     assert_eq!(stops.len(), 3, "{stops:?}");
     for (took_s, bound_s, _) in &stops {
         assert!(
@@ -256,7 +173,7 @@ fn pausing_and_resuming_finger_three_times_steps_exactly_as_without() {
     );
     assert_eq!(paused.len(), plain.len());
     assert!(paused == plain, "the same steps in the same order");
-    assert_eq!(paused_player.position_steps(), generator.position());
-    assert_eq!(plain_player.position_steps(), generator.position());
+    assert_eq!(paused_player.position_steps(), fixture.end_steps);
+    assert_eq!(plain_player.position_steps(), fixture.end_steps);
     assert_eq!(paused_player.underruns(), 0);
 }

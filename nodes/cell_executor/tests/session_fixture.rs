@@ -4,12 +4,12 @@
 // Joint-indexed comparisons read best with explicit indices.
 #![allow(clippy::needless_range_loop)]
 
-use cell_executor::{Executor, ExecutorOptions, HoldReason, PlayerOptions, PlayerState};
-use gcode_streamer::{parse_all, InterpreterOptions};
+mod common;
+
+use cell_executor::{Executor, ExecutorOptions, HoldReason, PlayerState};
 use polar_cell_msgs::{Header, ScrewCommand, StepSegment, Time};
 use polar_planner::messages::trajectory_message;
-use polar_planner::steps::{StepGenerator, StepOptions};
-use polar_planner::{Planner, PlannerOptions};
+use polar_planner::steps::StepOptions;
 use screw_driver::screw::{breakpoints, position_after, ScrewOptions, TimedMove};
 
 /// The plan's epoch: stamps are `EPOCH_NS + plan time`, as a node started at that instant.
@@ -25,32 +25,22 @@ struct Print {
 }
 
 fn finger() -> Print {
-    let path = format!(
-        "{}/../../../shared/fixtures/gcode/finger.gcode",
-        env!("CARGO_MANIFEST_DIR")
-    );
-    let moves = parse_all(
-        &std::fs::read(path).unwrap(),
-        "finger",
-        InterpreterOptions::default(),
-    )
-    .unwrap()
-    .0;
-    let options = PlannerOptions::default();
-    let mut planner = Planner::new(options.clone()).unwrap();
-    let mut planned = Vec::new();
-    for m in &moves {
-        planner.push(m, &mut planned).unwrap();
+    let common::Fixture {
+        moves,
+        planned,
+        mut segments,
+        end_steps,
+    } = common::plan_fixture("finger.gcode");
+    // Stamped as the planner node stamps them: each segment with its move's start.
+    for s in &mut segments {
+        let plan = planned
+            .iter()
+            .find(|p| p.sequence == s.move_sequence)
+            .unwrap();
+        s.header.stamp = Time::after(EPOCH_NS, plan.start_time());
     }
-    planner.flush(&mut planned);
-    let mut generator = StepGenerator::new(StepOptions::default(), options.initial_joints);
-    let (mut segments, mut timed, mut from) = (Vec::new(), Vec::new(), [0.0; 3]);
+    let (mut timed, mut from) = (Vec::new(), [0.0; 3]);
     for plan in &planned {
-        let first = segments.len();
-        generator.segments(plan, &mut segments);
-        for s in &mut segments[first..] {
-            s.header.stamp = Time::after(EPOCH_NS, plan.start_time());
-        }
         let m = &moves[plan.sequence as usize];
         timed.push(TimedMove::from_trajectory(
             m,
@@ -84,21 +74,16 @@ fn finger() -> Print {
     Print {
         segments,
         commands,
-        end_steps: generator.position(),
+        end_steps,
         plan_end_s,
         screw_angle_rad: rpm_s / 60.0 * std::f64::consts::TAU,
     }
 }
 
-/// Run the print in 1 ms ticks of a clock starting at `clock0_ns`, topping up both queues,
-/// calling `each_ms`; returns the executor at the end.
+/// Run the print in 1 ms ticks of a monotonic clock, topping up both queues, calling
+/// `each_ms`; returns the executor at the end.
 fn run(print: &Print, mut each_ms: impl FnMut(&mut Executor, u64)) -> Executor {
-    let steps = StepOptions::default();
-    let limits = std::array::from_fn(|k| PlannerOptions::default().joints[k].acceleration);
-    let mut exec = Executor::new(ExecutorOptions::new(PlayerOptions {
-        queue_capacity: 1024,
-        ..PlayerOptions::new(steps, limits, 0.25)
-    }));
+    let mut exec = Executor::new(ExecutorOptions::new(common::player_options()));
     let (mut seg, mut cmd) = (
         print.segments.iter().peekable(),
         print.commands.iter().peekable(),

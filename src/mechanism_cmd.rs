@@ -138,10 +138,7 @@ pub struct CommonArgs {
 
 fn load_urdf(path: &Option<PathBuf>) -> anyhow::Result<(String, UrdfTree, Geometry)> {
     let (text, name) = match path {
-        Some(p) => (
-            std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
-            p.display().to_string(),
-        ),
+        Some(p) => (read_text(p)?, p.display().to_string()),
         None => (
             mechanism_kin::BUILTIN_URDF.to_string(),
             "built-in URDF".into(),
@@ -154,8 +151,7 @@ fn load_urdf(path: &Option<PathBuf>) -> anyhow::Result<(String, UrdfTree, Geomet
 fn load_calibration(path: &Option<PathBuf>) -> anyhow::Result<Option<Calibration>> {
     path.as_ref()
         .map(|p| {
-            let text =
-                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            let text = read_text(p)?;
             Calibration::from_json(&text).map_err(|e| anyhow!("{}: {e}", p.display()))
         })
         .transpose()
@@ -300,6 +296,22 @@ fn three(what: &str, v: &[f64]) -> anyhow::Result<[f64; 3]> {
     }
 }
 
+/// A text input (CL, measurements, URDF, calibration): a file that is not UTF-8 text is refused
+/// naming the line and column of its first bad byte.
+fn read_text(path: &Path) -> anyhow::Result<String> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    String::from_utf8(bytes).map_err(|e| {
+        let good = &e.as_bytes()[..e.utf8_error().valid_up_to()];
+        let line = good.iter().filter(|&&b| b == b'\n').count() + 1;
+        let column = good.len() - good.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1) + 1;
+        anyhow!(
+            "{}:{line}:{column}: byte 0x{:02x} is not UTF-8 text (is this a binary file?)",
+            path.display(),
+            e.as_bytes()[good.len()]
+        )
+    })
+}
+
 fn pose_target(args: &PoseArgs, geom: &Geometry) -> anyhow::Result<ToolTarget> {
     if let Some(tip) = &args.tip_mm {
         let tip = three("--tip-mm", tip)?;
@@ -313,6 +325,18 @@ fn pose_target(args: &PoseArgs, geom: &Geometry) -> anyhow::Result<ToolTarget> {
     let z = args.z.ok_or_else(|| {
         anyhow!("give --z with --theta1-deg/--theta2-deg or --roll-deg/--pitch-deg, or --tip-mm")
     })?;
+    // Each input named by its own flag (a NaN would otherwise surface as a derived quantity).
+    for (flag, value) in [
+        ("--z", Some(z)),
+        ("--theta1-deg", args.theta1_deg),
+        ("--theta2-deg", args.theta2_deg),
+        ("--roll-deg", args.roll_deg),
+        ("--pitch-deg", args.pitch_deg),
+    ] {
+        if let Some(v) = value.filter(|v| !v.is_finite()) {
+            bail!("{flag} is {v}: give a finite number");
+        }
+    }
     let pose = match (
         args.theta1_deg,
         args.theta2_deg,
@@ -468,8 +492,7 @@ pub fn run(command: MechanismCommand) -> anyhow::Result<()> {
             let (text, tree, geom) = load_urdf(&common.urdf)?;
             let calibration = load_calibration(&common.calibration)?;
             let name = file.display().to_string();
-            let cl_text =
-                std::fs::read_to_string(&file).with_context(|| format!("reading {name}"))?;
+            let cl_text = read_text(&file)?;
             let opts = PostOptions {
                 clearance_mm,
                 ..PostOptions::default()
@@ -548,8 +571,7 @@ pub fn run(command: MechanismCommand) -> anyhow::Result<()> {
         } => {
             let (_, _, geom) = load_urdf(&urdf)?;
             let name = measurements.display().to_string();
-            let text = std::fs::read_to_string(&measurements)
-                .with_context(|| format!("reading {name}"))?;
+            let text = read_text(&measurements)?;
             let data = calib::measurements::parse(&name, &text)?;
             let cal = calib::calibrate(&geom, &data, method)?;
             std::fs::write(&out, cal.to_file_json())

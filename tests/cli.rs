@@ -100,3 +100,48 @@ fn an_interrupted_print_finishes_its_bag_and_exits_non_zero() {
     assert!(moves > 0 && moves < 400_000, "{moves} moves recorded");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `polar-cell mechanism` with inputs that are wrong: the message names what is wrong (today's
+/// had a leg length for a tip a million km away, "tip z" for a NaN angle, and no file or line
+/// for a binary CL file).
+#[test]
+fn mechanism_messages_name_what_is_wrong() {
+    let run = |args: &[&str]| -> String {
+        let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+            .arg("mechanism")
+            .args(args)
+            .env("RUST_BACKTRACE", "0")
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let err = run(&["ik", "--tip-mm", "1e9,0,0"]);
+    assert!(
+        err.contains("tool tip X = 1000000000 mm is out of reach"),
+        "{err}"
+    );
+    let err = run(&[
+        "ik",
+        "--z",
+        "393",
+        "--theta1-deg",
+        "nan",
+        "--theta2-deg",
+        "10",
+    ]);
+    assert!(err.contains("--theta1-deg is NaN"), "{err}");
+    let dir = std::env::temp_dir().join(format!("polar-cell-cl-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cl = dir.join("binary.cl");
+    std::fs::write(&cl, b"GOTO/1,2,3\nGOTO/\xff\x00\n").unwrap();
+    let err = run(&["cl", cl.to_str().unwrap()]);
+    assert!(
+        err.contains(&format!(
+            "{}:2:6: byte 0xff is not UTF-8 text",
+            cl.display()
+        )),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -22,6 +22,16 @@ pub enum KinError {
         swing_deg: f64,
         max_deg: f64,
     },
+    #[error(
+        "tool tip {axis} = {tip_mm} mm is out of reach: the table travels ±{table_max_mm:.3} mm \
+         and the platform shifts less than its {platform_radius_mm:.3} mm radius"
+    )]
+    TipOutOfReach {
+        axis: char,
+        tip_mm: f64,
+        table_max_mm: f64,
+        platform_radius_mm: f64,
+    },
     #[error("table {axis}: {position_mm:.6} mm is outside ±{max_mm:.3} mm")]
     TableLimit {
         axis: char,

@@ -247,6 +247,23 @@ impl Geometry {
     pub fn inverse_tool(&self, target: &ToolTarget) -> Result<ToolSolution, KinError> {
         let (pose, axis) = self.tool_pose(target)?;
         let l = self.tool_length_mm;
+        // The table must bring the workpiece under the tool: table = (X_u, Y_u) − l·a − T with
+        // |X_u|, |Y_u| below the platform radius whatever the pose. A target beyond that is
+        // refused for what it is, before the legs are looked at.
+        let reach = self.limits.table_max_mm + self.platform_radius_mm;
+        for (k, (tip, a)) in [(target.tip_mm.x, axis.x), (target.tip_mm.y, axis.y)]
+            .into_iter()
+            .enumerate()
+        {
+            if (tip + l * a).abs() > reach {
+                return Err(KinError::TipOutOfReach {
+                    axis: ['X', 'Y'][k],
+                    tip_mm: tip,
+                    table_max_mm: self.limits.table_max_mm,
+                    platform_radius_mm: self.platform_radius_mm,
+                });
+            }
+        }
         let ik = self.inverse(&pose)?;
         let table_mm = [
             ik.parasitic_xy_mm[0] - l * axis.x - target.tip_mm.x,
@@ -684,6 +701,20 @@ mod tests {
             g.inverse_tool(&far),
             Err(KinError::TableLimit { axis: 'X', .. })
         ));
+        // Far beyond any table position, with a height the legs cannot reach either: the
+        // reach is what is wrong first, not a leg length.
+        let beyond = ToolTarget {
+            tip_mm: Vector3::new(1e9, 0.0, 0.0),
+            axis: Vector3::z(),
+        };
+        let err = g.inverse_tool(&beyond).unwrap_err();
+        assert!(
+            matches!(err, KinError::TipOutOfReach { axis: 'X', tip_mm, .. } if tip_mm == 1e9),
+            "{err}"
+        );
+        assert!(err
+            .to_string()
+            .starts_with("tool tip X = 1000000000 mm is out of reach"));
     }
 
     #[test]

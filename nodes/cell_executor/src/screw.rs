@@ -1,7 +1,9 @@
 //! Screw commands executed on the plan timeline.
 //!
-//! The screw driver's commands are breakpoints on the plan timeline: rpm is linear between
-//! consecutive commands (constant after the last one known), the pin switches at a command.
+//! The screw driver's commands are breakpoints on the plan timeline: rpm runs between
+//! consecutive commands as the driver publishes them ([`Hold`]: linear for raw breakpoints,
+//! held for smoothed, resampled or flow-compensated commands; constant after the last one
+//! known), the pin switches at a command.
 //! The executor follows them as *execution* reaches their plan time. Under a feed scale σ the
 //! screw turns at σ times the planned rpm, so material per length of path is kept through a
 //! hold; its angle therefore integrates the planned rpm over plan time. Held or waiting, the
@@ -9,6 +11,8 @@
 //! resumes, by its delay, so material flows again exactly where it stopped.
 
 use std::collections::VecDeque;
+
+use polar_cell_msgs::Hold;
 
 const ONE_TICK_Q32: f64 = (1u64 << step_core::TICK_FRACTION_BITS) as f64;
 
@@ -41,6 +45,7 @@ pub enum ScrewError {
 #[derive(Clone, Debug)]
 pub struct ScrewTrack {
     timer_hz: f64,
+    hold: Hold,
     capacity: usize,
     queue: VecDeque<ScrewStep>,
     /// The command in force at `plan_q32`.
@@ -52,9 +57,12 @@ pub struct ScrewTrack {
 }
 
 impl ScrewTrack {
-    pub fn new(timer_hz: f64, capacity: usize) -> ScrewTrack {
+    /// A track for commands that run between each other as `hold` says (the screw driver's
+    /// `command_hold`).
+    pub fn new(timer_hz: f64, hold: Hold, capacity: usize) -> ScrewTrack {
         ScrewTrack {
             timer_hz,
+            hold,
             capacity,
             queue: VecDeque::with_capacity(capacity),
             commanded: ScrewStep {
@@ -104,12 +112,12 @@ impl ScrewTrack {
         self.capacity - self.queue.len()
     }
 
-    /// The planned rpm at plan time `plan_q32` (≥ the command in force): linear towards the
-    /// next queued command.
+    /// The planned rpm at plan time `plan_q32` (≥ the command in force): held, or linear
+    /// towards the next queued command.
     fn rpm_at(&self, plan_q32: u64) -> f64 {
         let from = &self.commanded;
         match self.queue.front() {
-            Some(next) if next.plan_q32 > from.plan_q32 => {
+            Some(next) if self.hold == Hold::FirstOrder && next.plan_q32 > from.plan_q32 => {
                 let s = (plan_q32.saturating_sub(from.plan_q32)) as f64
                     / (next.plan_q32 - from.plan_q32) as f64;
                 from.rpm + (next.rpm - from.rpm) * s.min(1.0)
@@ -209,7 +217,7 @@ mod tests {
         // ∫ rpm dt (rpm·s): trapezoids 22.5 + 15 + 3.75, then 30 held for 0.25 s: 7.5.
         let exact = 48.75 / 60.0 * std::f64::consts::TAU;
         for stride_s in [0.001, 0.0137, 0.25, 0.3, 1.0] {
-            let mut track = ScrewTrack::new(HZ, 16);
+            let mut track = ScrewTrack::new(HZ, Hold::FirstOrder, 16);
             for c in commands {
                 track.push(c).unwrap();
             }
@@ -226,7 +234,7 @@ mod tests {
             assert_eq!(track.executed(), (30.0, true));
         }
         // Half way between two commands, the rpm is half way.
-        let mut track = ScrewTrack::new(HZ, 16);
+        let mut track = ScrewTrack::new(HZ, Hold::FirstOrder, 16);
         for c in commands {
             track.push(c).unwrap();
         }
@@ -235,9 +243,33 @@ mod tests {
         assert!(track.executed().1);
     }
 
+    /// Held commands (the flow-compensated default): each rpm until the next command.
+    #[test]
+    fn held_commands_integrate_as_steps() {
+        let mut track = ScrewTrack::new(HZ, Hold::ZeroOrder, 16);
+        for c in [
+            step(0.0, 60.0, true),
+            step(0.25, 120.0, true),
+            step(0.5, 0.0, false),
+        ] {
+            track.push(c).unwrap();
+        }
+        track.advance(q32(0.125), 1.0, true);
+        assert_eq!(track.executed(), (60.0, true), "held, not half way to 120");
+        track.advance(q32(1.0), 1.0, true);
+        // 0.25 s at 1 rev/s and 0.25 s at 2 rev/s: 0.75 revolutions (linear would give 0.625
+        // over the same half second, and more after).
+        let exact = 0.75 * std::f64::consts::TAU;
+        assert!(
+            (track.angle_rad() - exact).abs() < 1e-9,
+            "{}",
+            track.angle_rad()
+        );
+    }
+
     #[test]
     fn a_hold_scales_the_rpm_and_closes_the_pin_until_motion_resumes() {
-        let mut track = ScrewTrack::new(HZ, 4);
+        let mut track = ScrewTrack::new(HZ, Hold::FirstOrder, 4);
         track.push(step(0.0, 90.0, true)).unwrap();
         track.advance(q32(0.1), 1.0, true);
         assert_eq!(track.executed(), (90.0, true));
@@ -256,7 +288,7 @@ mod tests {
 
     #[test]
     fn bad_commands_are_refused() {
-        let mut track = ScrewTrack::new(HZ, 2);
+        let mut track = ScrewTrack::new(HZ, Hold::FirstOrder, 2);
         track.push(step(1.0, 10.0, true)).unwrap();
         let err = track.push(step(0.5, 10.0, true)).unwrap_err();
         assert_eq!(

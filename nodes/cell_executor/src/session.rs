@@ -9,7 +9,7 @@
 //! The caller's clock is nanoseconds of a monotonic clock (`on_tick(now_ns)`); the first tick
 //! is machine time 0.
 
-use polar_cell_msgs::{ScrewCommand, StepSegment};
+use polar_cell_msgs::{Hold, ScrewCommand, StepSegment};
 
 use crate::player::{HoldReason, Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
 use crate::screw::{ScrewError, ScrewStep, ScrewTrack};
@@ -23,13 +23,17 @@ pub struct ExecutorOptions {
     /// Screw commands queued ahead of execution at most (besides those waiting for the
     /// first segment).
     pub screw_queue_capacity: usize,
+    /// How rpm runs between screw commands: as the screw driver publishes them (its
+    /// `command_hold`: held when it compensates the flow, smooths or resamples).
+    pub screw_hold: Hold,
 }
 
 impl ExecutorOptions {
-    pub fn new(player: PlayerOptions) -> ExecutorOptions {
+    pub fn new(player: PlayerOptions, screw_hold: Hold) -> ExecutorOptions {
         ExecutorOptions {
             screw_queue_capacity: player.queue_capacity,
             player,
+            screw_hold,
         }
     }
 }
@@ -83,7 +87,7 @@ impl Executor {
     pub fn new(options: ExecutorOptions) -> Executor {
         let timer_hz = options.player.steps.timer_hz;
         Executor {
-            screw: ScrewTrack::new(timer_hz, options.screw_queue_capacity),
+            screw: ScrewTrack::new(timer_hz, options.screw_hold, options.screw_queue_capacity),
             player: Player::new(options.player),
             timer_hz,
             epoch_ns: None,

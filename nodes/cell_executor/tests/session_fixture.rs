@@ -7,7 +7,7 @@
 mod common;
 
 use cell_executor::{Executor, ExecutorOptions, HoldReason, PlayerState};
-use polar_cell_msgs::{Header, ScrewCommand, StepSegment, Time};
+use polar_cell_msgs::{Header, Hold, ScrewCommand, StepSegment, Time};
 use polar_planner::messages::trajectory_message;
 use polar_planner::steps::StepOptions;
 use screw_driver::screw::{breakpoints, position_after, ScrewOptions, TimedMove};
@@ -83,7 +83,11 @@ fn finger() -> Print {
 /// Run the print in 1 ms ticks of a monotonic clock, topping up both queues, calling
 /// `each_ms`; returns the executor at the end.
 fn run(print: &Print, mut each_ms: impl FnMut(&mut Executor, u64)) -> Executor {
-    let mut exec = Executor::new(ExecutorOptions::new(common::player_options()));
+    // Raw breakpoints (the screw driver without compensation or smoothing): rpm linear.
+    let mut exec = Executor::new(ExecutorOptions::new(
+        common::player_options(),
+        Hold::FirstOrder,
+    ));
     let (mut seg, mut cmd) = (
         print.segments.iter().peekable(),
         print.commands.iter().peekable(),

@@ -353,6 +353,16 @@ impl StepSegment {
     }
 }
 
+/// How rpm runs between two consecutive `ScrewCommand`s: what the screw driver publishes and
+/// what the drive (the executor, the joint angle) must follow.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Hold {
+    /// Linear between breakpoints (raw commands).
+    FirstOrder,
+    /// Constant until the next command (smoothed, resampled or flow-compensated commands).
+    ZeroOrder,
+}
+
 /// `polar_cell_msgs/msg/ScrewCommand`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ScrewCommand {

@@ -23,14 +23,7 @@ pub struct ScrewSample {
     pub velocity_rad_per_s: f64,
 }
 
-/// How rpm runs between two commands.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Hold {
-    /// Linear between breakpoints (raw commands).
-    FirstOrder,
-    /// Constant until the next command (smoothed or resampled commands).
-    ZeroOrder,
-}
+pub use polar_cell_msgs::Hold;
 
 /// Samples the screw angle across consecutive chunks of commands.
 #[derive(Debug, Clone)]

@@ -16,6 +16,16 @@ pub mod player;
 pub mod screw;
 pub mod session;
 
+/// Seconds as Q32 timer ticks of a `timer_hz` timer (rounded; ≥ 0 assumed).
+pub(crate) fn seconds_to_q32(seconds: f64, timer_hz: f64) -> u64 {
+    (seconds * timer_hz * step_core::ONE_TICK_Q32 as f64).round() as u64
+}
+
+/// Q32 timer ticks of a `timer_hz` timer as seconds.
+pub(crate) fn q32_to_seconds(q32: u64, timer_hz: f64) -> f64 {
+    q32 as f64 / step_core::ONE_TICK_Q32 as f64 / timer_hz
+}
+
 pub use player::{Edge, HoldReason, Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
 pub use screw::ScrewTrack;
 pub use session::{ExecError, Executor, ExecutorOptions, MachineState};

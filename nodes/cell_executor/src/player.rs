@@ -32,7 +32,7 @@ use std::collections::VecDeque;
 use polar_cell_msgs::StepSegment;
 use step_core::{PulseTrain, Segment, SegmentError, StepFault, StepOptions, MAX_AXES};
 
-const ONE_TICK_Q32: f64 = (1u64 << step_core::TICK_FRACTION_BITS) as f64;
+use crate::{q32_to_seconds, seconds_to_q32};
 
 /// How the player is set up.
 #[derive(Clone, Debug, PartialEq)]
@@ -148,7 +148,7 @@ impl SegmentJob {
         }
         Ok(SegmentJob {
             segment,
-            duration_q32: (ticks * ONE_TICK_Q32).round() as u64,
+            duration_q32: seconds_to_q32(msg.duration_s, timer_hz),
             move_sequence,
             source_line,
         })
@@ -207,13 +207,11 @@ pub struct Player {
     active: Option<Active>,
     position_steps: [i64; MAX_AXES],
     state: PlayerState,
-    /// The plan clock τ (Q32 ticks).
+    /// The plan clock τ (Q32 ticks); with no segment playing, where the next one starts.
     plan_q32: u64,
-    /// Plan time at the end of the last finished segment.
-    plan_done_q32: u64,
     now_q32: u64,
     last_edge_q32: u64,
-    /// Feed scale σ and what it is heading for.
+    /// Feed scale σ; it heads for 0 while `hold` is set, else for 1.
     feed: f64,
     hold: Option<HoldReason>,
     /// A resume waits until this machine time (the pin's opening delay) before σ rises.
@@ -233,7 +231,6 @@ impl Player {
             position_steps: options.initial_steps,
             state: PlayerState::Idle,
             plan_q32: 0,
-            plan_done_q32: 0,
             now_q32: 0,
             last_edge_q32: 0,
             feed: 1.0,
@@ -333,7 +330,12 @@ impl Player {
     }
 
     fn ticks_q32(&self, seconds: f64) -> u64 {
-        (seconds * self.options.steps.timer_hz * ONE_TICK_Q32).round() as u64
+        seconds_to_q32(seconds, self.options.steps.timer_hz)
+    }
+
+    /// The dominant axis's step rate in plan time (steps/s) of a playing segment.
+    fn dominant_rate(&self, active: &Active) -> f64 {
+        1.0 / q32_to_seconds(active.train.period_q32(), self.options.steps.timer_hz)
     }
 
     /// Start the next queued segment if none is playing; false if there is none.
@@ -348,7 +350,7 @@ impl Player {
         self.active = Some(Active {
             train: PulseTrain::new(&job.segment),
             job,
-            plan_start_q32: self.plan_done_q32,
+            plan_start_q32: self.plan_q32,
         });
         true
     }
@@ -363,8 +365,7 @@ impl Player {
             return (f64::NEG_INFINITY, f64::INFINITY); // at rest in the plan: no constraint
         };
         let seg = &active.job.segment;
-        let hz = self.options.steps.timer_hz;
-        let rate = hz * ONE_TICK_Q32 / active.train.period_q32() as f64;
+        let rate = self.dominant_rate(active);
         let total = seg.dominant_steps() as f64;
         let mut limit = f64::INFINITY;
         for k in 0..MAX_AXES {
@@ -373,11 +374,11 @@ impl Player {
                 limit = limit.min(a * total / seg.step_counts[k] as f64);
             }
         }
-        // r = (r·p²)/p² in steps per tick², times f² for steps/s² of plan time.
-        let period_ticks = active.train.period_q32() as f64 / ONE_TICK_Q32;
-        let r =
-            active.train.ramp_q62() as f64 / (1u64 << 62) as f64 / (period_ticks * period_ticks);
-        let accel = r * hz * hz * active.train.phase() as f64;
+        // r·p² (dimensionless) times the rate² is the dominant acceleration in steps/s².
+        let accel = active.train.ramp_q62() as f64 / (1u64 << 62) as f64
+            * rate
+            * rate
+            * active.train.phase() as f64;
         let s2a = self.feed * self.feed * accel;
         (
             ((-limit - s2a) / rate).min(0.0),
@@ -385,10 +386,9 @@ impl Player {
         )
     }
 
-    /// Plan time a hold begun now would still consume before rest, with a margin (the
-    /// constraint ahead may be tighter than here), in Q32 ticks.
-    fn stopping_plan_q32(&self) -> u64 {
-        let (lo, _) = self.feed_rate_bounds();
+    /// Plan time a hold begun now with σ̇ = `lo` would still consume before rest, with a
+    /// margin (the constraint ahead may be tighter than here), in Q32 ticks.
+    fn stopping_plan_q32(&self, lo: f64) -> u64 {
         if !lo.is_finite() || lo >= 0.0 {
             return 0;
         }
@@ -438,9 +438,10 @@ impl Player {
         t1: u64,
         on_edge: &mut impl FnMut(Edge),
     ) -> Result<(), PlayerError> {
+        let (lo, hi) = self.feed_rate_bounds();
         // Hold before the queued plan runs out; resume once enough is queued again.
         if !self.input_finished {
-            let needed = self.stopping_plan_q32();
+            let needed = self.stopping_plan_q32(lo);
             if self.hold.is_none() && self.ahead_q32() <= needed && self.feed > 0.0 {
                 self.hold = Some(HoldReason::Underrun);
                 self.underruns += 1;
@@ -449,11 +450,10 @@ impl Player {
             {
                 self.release();
             }
-        } else if self.hold == Some(HoldReason::Underrun) && self.input_finished {
+        } else if self.hold == Some(HoldReason::Underrun) {
             self.release();
         }
-        let h = (t1 - t0) as f64 / ONE_TICK_Q32 / self.options.steps.timer_hz;
-        let (lo, hi) = self.feed_rate_bounds();
+        let h = q32_to_seconds(t1 - t0, self.options.steps.timer_hz);
         let feed0 = self.feed;
         self.feed = if self.hold.is_some() {
             (feed0 + lo * h).max(0.0)
@@ -487,9 +487,7 @@ impl Player {
         loop {
             let Some(active) = self.active.as_mut() else {
                 if !self.ensure_active() {
-                    // Ran dry inside the period: the plan clock stops at the plan's end.
-                    self.plan_q32 = self.plan_done_q32;
-                    return Ok(());
+                    return Ok(()); // ran dry: the plan clock stops at the plan's end
                 }
                 continue;
             };
@@ -529,7 +527,6 @@ impl Player {
                 self.plan_q32 = plan1;
                 return Ok(());
             }
-            self.plan_done_q32 = end_q32;
             self.plan_q32 = end_q32;
             self.completed += 1;
             self.last_completed = Some((active.job.move_sequence, active.job.source_line));
@@ -537,12 +534,17 @@ impl Player {
         }
     }
 
-    /// Drop what is queued and the rest of the segment in progress (at rest, after a cancel).
-    fn drop_plan(&mut self) {
+    /// Drop the segment in progress and everything queued; the next segment starts where
+    /// the plan clock stands.
+    fn clear_plan(&mut self) {
         self.active = None;
         self.queue.clear();
         self.queued_q32 = 0;
-        self.plan_done_q32 = self.plan_q32;
+    }
+
+    /// At rest after a cancel: drop the rest of the plan, ready for a new one.
+    fn drop_plan(&mut self) {
+        self.clear_plan();
         self.hold = None;
         self.feed = 1.0;
         self.state = PlayerState::Idle;
@@ -552,10 +554,7 @@ impl Player {
     /// Stop at once: the segment in progress and everything queued are dropped, the position
     /// stays where the last pulse left it.
     pub fn emergency_stop(&mut self) {
-        self.active = None;
-        self.queue.clear();
-        self.queued_q32 = 0;
-        self.plan_done_q32 = self.plan_q32;
+        self.clear_plan();
         self.feed = 0.0;
         self.hold = None;
         self.state = PlayerState::Stopped;
@@ -593,13 +592,12 @@ impl Player {
         let Some(active) = self
             .active
             .as_ref()
-            .filter(|a| a.job.segment.dominant_steps() > 0 && self.state != PlayerState::Stopped)
+            .filter(|a| a.job.segment.dominant_steps() > 0)
         else {
             return [0.0; MAX_AXES];
         };
         let seg = &active.job.segment;
-        let dominant_rate = self.feed * self.options.steps.timer_hz * ONE_TICK_Q32
-            / active.train.period_q32() as f64;
+        let dominant_rate = self.feed * self.dominant_rate(active);
         let total = seg.dominant_steps() as f64;
         std::array::from_fn(|k| {
             let rate = dominant_rate * seg.step_counts[k] as f64 / total;

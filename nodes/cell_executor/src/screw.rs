@@ -14,7 +14,7 @@ use std::collections::VecDeque;
 
 use polar_cell_msgs::Hold;
 
-const ONE_TICK_Q32: f64 = (1u64 << step_core::TICK_FRACTION_BITS) as f64;
+use crate::q32_to_seconds;
 
 /// A screw command on the plan timeline.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -91,11 +91,10 @@ impl ScrewTrack {
             .back()
             .map_or(self.commanded.plan_q32, |s| s.plan_q32);
         if step.plan_q32 < previous {
-            let seconds = |q32: u64| q32 as f64 / ONE_TICK_Q32 / self.timer_hz;
             return Err(ScrewError::OutOfOrder {
                 source_line: step.source_line,
-                plan_s: seconds(step.plan_q32),
-                previous_s: seconds(previous),
+                plan_s: q32_to_seconds(step.plan_q32, self.timer_hz),
+                previous_s: q32_to_seconds(previous, self.timer_hz),
             });
         }
         if self.queue.len() >= self.capacity {
@@ -129,7 +128,7 @@ impl ScrewTrack {
     /// Execute up to plan time `plan_now_q32` at feed scale `feed`; `pin_allowed` is false
     /// while the machine is held or waiting (the pin then stays closed).
     pub fn advance(&mut self, plan_now_q32: u64, feed: f64, pin_allowed: bool) {
-        let rad_per_rpm_tick_q32 = std::f64::consts::TAU / 60.0 / self.timer_hz / ONE_TICK_Q32;
+        let rad_per_rpm_tick_q32 = std::f64::consts::TAU / 60.0 * q32_to_seconds(1, self.timer_hz);
         while self.plan_q32 < plan_now_q32 {
             let next_change = self
                 .queue
@@ -193,7 +192,7 @@ mod tests {
     const HZ: f64 = 1e6;
 
     fn q32(seconds: f64) -> u64 {
-        (seconds * HZ * ONE_TICK_Q32).round() as u64
+        crate::seconds_to_q32(seconds, HZ)
     }
 
     fn step(t: f64, rpm: f64, pin_open: bool) -> ScrewStep {

@@ -14,7 +14,7 @@ use polar_cell_msgs::{Hold, ScrewCommand, StepSegment};
 use crate::player::{HoldReason, Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
 use crate::screw::{ScrewError, ScrewStep, ScrewTrack};
 
-const Q32: u128 = 1 << step_core::TICK_FRACTION_BITS;
+const Q32: u128 = step_core::ONE_TICK_Q32 as u128;
 
 /// How the session is set up.
 #[derive(Clone, Debug, PartialEq)]
@@ -216,7 +216,6 @@ impl Executor {
         let p = self.player.position();
         let v = self.player.velocity();
         let (screw_rpm, pin_open) = self.screw.executed();
-        let seconds = |q32: u64| q32 as f64 / Q32 as f64 / self.timer_hz;
         MachineState {
             positions: [p[0], p[1], p[2], self.screw.angle_rad()],
             velocities: [v[0], v[1], v[2], screw_rpm * std::f64::consts::TAU / 60.0],
@@ -226,7 +225,7 @@ impl Executor {
             hold: self.player.hold(),
             feed: self.player.feed(),
             machine_time_s: (self.last_ns - self.origin_ns.unwrap_or(self.last_ns)) as f64 * 1e-9,
-            plan_time_s: seconds(self.player.plan_time_q32()),
+            plan_time_s: crate::q32_to_seconds(self.player.plan_time_q32(), self.timer_hz),
             current: self.player.current(),
         }
     }

@@ -38,7 +38,8 @@ pub const MAX_AXES: usize = 3;
 
 /// Fraction bits of tick quantities.
 pub const TICK_FRACTION_BITS: u32 = 32;
-const ONE_TICK_Q32: u64 = 1 << TICK_FRACTION_BITS;
+/// One timer tick in Q32.
+pub const ONE_TICK_Q32: u64 = 1 << TICK_FRACTION_BITS;
 /// Fraction bits of the dimensionless ramp term and growth factor.
 const RAMP_FRACTION_BITS: u32 = 62;
 const ONE_Q62: u64 = 1 << RAMP_FRACTION_BITS;

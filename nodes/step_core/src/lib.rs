@@ -159,12 +159,6 @@ fn non_negative(field: &'static str, value: f64) -> Result<f64, SegmentError> {
 impl Segment {
     /// Convert and validate the host's description. Uses floating point (host side only).
     pub fn from_fields(fields: &SegmentFields) -> Result<Segment, SegmentError> {
-        let dominant = fields.dominant_axis as usize;
-        if dominant >= MAX_AXES {
-            return Err(SegmentError::DominantOutOfRange {
-                dominant: fields.dominant_axis,
-            });
-        }
         let mut negative_mask = 0;
         for (axis, &value) in fields.directions.iter().enumerate() {
             match value {
@@ -173,7 +167,6 @@ impl Segment {
                 _ => return Err(SegmentError::BadDirection { axis, value }),
             }
         }
-        let count = fields.step_counts[dominant];
         let first = non_negative("first_period_ticks", fields.first_period_ticks)?;
         let cruise = non_negative("cruise_period_ticks", fields.cruise_period_ticks)?;
         let r = non_negative("ramp_r", fields.ramp_r)?;
@@ -187,10 +180,13 @@ impl Segment {
             first_period_q32: 0,
             first_ramp_q62: 0,
         };
+        segment.check_counts()?;
+        let count = segment.dominant_steps();
         if count == 0 {
-            segment.check()?;
             return Ok(segment); // a pause: no pulses, nothing to time
         }
+        // The timing is checked here on the host's values (exact in the messages), not after
+        // conversion.
         let period = if fields.cruise_steps == count {
             cruise
         } else {
@@ -205,13 +201,31 @@ impl Segment {
         }
         segment.first_period_q32 = to_fixed(period, TICK_FRACTION_BITS);
         segment.first_ramp_q62 = to_fixed(x, RAMP_FRACTION_BITS);
-        segment.check()?;
         Ok(segment)
     }
 
     /// Validate a segment received in fixed-point form (e.g. by the microcontroller): the same
     /// rules as [`Segment::from_fields`].
     pub fn check(&self) -> Result<(), SegmentError> {
+        self.check_counts()?;
+        if self.dominant_steps() > 0 {
+            if !(ONE_TICK_Q32..=MAX_PERIOD_Q32).contains(&self.first_period_q32) {
+                return Err(SegmentError::PeriodOutOfRange {
+                    ticks: self.first_period_q32 as f64 / ONE_TICK_Q32 as f64,
+                });
+            }
+            if self.first_ramp_q62 > MAX_RAMP_Q62 {
+                return Err(SegmentError::RampTooSteep {
+                    x: self.first_ramp_q62 as f64 / ONE_Q62 as f64,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// The step counts and ramp phases agree: a dominant axis that exists, phases that add up
+    /// to its count, no follower with more steps.
+    fn check_counts(&self) -> Result<(), SegmentError> {
         let dominant = self.dominant_axis as usize;
         if dominant >= MAX_AXES {
             return Err(SegmentError::DominantOutOfRange {
@@ -235,18 +249,6 @@ impl Segment {
                 count: c,
                 dominant_count: count,
             });
-        }
-        if count > 0 {
-            if !(ONE_TICK_Q32..=MAX_PERIOD_Q32).contains(&self.first_period_q32) {
-                return Err(SegmentError::PeriodOutOfRange {
-                    ticks: self.first_period_q32 as f64 / ONE_TICK_Q32 as f64,
-                });
-            }
-            if self.first_ramp_q62 > MAX_RAMP_Q62 {
-                return Err(SegmentError::RampTooSteep {
-                    x: self.first_ramp_q62 as f64 / ONE_Q62 as f64,
-                });
-            }
         }
         Ok(())
     }

@@ -145,27 +145,6 @@ pub async fn print(
             &screw_specs,
         ],
     )?;
-    // Before any node starts (no DDS, no bag): the whole file with the parameters the nodes
-    // will get.
-    if run_preflight && file != "-" {
-        let resolve = |name: &str, specs: &[ParamSpec], ours| {
-            cell_runtime::resolve_node(name, specs, &args_for(ros_args, name, specs, ours))
-                .map(|(_, params)| params)
-        };
-        let screw = resolve(screw_driver::node::NODE_NAME, &screw_specs, vec![])?;
-        let planner = resolve(
-            polar_planner::node::NODE_NAME,
-            &planner_specs,
-            planner_overrides(&screw),
-        )?;
-        let streamer = resolve(gcode_streamer::node::NODE_NAME, &streamer_specs, vec![])?;
-        let started = std::time::Instant::now();
-        let report = preflight(file, &streamer, &planner)?;
-        eprintln!(
-            "{file}: pre-flight passed: {}",
-            describe(&report, started.elapsed())
-        );
-    }
     // The nodes of one process share its command line: an unprefixed node rename would give
     // them all one name (and the print would wait for consumers that never appear).
     if let Some(rename) = ros_args
@@ -181,6 +160,17 @@ pub async fn print(
             polar_planner::node::NODE_NAME,
             screw_driver::node::NODE_NAME,
             cell_bag::node::NODE_NAME,
+        );
+    }
+    // Before any node starts (no DDS, no bag): the whole file with the parameters the nodes
+    // will get.
+    if run_preflight && file != "-" {
+        let (streamer, planner) = preflight_params(ros_args)?;
+        let started = std::time::Instant::now();
+        let report = preflight(file, &streamer, &planner)?;
+        eprintln!(
+            "{file}: pre-flight passed: {}",
+            describe(&report, started.elapsed())
         );
     }
     let (input, total) = open_input(file)?;
@@ -292,6 +282,33 @@ pub async fn print(
     }
 }
 
+/// The streamer's and the planner's parameters exactly as `print` gives them to its nodes
+/// (global `-p` only where a node declares it, the planner told of the screw), without DDS.
+fn preflight_params(
+    ros_args: &RosArgs,
+) -> anyhow::Result<(cell_runtime::Params, cell_runtime::Params)> {
+    let resolve = |name: &str, specs: &[ParamSpec], ours| {
+        cell_runtime::resolve_node(name, specs, &args_for(ros_args, name, specs, ours))
+            .map(|(_, params)| params)
+    };
+    let screw = resolve(
+        screw_driver::node::NODE_NAME,
+        &screw_driver::node::param_specs(),
+        vec![],
+    )?;
+    let planner = resolve(
+        polar_planner::node::NODE_NAME,
+        &polar_planner::node::param_specs(),
+        planner_overrides(&screw),
+    )?;
+    let streamer = resolve(
+        gcode_streamer::node::NODE_NAME,
+        &gcode_streamer::node::param_specs(),
+        vec![],
+    )?;
+    Ok((streamer, planner))
+}
+
 /// The whole file through the planner and the step core as the print would run it (the
 /// streamer's interpreter options, the planner's options), before anything moves: a file that
 /// would fail later — a move beyond the arm's reach at its very end — is refused now, with its
@@ -335,9 +352,7 @@ fn describe(report: &polar_planner::PreflightReport, took: Duration) -> String {
 /// parameters the print's nodes would get from the same ROS arguments.
 pub fn check(file: &str, parse_only: bool, ros_args: &RosArgs) -> anyhow::Result<()> {
     let (input, _) = open_input(file)?;
-    let streamer_specs = gcode_streamer::node::param_specs();
-    let (_, streamer) =
-        cell_runtime::resolve_node(gcode_streamer::node::NODE_NAME, &streamer_specs, ros_args)?;
+    let (streamer, planner) = preflight_params(ros_args)?;
     let mut reader = GcodeReader::new(
         input,
         file,
@@ -360,9 +375,6 @@ pub fn check(file: &str, parse_only: bool, ros_args: &RosArgs) -> anyhow::Result
         reader.bytes_read()
     );
     if !parse_only && file != "-" {
-        let planner_specs = polar_planner::node::param_specs();
-        let (_, planner) =
-            cell_runtime::resolve_node(polar_planner::node::NODE_NAME, &planner_specs, ros_args)?;
         let started = std::time::Instant::now();
         let report = preflight(file, &streamer, &planner)?;
         println!(

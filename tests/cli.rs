@@ -145,3 +145,31 @@ fn mechanism_messages_name_what_is_wrong() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `check` plans with the parameters `print` would give its nodes: a global `-p` of another
+/// node is no error, and the screw driver's top speed slows the plan as in a print.
+#[test]
+fn check_plans_with_the_prints_parameters() {
+    let fixture =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
+    let check = |ros_args: &[&str]| -> String {
+        let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+            .arg("check")
+            .arg(&fixture)
+            .arg("--ros-args")
+            .args(ros_args)
+            .env("RUST_BACKTRACE", "0")
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(
+            out.status.success(),
+            "{stdout}{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        stdout
+    };
+    assert!(check(&["-p", "window:=3"]).contains("1778 moves, 0:02:48.1 of machine time"));
+    assert!(check(&["-p", "screw_driver:max_rpm:=100"])
+        .contains("1778 moves, 0:05:25.2 of machine time"));
+}

@@ -50,6 +50,13 @@ enum Command {
         /// Skip the pre-flight (planning the whole file before anything moves).
         #[arg(long)]
         no_preflight: bool,
+        /// Machine seconds per wall second: a K× faster simulation of the same timeline.
+        #[arg(long, default_value_t = 1.0, value_parser = parse_speed)]
+        speed: f64,
+        /// Plan as fast as the CPU allows, with no executor (tests, benchmarks): the bag has
+        /// the plan, not its execution.
+        #[arg(long, conflicts_with = "speed")]
+        dry_run: bool,
     },
     /// Check a G-code file without DDS: parse it (counts, warnings, the first error), then
     /// plan it whole as a print would (pre-flight: reach, limits, steps).
@@ -139,6 +146,13 @@ fn default_sigpipe() {
     }
 }
 
+fn parse_speed(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(k) if (0.01..=1000.0).contains(&k) => Ok(k),
+        _ => Err(format!("`{text}` is not a speed factor in [0.01, 1000]")),
+    }
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     default_sigpipe();
@@ -153,7 +167,18 @@ async fn main() -> anyhow::Result<()> {
             bag_dir,
             no_progress,
             no_preflight,
-        } => print_cmd::print(&file, &bag, bag_dir, !no_progress, !no_preflight, &ros_args).await,
+            speed,
+            dry_run,
+        } => {
+            let options = print_cmd::PrintOptions {
+                bag,
+                bag_dir,
+                show_progress: !no_progress,
+                run_preflight: !no_preflight,
+                execution: (!dry_run).then_some(speed),
+            };
+            print_cmd::print(&file, &options, &ros_args).await
+        }
         Command::Check { file, parse_only } => print_cmd::check(&file, parse_only, &ros_args),
         Command::Plot { bag, out } => plot_cmd::plot(&bag, &out),
         Command::Mechanism { command } => mechanism_cmd::run(command),

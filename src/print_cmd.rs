@@ -2,7 +2,6 @@
 //! talking over loopback DDS (so `ros2 topic echo` on the same domain sees everything).
 
 use std::io::BufRead;
-use std::path::Path;
 use std::time::Duration;
 
 use anyhow::{bail, Context as _};
@@ -124,18 +123,30 @@ fn open_input(file: &str) -> anyhow::Result<(Box<dyn BufRead + Send>, u64)> {
     ))
 }
 
-pub async fn print(
-    file: &str,
-    bag: &Path,
-    bag_dir: bool,
-    show_progress: bool,
-    run_preflight: bool,
-    ros_args: &RosArgs,
-) -> anyhow::Result<()> {
+/// How `print` runs.
+#[derive(Clone, Debug)]
+pub struct PrintOptions {
+    pub bag: std::path::PathBuf,
+    pub bag_dir: bool,
+    pub show_progress: bool,
+    pub run_preflight: bool,
+    /// Execute at this speed factor (machine seconds per wall second); `None`: dry run, the
+    /// plan as fast as the CPU allows and no executor.
+    pub execution: Option<f64>,
+}
+
+/// How a print ended, when it did not end by itself.
+enum Stop {
+    Interrupted,
+    Failed(anyhow::Error),
+}
+
+pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> anyhow::Result<()> {
     let recorder_specs = cell_bag::node::param_specs();
     let streamer_specs = gcode_streamer::node::param_specs();
     let planner_specs = polar_planner::node::param_specs();
     let screw_specs = screw_driver::node::param_specs();
+    let executor_specs = cell_executor::node::param_specs();
     check_global_params(
         ros_args,
         &[
@@ -143,6 +154,7 @@ pub async fn print(
             &streamer_specs,
             &planner_specs,
             &screw_specs,
+            &executor_specs,
         ],
     )?;
     // The nodes of one process share its command line: an unprefixed node rename would give
@@ -154,17 +166,19 @@ pub async fn print(
     {
         bail!(
             "-r __node:={0} would give every node of this print the name {0:?}; rename one \
-             with -r NODE:__node:={0} (NODE: {1}, {2}, {3} or {4})",
+             with -r NODE:__node:={0} (NODE: {1}, {2}, {3}, {4} or {5})",
             rename.to,
             gcode_streamer::node::NODE_NAME,
             polar_planner::node::NODE_NAME,
             screw_driver::node::NODE_NAME,
+            cell_executor::node::NODE_NAME,
             cell_bag::node::NODE_NAME,
         );
     }
     // Before any node starts (no DDS, no bag): the whole file with the parameters the nodes
     // will get.
-    if run_preflight && file != "-" {
+    let mut machine_time_s = None;
+    if options.run_preflight && file != "-" {
         let (streamer, planner) = preflight_params(ros_args)?;
         let started = std::time::Instant::now();
         let report = preflight(file, &streamer, &planner)?;
@@ -172,6 +186,7 @@ pub async fn print(
             "{file}: pre-flight passed: {}",
             describe(&report, started.elapsed())
         );
+        machine_time_s = Some(report.plan_time_s);
     }
     let (input, total) = open_input(file)?;
 
@@ -180,23 +195,46 @@ pub async fn print(
         &recorder_specs,
         ros_args,
         vec![
-            param("output", format!("{:?}", bag.display().to_string())),
-            param("bag_directory", bag_dir.to_string()),
+            param("output", format!("{:?}", options.bag.display().to_string())),
+            param("bag_directory", options.bag_dir.to_string()),
         ],
     )?;
     let recorder = Recorder::start(recorder_node)?;
+    let (executor_overrides, planner_extra, screw_extra) = match options.execution {
+        Some(speed) => execution_overrides(ros_args, speed)?,
+        None => (vec![], vec![], vec![]),
+    };
     let mut screw_node = start_node(
         screw_driver::node::NODE_NAME,
         &screw_specs,
         ros_args,
-        vec![],
+        screw_extra,
     )?;
+    let mut ours = planner_overrides(&screw_node.params);
+    ours.extend(planner_extra);
     let mut planner_node = start_node(
         polar_planner::node::NODE_NAME,
         &planner_specs,
         ros_args,
-        planner_overrides(&screw_node.params),
+        ours,
     )?;
+    let (commands, command_rx) = tokio::sync::mpsc::unbounded_channel();
+    let (status_tx, status) = tokio::sync::watch::channel(cell_executor::node::Status::default());
+    let mut executor = match options.execution {
+        Some(_) => {
+            let mut node = start_node(
+                cell_executor::node::NODE_NAME,
+                &executor_specs,
+                ros_args,
+                executor_overrides,
+            )?;
+            Some(tokio::spawn(async move {
+                let result = cell_executor::node::run(&mut node, command_rx, status_tx).await;
+                (node, result)
+            }))
+        }
+        None => None,
+    };
     let consumers = format!(
         "[{:?}, {:?}, {:?}]",
         recorder.node_name(),
@@ -218,53 +256,101 @@ pub async fn print(
         (planner_node, result)
     });
 
-    let bar = if show_progress {
-        let bar = ProgressBar::new(total.max(1));
-        bar.set_style(
-            ProgressStyle::with_template("{spinner} {bar:40} {percent:>3}% {msg}")
-                .expect("static template"),
-        );
-        bar
-    } else {
-        ProgressBar::hidden()
+    let bar = progress_bar(options, total, machine_time_s);
+    let executing = options.execution.is_some();
+    let show_execution = {
+        let bar = bar.clone();
+        let mut status = status.clone();
+        async move {
+            if !executing {
+                return std::future::pending::<()>().await;
+            }
+            while status.changed().await.is_ok() {
+                let s = status.borrow_and_update().clone();
+                bar.set_position((s.plan_time_s * 1000.0) as u64);
+                bar.set_message(execution_message(&s, machine_time_s));
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
     };
-    let outcome = tokio::select! {
-        finished = &mut planner => Some(stopped(polar_planner::node::NODE_NAME, finished)),
-        finished = &mut screw => Some(stopped(screw_driver::node::NODE_NAME, finished)),
+    let executor_failed = async {
+        match executor.as_mut() {
+            Some(task) => stopped(cell_executor::node::NODE_NAME, task.await),
+            None => std::future::pending().await,
+        }
+    };
+    let streamed = tokio::select! {
+        finished = &mut planner => Err(Stop::Failed(stopped(polar_planner::node::NODE_NAME, finished).unwrap_err())),
+        finished = &mut screw => Err(Stop::Failed(stopped(screw_driver::node::NODE_NAME, finished).unwrap_err())),
+        e = executor_failed => Err(Stop::Failed(e.unwrap_err())),
         r = gcode_streamer::node::stream(&mut streamer, input, file, total, |p| {
-            bar.set_position(p.bytes_read);
-            bar.set_message(format!(
-                "line {} · {} moves sent · {} acknowledged",
-                p.lines_read, p.moves_published, p.moves_acknowledged
-            ));
-        }) => Some(r),
-        _ = cell_runtime::shutdown_signal() => None,
+            if !executing {
+                bar.set_position(p.bytes_read);
+                bar.set_message(format!(
+                    "line {} · {} moves sent · {} acknowledged",
+                    p.lines_read, p.moves_published, p.moves_acknowledged
+                ));
+            }
+        }) => r.map_err(Stop::Failed),
+        e = machine_failed(status.clone()), if executing => Err(Stop::Failed(e)),
+        _ = show_execution => unreachable!("the progress display never ends"),
+        _ = cell_runtime::shutdown_signal() => Err(Stop::Interrupted),
     };
+    // Executing: the stream is over once every move is planned; the machine runs on until it
+    // has executed the plan (or is stopped).
+    let outcome = match (streamed, executing) {
+        (Ok(summary), true) => {
+            let mut status = status.clone();
+            let bar = bar.clone();
+            tokio::select! {
+                r = wait_executed(&mut status, &bar, machine_time_s) => r.map(|()| summary).map_err(Stop::Failed),
+                finished = &mut planner => Err(Stop::Failed(stopped(polar_planner::node::NODE_NAME, finished).unwrap_err())),
+                finished = &mut screw => Err(Stop::Failed(stopped(screw_driver::node::NODE_NAME, finished).unwrap_err())),
+                _ = cell_runtime::shutdown_signal() => Err(Stop::Interrupted),
+            }
+        }
+        (other, _) => other,
+    };
+    // Ctrl-C while the machine moves: a controlled stop on the path; a second: stop at once.
+    let mut ended = None;
+    if executing && matches!(outcome, Err(Stop::Interrupted)) {
+        ended = Some(stop_machine(&commands, &status, &bar).await);
+    }
     bar.finish_and_clear();
-    if matches!(outcome, Some(Ok(_))) {
+    if outcome.is_ok() {
         if !recorder.wait_stream_finished(Duration::from_secs(10)).await {
             eprintln!("warning: the bag did not receive the final /gcode/progress within 10 s");
         }
         // The planner and screw driver flush what they buffered once input stops, and the
         // streamer's closing diagnostics follow its final progress: record until all is quiet.
         let quiet = Duration::from_millis(500);
-        if !recorder.wait_quiet(quiet, Duration::from_secs(60)).await {
+        if !executing && !recorder.wait_quiet(quiet, Duration::from_secs(60)).await {
             eprintln!("warning: messages were still arriving 60 s after the stream finished");
         }
     }
+    if executing {
+        // The executor's last samples (at rest) reach the bag before it closes.
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
     planner.abort();
     screw.abort();
+    if let Some(task) = executor.as_ref() {
+        task.abort();
+    }
     let recorded = recorder.stop().await.context("finishing the bag")?;
     match outcome {
-        None => {
+        Err(Stop::Interrupted) => {
             print_summary(&recorded);
-            bail!("interrupted before the end of {file}; the bag was finished")
+            match ended {
+                Some(how) => bail!("{how}; the bag was finished"),
+                None => bail!("interrupted before the end of {file}; the bag was finished"),
+            }
         }
-        Some(Err(e)) => {
+        Err(Stop::Failed(e)) => {
             print_summary(&recorded);
             Err(e)
         }
-        Some(Ok(s)) => {
+        Ok(s) => {
             let secs = s.elapsed.as_secs_f64();
             eprintln!(
                 "{file}: {} moves from {} lines ({} bytes) in {:.3} s — {:.0} moves/s, {} warnings, {} resends",
@@ -276,10 +362,255 @@ pub async fn print(
                 s.warnings,
                 s.resends
             );
+            if executing {
+                let st = status.borrow().clone();
+                let executed_s =
+                    st.done_at_s.unwrap_or(st.machine_time_s) - st.first_motion_s.unwrap_or(0.0);
+                eprintln!(
+                    "{file}: executed {} step segments in {} of machine time from the first \
+                     step ({:.3} s; planned {}), {} underruns",
+                    st.segments_completed,
+                    clock(executed_s),
+                    executed_s,
+                    machine_time_s.map_or("-".to_string(), |t| format!("{t:.3} s")),
+                    st.underruns
+                );
+            }
             print_summary(&recorded);
             Ok(())
         }
     }
+}
+
+/// The overrides that make a print execute: the executor gets the planner's step and
+/// acceleration settings and the screw driver's pin delay and command hold; the planner
+/// follows the executor's credit; the screw driver computes commands in pieces well inside the
+/// executor's horizon, and leaves a stall to the executor (it holds at rest on the path).
+fn execution_overrides(
+    ros_args: &RosArgs,
+    speed: f64,
+) -> anyhow::Result<(Vec<ParamOverride>, Vec<ParamOverride>, Vec<ParamOverride>)> {
+    let resolve = |name: &str, specs: &[ParamSpec], ours| {
+        cell_runtime::resolve_node(name, specs, &args_for(ros_args, name, specs, ours))
+            .map(|(_, params)| params)
+    };
+    let screw = resolve(
+        screw_driver::node::NODE_NAME,
+        &screw_driver::node::param_specs(),
+        vec![],
+    )?;
+    let planner = resolve(
+        polar_planner::node::NODE_NAME,
+        &polar_planner::node::param_specs(),
+        planner_overrides(&screw),
+    )?;
+    let executor = resolve(
+        cell_executor::node::NODE_NAME,
+        &cell_executor::node::param_specs(),
+        vec![],
+    )?;
+    let screw_options = screw_driver::node::options_from_params(&screw)?;
+    let hold = match screw_driver::node::command_hold(&screw_options, screw.f64("command_period_s"))
+    {
+        polar_cell_msgs::Hold::ZeroOrder => "zero_order",
+        polar_cell_msgs::Hold::FirstOrder => "first_order",
+    };
+    let list = |v: &[f64]| {
+        format!(
+            "[{}]",
+            v.iter()
+                .map(|x| format!("{x:?}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        )
+    };
+    let executor_overrides = vec![
+        param("speed", format!("{speed:?}")),
+        param("steps_per_unit", list(planner.f64s("steps_per_unit"))),
+        param(
+            "step_timer_hz",
+            format!("{:?}", planner.f64("step_timer_hz")),
+        ),
+        param(
+            "joint_accelerations",
+            list(planner.f64s("joint_accelerations")),
+        ),
+        param(
+            "pin_open_delay_s",
+            format!("{:?}", screw.f64("pin_open_delay_s")),
+        ),
+        param("screw_hold", hold.to_string()),
+    ];
+    let horizon_s = executor.f64("horizon_s");
+    let planner_extra = vec![param("follow_execution", "true".into())];
+    let screw_extra = vec![
+        param("max_buffer_s", format!("{:?}", (horizon_s / 4.0).max(0.1))),
+        param("stall_flush_s", "3600.0".into()),
+    ];
+    Ok((executor_overrides, planner_extra, screw_extra))
+}
+
+fn progress_bar(
+    options: &PrintOptions,
+    total_bytes: u64,
+    machine_time_s: Option<f64>,
+) -> ProgressBar {
+    if !options.show_progress {
+        return ProgressBar::hidden();
+    }
+    let bar = match (options.execution, machine_time_s) {
+        (Some(_), Some(t)) => ProgressBar::new(((t * 1000.0) as u64).max(1)),
+        (Some(_), None) => ProgressBar::new_spinner(),
+        (None, _) => ProgressBar::new(total_bytes.max(1)),
+    };
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} {bar:40} {percent:>3}% {msg}")
+            .expect("static template"),
+    );
+    bar.enable_steady_tick(Duration::from_millis(200));
+    bar
+}
+
+/// `m:ss.s` (or `h:mm:ss`) of a duration in seconds.
+fn clock(seconds: f64) -> String {
+    let s = seconds.max(0.0);
+    if s >= 3600.0 {
+        format!(
+            "{}:{:02}:{:02}",
+            (s / 3600.0) as u64,
+            (s % 3600.0 / 60.0) as u64,
+            (s % 60.0) as u64
+        )
+    } else {
+        format!("{}:{:04.1}", (s / 60.0) as u64, s % 60.0)
+    }
+}
+
+fn execution_message(s: &cell_executor::node::Status, machine_time_s: Option<f64>) -> String {
+    use cell_executor::{HoldReason, PlayerState};
+    let state = match (s.state, s.hold) {
+        (Some(PlayerState::Stopped), _) => "EMERGENCY STOP",
+        (_, Some(HoldReason::Pause)) => "paused",
+        (_, Some(HoldReason::Cancel)) => "cancelling",
+        (_, Some(HoldReason::Underrun)) => "underrun: holding",
+        (Some(PlayerState::Running), None) => "printing",
+        _ => "waiting",
+    };
+    let line = s
+        .current
+        .map(|(_, line)| format!(" · line {line}"))
+        .unwrap_or_default();
+    let remaining = machine_time_s
+        .map(|t| format!(" · {} left", clock(t - s.plan_time_s)))
+        .unwrap_or_default();
+    format!(
+        "{state} · machine {}{remaining}{line}",
+        clock(s.machine_time_s)
+    )
+}
+
+/// Resolves when the executor stops the machine: a fault, or an emergency stop from outside.
+async fn machine_failed(
+    mut status: tokio::sync::watch::Receiver<cell_executor::node::Status>,
+) -> anyhow::Error {
+    loop {
+        {
+            let s = status.borrow_and_update();
+            if let Some(fault) = &s.fault {
+                return anyhow::anyhow!("the executor stopped the machine: {fault}");
+            }
+            if s.state == Some(cell_executor::PlayerState::Stopped) {
+                return anyhow::anyhow!("emergency stop (/cell/estop) during the print");
+            }
+        }
+        if status.changed().await.is_err() {
+            return std::future::pending().await;
+        }
+    }
+}
+
+/// Wait until the executor has executed the whole plan.
+async fn wait_executed(
+    status: &mut tokio::sync::watch::Receiver<cell_executor::node::Status>,
+    bar: &ProgressBar,
+    machine_time_s: Option<f64>,
+) -> anyhow::Result<()> {
+    loop {
+        {
+            let s = status.borrow_and_update();
+            if let Some(fault) = &s.fault {
+                bail!("the executor stopped the machine: {fault}");
+            }
+            if s.state == Some(cell_executor::PlayerState::Stopped) {
+                bail!("emergency stop (/cell/estop) during the print");
+            }
+            if s.done {
+                return Ok(());
+            }
+            bar.set_position((s.plan_time_s * 1000.0) as u64);
+            bar.set_message(execution_message(&s, machine_time_s));
+        }
+        if status.changed().await.is_err() {
+            bail!("the executor ended");
+        }
+    }
+}
+
+/// Ctrl-C while executing: cancel (stop on the path within the acceleration limits, pin
+/// closed, screw stopped); a second Ctrl-C during that stop: emergency stop. Says how it ended.
+async fn stop_machine(
+    commands: &tokio::sync::mpsc::UnboundedSender<cell_executor::node::Command>,
+    status: &tokio::sync::watch::Receiver<cell_executor::node::Status>,
+    bar: &ProgressBar,
+) -> String {
+    use cell_executor::node::Command;
+    use cell_executor::PlayerState;
+    let _ = commands.send(Command::Cancel);
+    bar.println("cancelling: stopping on the path (Ctrl-C again: emergency stop)");
+    let mut watch = status.clone();
+    let at_rest = async {
+        loop {
+            {
+                let s = watch.borrow_and_update();
+                if (s.cancelled && s.state != Some(PlayerState::Running))
+                    || s.state == Some(PlayerState::Stopped)
+                    || s.state.is_none()
+                {
+                    return s.clone();
+                }
+            }
+            if watch.changed().await.is_err() {
+                return watch.borrow().clone();
+            }
+        }
+    };
+    let (s, emergency) = tokio::select! {
+        s = at_rest => (s, false),
+        _ = cell_runtime::shutdown_signal() => {
+            let _ = commands.send(Command::EmergencyStop);
+            let mut watch = status.clone();
+            loop {
+                if watch.borrow_and_update().state == Some(PlayerState::Stopped) { break; }
+                if watch.changed().await.is_err() { break; }
+            }
+            let s = watch.borrow().clone();
+            (s, true)
+        }
+    };
+    let line = s
+        .current
+        .map(|(_, line)| format!(" at line {line}"))
+        .unwrap_or_default();
+    let [bed, arm, z, _] = s.positions;
+    let how = if emergency {
+        "emergency stop"
+    } else {
+        "cancelled: stopped on the path"
+    };
+    format!(
+        "{how}{line} after {} of machine time (bed {bed:.6} rad, arm {arm:.6} m, z {z:.6} m)",
+        clock(s.machine_time_s)
+    )
 }
 
 /// The streamer's and the planner's parameters exactly as `print` gives them to its nodes

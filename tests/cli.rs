@@ -78,7 +78,7 @@ fn an_interrupted_print_finishes_its_bag_and_exits_non_zero() {
         .arg(&gcode)
         .arg("--bag")
         .arg(&bag)
-        .args(["--no-progress", "--no-preflight"])
+        .args(["--no-progress", "--no-preflight", "--dry-run"])
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();

@@ -10,7 +10,13 @@ use polar_cell_msgs::{cdr, GcodeMove};
 
 /// `polar-cell print GCODE --bag BAG --no-progress EXTRA…` on DDS domain `domain` (tests run
 /// in parallel: each uses its own domain so their nodes never meet): success and stderr.
+/// A dry run unless EXTRA sets a `--speed`.
 fn run_print(domain: u16, gcode: &Path, bag: &Path, extra: &[&str]) -> (bool, String) {
+    let dry_run: &[&str] = if extra.contains(&"--speed") {
+        &[]
+    } else {
+        &["--dry-run"]
+    };
     let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
         .env("ROS_DOMAIN_ID", domain.to_string())
         .arg("print")
@@ -18,6 +24,7 @@ fn run_print(domain: u16, gcode: &Path, bag: &Path, extra: &[&str]) -> (bool, St
         .arg("--bag")
         .arg(bag)
         .arg("--no-progress")
+        .args(dry_run)
         .args(extra)
         .output()
         .expect("running polar-cell");
@@ -192,4 +199,141 @@ fn the_preflight_reports_the_machine_time_of_a_good_file() {
         stdout.contains("pre-flight passed: 1778 moves, 0:02:48.1 of machine time"),
         "{stdout}"
     );
+}
+
+/// Decoded messages of one topic of a bag, in log order.
+fn topic_messages<T: polar_cell_msgs::RosMessage>(bag: &Path, topic: &str) -> Vec<T> {
+    let bytes = std::fs::read(bag).unwrap();
+    let contents = read_bag(&bytes).unwrap();
+    contents
+        .messages()
+        .unwrap()
+        .map(|m| m.unwrap())
+        .filter(|m| m.topic == topic)
+        .map(|m| cdr::decode::<T>(&m.data).unwrap())
+        .collect()
+}
+
+/// The executed print: finger.gcode at 40× machine pace. Its bag's `/joint_states` are the
+/// executor's: all four URDF joints on a regular 50 Hz grid of machine time, within every
+/// URDF velocity limit, ending exactly where the step segments sum to; `/tf`, `/tf_static`
+/// and `/robot_description` are there; and the executed time matches the plan's.
+#[test]
+fn an_executed_print_records_the_executed_joints_at_50_hz() {
+    use polar_cell_msgs::{JointState, StepSegment, StringMsg, TFMessage};
+    let fixture =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
+    let bag = std::env::temp_dir().join(format!("polar-cell-exec-{}.mcap", std::process::id()));
+    let stderr = print(60, &fixture, &bag, &["--speed", "40"]);
+    // "executed N step segments in m:ss.s of machine time from the first step (T s; planned P s)"
+    let executed_line = stderr
+        .lines()
+        .find(|l| l.contains("executed 4074 step segments"))
+        .unwrap_or_else(|| panic!("{stderr}"));
+    let number_after = |key: &str| -> f64 {
+        let rest = &executed_line[executed_line.find(key).unwrap() + key.len()..];
+        rest.split(|c: char| c != '.' && !c.is_ascii_digit())
+            .find(|t| !t.is_empty())
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    let (executed_s, planned_s) = (number_after("step ("), number_after("planned "));
+    // A tick of the executor is 0.1 ms of wall time, 4 ms of machine time at 40×.
+    assert!(
+        (executed_s - planned_s).abs() < 0.25,
+        "executed {executed_s} s, planned {planned_s} s"
+    );
+    assert!(executed_line.contains(", 0 underruns"), "{executed_line}");
+
+    let states: Vec<JointState> = topic_messages(&bag, "/joint_states");
+    assert!(states.len() as f64 >= planned_s / 0.02, "{}", states.len());
+    for w in states.windows(2) {
+        let dt = w[1].header.stamp.as_nanos() - w[0].header.stamp.as_nanos();
+        assert_eq!(dt, 20_000_000, "50 Hz of machine time");
+    }
+    let limits = [6.0, 0.2, 0.02, std::f64::consts::PI * 10.0];
+    for s in &states {
+        assert_eq!(s.name, ["bed_theta", "arm_r", "z", "screw"]);
+        for (v, limit) in s.velocity.iter().zip(limits) {
+            assert!(v.abs() <= limit * (1.0 + 1e-9), "{v} beyond {limit}");
+        }
+    }
+    let segments: Vec<StepSegment> = topic_messages(&bag, "/polar/steps");
+    assert_eq!(segments.len(), 4074);
+    let per_unit = [32000.0 / std::f64::consts::TAU, 80_000.0, 400_000.0];
+    let last = states.last().unwrap();
+    for (k, per_unit) in per_unit.iter().enumerate() {
+        let steps: i64 = segments
+            .iter()
+            .map(|s| s.step_counts[k] as i64 * s.directions[k] as i64)
+            .sum();
+        assert_eq!(last.position[k], steps as f64 / per_unit, "joint {k}");
+        assert_eq!(last.velocity[k], 0.0);
+    }
+    let tf: Vec<TFMessage> = topic_messages(&bag, "/tf");
+    assert_eq!(tf.len(), states.len());
+    assert_eq!(tf[0].transforms.len(), 4);
+    assert_eq!(topic_messages::<TFMessage>(&bag, "/tf_static").len(), 1);
+    let description: Vec<StringMsg> = topic_messages(&bag, "/robot_description");
+    assert_eq!(description.len(), 1);
+    assert!(description[0].data.contains("<robot name=\"polar_cell\""));
+    std::fs::remove_file(&bag).ok();
+}
+
+/// Ctrl-C while executing stops on the path and finishes the bag; the machine is at rest
+/// (every executed velocity 0) with the screw stopped. A second Ctrl-C during that stop stops
+/// at once. At 0.1× machine pace, so the stop (tens of ms of machine time) spans hundreds of
+/// ms of the test's time.
+#[test]
+fn ctrl_c_cancels_on_the_path_and_a_second_stops_at_once() {
+    use polar_cell_msgs::JointState;
+    let dir = std::env::temp_dir().join(format!("polar-cell-cancel-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    // Out along the arm, then round the bed: moving at every instant of the first seconds.
+    let gcode = dir.join("circle.gcode");
+    let mut text = String::from("G1 X50 Y0 F3000\n");
+    for i in 1..=200 {
+        let a = i as f64 * std::f64::consts::TAU / 200.0;
+        text += &format!("G1 X{:.3} Y{:.3} F6000\n", 50.0 * a.cos(), 50.0 * a.sin());
+    }
+    std::fs::write(&gcode, text).unwrap();
+    for (domain, second_interrupt) in [(61u16, false), (62, true)] {
+        let bag = dir.join(format!("stop-{domain}.mcap"));
+        let child = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+            .env("ROS_DOMAIN_ID", domain.to_string())
+            .arg("print")
+            .arg(&gcode)
+            .arg("--bag")
+            .arg(&bag)
+            .args(["--no-progress", "--speed", "0.1"])
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(std::time::Duration::from_secs(4));
+        // SAFETY: signalling our own child.
+        assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+        if second_interrupt {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+            assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+        }
+        let out = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{stderr}");
+        let expected = if second_interrupt {
+            "emergency stop at line"
+        } else {
+            "cancelled: stopped on the path at line"
+        };
+        assert!(stderr.contains(expected), "{stderr}");
+        assert!(stderr.contains("the bag was finished"), "{stderr}");
+        let states: Vec<JointState> = topic_messages(&bag, "/joint_states");
+        let last = states.last().unwrap();
+        assert_eq!(last.velocity, [0.0; 4], "at rest, screw stopped");
+        assert!(
+            states.iter().any(|s| s.velocity[1] != 0.0),
+            "it moved first"
+        );
+    }
+    std::fs::remove_dir_all(&dir).ok();
 }

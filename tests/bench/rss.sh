@@ -38,9 +38,9 @@ PY
   size=$(stat -c %s "$work/in.gcode")
   check=$(peak_kb "$bin" check --parse-only "$work/in.gcode")
   if [[ $(id -u) == 0 ]] && unshare -n true 2>/dev/null; then
-    print=$(unshare -n bash -c "ip link set lo up; ip link set lo multicast on; $(declare -f peak_kb); work=$work; peak_kb $bin print $work/in.gcode --bag $work/out.mcap --no-progress")
+    print=$(unshare -n bash -c "ip link set lo up; ip link set lo multicast on; $(declare -f peak_kb); work=$work; peak_kb $bin print $work/in.gcode --bag $work/out.mcap --no-progress --dry-run")
   else
-    print=$(peak_kb "$bin" print "$work/in.gcode" --bag "$work/out.mcap" --no-progress)
+    print=$(peak_kb "$bin" print "$work/in.gcode" --bag "$work/out.mcap" --no-progress --dry-run)
   fi
   rate=$(grep -o '[0-9]* moves/s' "$work/err" || true)
   echo "file ${size} bytes: check peak RSS ${check} kB; print peak RSS ${print} kB (${rate})"

@@ -58,7 +58,7 @@ def replay_mechanism(cl_bag: Path, out: Path):
 
 def record_moves(out: Path):
     """The input: /gcode/moves of polartest.gcode, as `polar-cell print` records it."""
-    run([BIN_DIR / "polar-cell", "print", FIXTURES / "polartest.gcode", "--bag", out, "--no-progress",
+    run([BIN_DIR / "polar-cell", "print", FIXTURES / "polartest.gcode", "--bag", out, "--no-progress", "--dry-run",
          "--ros-args", "-p", "bag_recorder:topics:=[/gcode/moves]"])
 
 

@@ -140,7 +140,7 @@ def test_malformed_gcode_is_a_precise_error_not_a_crash(polar_cell, tmp_path):
     import subprocess
 
     proc = subprocess.run(
-        [str(polar_cell), "print", str(bad), "--bag", str(tmp_path / "b.mcap"), "--no-progress"],
+        [str(polar_cell), "print", str(bad), "--bag", str(tmp_path / "b.mcap"), "--no-progress", "--dry-run"],
         capture_output=True, text=True, timeout=60,
     )
     assert proc.returncode == 1

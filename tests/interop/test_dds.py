@@ -189,7 +189,7 @@ def test_cyclone_consumer_decodes_moves_and_its_acks_gate_the_stream(polar_cell,
     bag = tmp_path / "cyclone.mcap"
     participant = DomainParticipant(0)
     proc = subprocess.Popen(
-        [str(polar_cell), "print", str(FIXTURES / name), "--bag", str(bag), "--no-progress",
+        [str(polar_cell), "print", str(FIXTURES / name), "--bag", str(bag), "--no-progress", "--dry-run",
          "--ros-args", "-p", f"gcode_streamer:consumers:=[/bag_recorder, {CONSUMER}]"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
@@ -265,7 +265,7 @@ def test_nodes_appear_in_ros_discovery_info_with_remapped_names(tmp_path):
 def test_print_nodes_appear_under_their_default_names(polar_cell, tmp_path):
     participant = DomainParticipant(0)
     proc = subprocess.Popen(
-        [str(polar_cell), "print", str(FIXTURES / "finger.gcode"), "--bag", str(tmp_path / "x.mcap"),
+        [str(polar_cell), "print", str(FIXTURES / "finger.gcode"), "--dry-run", "--bag", str(tmp_path / "x.mcap"),
          "--no-progress", "--ros-args", "-p", "gcode_streamer:consumers:=[/bag_recorder, /absent]",
          "-p", "consumer_timeout_s:=60.0"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

@@ -96,7 +96,7 @@ def test_recorded_trajectory_follows_commanded_lines_within_limits(printed_bags,
 def test_joint_states_and_steps_are_recorded(printed_bags):
     bag, _ = printed_bags["polartest.gcode"]
     # The screw driver publishes the screw joint on the same topic (tests/interop/test_screw.py).
-    states = [s for s in decoded(bag, "/joint_states") if s.name != ["screw"]]
+    states = [s for s in decoded(bag, "/polar/planned_joint_states") if s.name != ["screw"]]
     steps = decoded(bag, "/polar/steps")
     trajectories = decoded(bag, "/polar/trajectory")
     last = trajectories[-1]

@@ -104,7 +104,7 @@ class Consumer:
 def test_restarted_consumer_resumes_without_loss_or_duplicates(polar_cell, tmp_path):
     name = "finger.gcode"
     proc = subprocess.Popen(
-        [str(polar_cell), "print", str(FIXTURES / name), "--bag", str(tmp_path / "r.mcap"),
+        [str(polar_cell), "print", str(FIXTURES / name), "--dry-run", "--bag", str(tmp_path / "r.mcap"),
          "--no-progress", "--ros-args",
          "-p", f"gcode_streamer:consumers:=[/bag_recorder, {CONSUMER}]",
          "-p", "window:=64", "-p", "resend_after_s:=0.2"],

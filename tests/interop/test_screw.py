@@ -34,7 +34,7 @@ def screw_bags(polar_cell, tmp_path_factory):
                              "-p", "screw_driver:flow_dead_time_s:=0.0"]),
         ):
             bag = out / f"{name}.{mode}.mcap"
-            run([polar_cell, "print", FIXTURES / name, "--bag", bag, "--no-progress",
+            run([polar_cell, "print", FIXTURES / name, "--bag", bag, "--no-progress", "--dry-run",
                  "--ros-args", *params])
             bags[(name, mode)] = bag
     return bags
@@ -99,7 +99,7 @@ def test_screw_joint_states_integrate_the_commanded_rpm(screw_bags, name, mode):
     bag = screw_bags[(name, mode)]
     held = mode == "compensated"
     commands = decoded(bag, "/screw/command")
-    states = [s for s in decoded(bag, "/joint_states") if s.name == ["screw"]]
+    states = [s for s in decoded(bag, "/polar/planned_joint_states") if s.name == ["screw"]]
     base = ns(commands[0].header.stamp)  # seconds since the epoch lose nanoseconds in a float
     times = [(ns(c.header.stamp) - base) * 1e-9 for c in commands]
     rpms = [c.rpm for c in commands]

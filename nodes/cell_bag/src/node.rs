@@ -18,7 +18,7 @@ use cell_runtime::{
 };
 use polar_cell_msgs::{
     cdr, Clock, DiagnosticArray, GcodeAck, GcodeMove, GcodeProgress, JointState, JointTrajectory,
-    Log, PoseStamped, RosMessage, ScrewCommand, StepSegment, StringMsg,
+    Log, PlanCredit, PoseStamped, RosMessage, ScrewCommand, StepSegment, StringMsg, TFMessage,
 };
 use ros2_client::{QosProfile, Subscription};
 use tokio::sync::{mpsc, watch};
@@ -36,6 +36,10 @@ pub const SUITE_TOPICS: &[(&str, &str)] = &[
     ("/polar/trajectory", "trajectory_msgs/msg/JointTrajectory"),
     ("/polar/steps", "polar_cell_msgs/msg/StepSegment"),
     ("/joint_states", "sensor_msgs/msg/JointState"),
+    ("/polar/planned_joint_states", "sensor_msgs/msg/JointState"),
+    ("/tf", "tf2_msgs/msg/TFMessage"),
+    ("/tf_static", "tf2_msgs/msg/TFMessage"),
+    ("/cell/plan_credit", "polar_cell_msgs/msg/PlanCredit"),
     ("/screw/command", "polar_cell_msgs/msg/ScrewCommand"),
     ("/mechanism/joint_states", "sensor_msgs/msg/JointState"),
     ("/mechanism/tool_pose", "geometry_msgs/msg/PoseStamped"),
@@ -106,7 +110,7 @@ pub struct Recorder {
 }
 
 fn qos_for(topic: &str) -> (QosProfile, QosRecord) {
-    if topic == "/robot_description" {
+    if topic == "/robot_description" || topic == "/tf_static" {
         let q = QosRecord {
             reliability: crate::Reliability::Reliable,
             durability: crate::Durability::TransientLocal,
@@ -147,6 +151,8 @@ macro_rules! with_message_type {
             "diagnostic_msgs/msg/DiagnosticArray" => $f::<DiagnosticArray>($($arg),*),
             "rcl_interfaces/msg/Log" => $f::<Log>($($arg),*),
             "rosgraph_msgs/msg/Clock" => $f::<Clock>($($arg),*),
+            "tf2_msgs/msg/TFMessage" => $f::<TFMessage>($($arg),*),
+            "polar_cell_msgs/msg/PlanCredit" => $f::<PlanCredit>($($arg),*),
             other => Err(anyhow!("cannot record type {other}: not one of the suite's message types")),
         }
     };

@@ -8,13 +8,18 @@
 //!
 //! * [`player`] — the segment queue and the pulse clock: position, velocity, underrun, e-stop;
 //! * [`screw`] — screw commands on the plan timeline, executed as time passes;
-//! * [`session`] — both joined on one plan clock: messages in, the executed state out.
+//! * [`session`] — both joined on one plan clock: messages in, the executed state out;
+//! * [`tf`] — the URDF's joints as transforms, for `/tf` and `/tf_static`.
 //!
-//! Pure: no DDS, no clock of its own — the caller says what time it is.
+//! Pure: no DDS, no clock of its own — the caller says what time it is. The DDS node
+//! ([`node`], feature `node`) feeds it messages and the monotonic clock.
 
+#[cfg(feature = "node")]
+pub mod node;
 pub mod player;
 pub mod screw;
 pub mod session;
+pub mod tf;
 
 /// Seconds as Q32 timer ticks of a `timer_hz` timer (rounded; ≥ 0 assumed).
 pub(crate) fn seconds_to_q32(seconds: f64, timer_hz: f64) -> u64 {

@@ -623,6 +623,11 @@ impl Player {
         (self.completed, self.last_completed)
     }
 
+    /// Segments queued or playing.
+    pub fn queued(&self) -> usize {
+        self.queue.len() + usize::from(self.active.is_some())
+    }
+
     /// Times the queued plan ran short while the input was not finished (each began a hold).
     pub fn underruns(&self) -> u64 {
         self.underruns

@@ -78,8 +78,11 @@ impl ScrewTrack {
         }
     }
 
-    /// Queue a command (plan times must not go back).
-    pub fn push(&mut self, step: ScrewStep) -> Result<(), ScrewError> {
+    /// Queue a command (plan times must not go back). Stamps are whole nanoseconds rounded
+    /// from the producer's floating-point plan time, so two commands computed apart (the
+    /// screw driver's chunks) can meet a nanosecond out of order: up to one timer tick
+    /// earlier than the previous command counts as the same instant.
+    pub fn push(&mut self, mut step: ScrewStep) -> Result<(), ScrewError> {
         if !(step.rpm.is_finite() && step.rpm >= 0.0) {
             return Err(ScrewError::BadRpm {
                 source_line: step.source_line,
@@ -90,6 +93,9 @@ impl ScrewTrack {
             .queue
             .back()
             .map_or(self.commanded.plan_q32, |s| s.plan_q32);
+        if step.plan_q32 < previous && previous - step.plan_q32 <= step_core::ONE_TICK_Q32 {
+            step.plan_q32 = previous;
+        }
         if step.plan_q32 < previous {
             return Err(ScrewError::OutOfOrder {
                 source_line: step.source_line,
@@ -298,6 +304,11 @@ mod tests {
                 previous_s: 1.0
             }
         );
+        // A nanosecond early (two chunks' rounding) is the same instant; two ticks is not.
+        let mut close = ScrewTrack::new(HZ, Hold::FirstOrder, 4);
+        close.push(step(1.0, 10.0, true)).unwrap();
+        close.push(step(1.0 - 1e-9, 20.0, true)).unwrap();
+        assert!(close.push(step(1.0 - 2e-6, 20.0, true)).is_err());
         assert!(matches!(
             track.push(step(2.0, -1.0, true)),
             Err(ScrewError::BadRpm { rpm, .. }) if rpm == -1.0

@@ -166,6 +166,21 @@ impl Executor {
         self.player.finish_input();
     }
 
+    /// The stamp of plan time 0 on the producers' clock, once the first segment told it.
+    pub fn epoch_ns(&self) -> Option<i64> {
+        self.epoch_ns
+    }
+
+    /// Nothing left to play: idle, with no segment queued or playing.
+    pub fn is_drained(&self) -> bool {
+        self.player.state() == PlayerState::Idle && self.player.queued() == 0
+    }
+
+    /// Plan time queued ahead of execution (s).
+    pub fn plan_ahead_s(&self) -> f64 {
+        crate::q32_to_seconds(self.player.ahead_q32(), self.timer_hz)
+    }
+
     /// Execute up to `now_ns` (monotonic clock).
     pub fn on_tick(&mut self, now_ns: i64) -> Result<(), ExecError> {
         let origin = *self.origin_ns.get_or_insert(now_ns);

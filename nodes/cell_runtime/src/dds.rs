@@ -300,6 +300,34 @@ impl CellNode {
             .map_err(|e| RuntimeError::Dds(format!("subscription on {topic}: {e:?}")))
     }
 
+    /// A service server on `service` (expanded and remapped) of type `package/srv/Type`, with
+    /// ROS's service QoS (reliable, volatile, keep-last 10) and the given request/reply
+    /// mapping: `Cyclone` for rmw_cyclonedds clients, `Enhanced` for rmw_fastrtps ones.
+    pub fn service<Req, Resp>(
+        &mut self,
+        service: &str,
+        type_name: (&str, &str),
+        mapping: ServiceMapping,
+    ) -> Result<ros2_client::Server<Wire<Req>, Wire<Resp>>, RuntimeError>
+    where
+        Req: serde::Serialize + serde::de::DeserializeOwned + Clone + 'static,
+        Resp: serde::Serialize + serde::de::DeserializeOwned + 'static,
+    {
+        let resolved = self.names.resolve(service)?;
+        let name =
+            Name::parse(&resolved).map_err(|e| RuntimeError::Dds(format!("{resolved}: {e:?}")))?;
+        let qos = ros_default_qos();
+        self.node
+            .create_server(
+                mapping,
+                &name,
+                &ros2_client::ServiceTypeName::new(type_name.0, type_name.1),
+                qos.clone(),
+                qos,
+            )
+            .map_err(|e| RuntimeError::Dds(format!("service {resolved}: {e:?}")))
+    }
+
     /// Publish one diagnostic status for this node on `/diagnostics`.
     pub fn diagnose(&self, level: u8, message: &str, values: &[(&str, String)]) {
         let status = DiagnosticStatus {
@@ -333,6 +361,31 @@ impl CellNode {
     /// Log to `/rosout` (and through `tracing` to stderr).
     pub fn log(&self, level: LogLevel, message: &str) {
         ros2_client::rosout!(self.node, level, "{}", message);
+    }
+}
+
+/// A message or service payload as ros2-client carries it (its `Message` marker trait, which
+/// our message crate does not depend on).
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(transparent)]
+pub struct Wire<T>(pub T);
+
+impl<T: serde::Serialize + serde::de::DeserializeOwned> ros2_client::Message for Wire<T> {}
+
+/// How a service's requests and replies are paired on the wire.
+pub use ros2_client::ServiceMapping;
+
+/// `cyclone` (rmw_cyclonedds: a 16-byte header in the payload), `enhanced` (rmw_fastrtps:
+/// the RTPS sample identity) or `basic` (DDS-RPC's in-payload header).
+pub fn parse_service_mapping(text: &str) -> Result<ServiceMapping, RuntimeError> {
+    match text {
+        "cyclone" => Ok(ServiceMapping::Cyclone),
+        "enhanced" => Ok(ServiceMapping::Enhanced),
+        "basic" => Ok(ServiceMapping::Basic),
+        other => Err(RuntimeError::Params(crate::ParamError::Invalid {
+            name: "service_mapping".into(),
+            problem: format!("`{other}` is not cyclone, enhanced or basic"),
+        })),
     }
 }
 

@@ -14,8 +14,9 @@ pub mod params;
 
 pub use args::{ArgsError, RosArgs};
 pub use dds::{
-    now_ns, publish, reliable_qos, resolve_node, ros_default_qos, shutdown_signal,
-    transient_local_qos, CellNode, Network, PUBLISH_PATIENCE,
+    now_ns, parse_service_mapping, publish, reliable_qos, resolve_node, ros_default_qos,
+    shutdown_signal, transient_local_qos, CellNode, Network, ServiceMapping, Wire,
+    PUBLISH_PATIENCE,
 };
 pub use names::{NameError, NameResolver};
 pub use params::{ParamError, ParamSpec, ParamValue, Params};

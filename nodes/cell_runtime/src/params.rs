@@ -106,6 +106,8 @@ pub enum ParamError {
         max: f64,
         source_name: String,
     },
+    #[error("parameter `{name}`: {problem}")]
+    Invalid { name: String, problem: String },
     #[error("{source_name}: {message}")]
     BadYaml {
         source_name: String,

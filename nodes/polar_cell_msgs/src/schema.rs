@@ -130,6 +130,10 @@ msg_types! {
     QUATERNION = "geometry_msgs" / "Quaternion" @ "ros_std/geometry_msgs/msg/Quaternion.msg";
     POSE = "geometry_msgs" / "Pose" @ "ros_std/geometry_msgs/msg/Pose.msg";
     POSE_STAMPED = "geometry_msgs" / "PoseStamped" @ "ros_std/geometry_msgs/msg/PoseStamped.msg";
+    VECTOR3 = "geometry_msgs" / "Vector3" @ "ros_std/geometry_msgs/msg/Vector3.msg";
+    TRANSFORM = "geometry_msgs" / "Transform" @ "ros_std/geometry_msgs/msg/Transform.msg";
+    TRANSFORM_STAMPED = "geometry_msgs" / "TransformStamped" @ "ros_std/geometry_msgs/msg/TransformStamped.msg";
+    TF_MESSAGE = "tf2_msgs" / "TFMessage" @ "ros_std/tf2_msgs/msg/TFMessage.msg";
     KEY_VALUE = "diagnostic_msgs" / "KeyValue" @ "ros_std/diagnostic_msgs/msg/KeyValue.msg";
     DIAGNOSTIC_STATUS = "diagnostic_msgs" / "DiagnosticStatus" @ "ros_std/diagnostic_msgs/msg/DiagnosticStatus.msg";
     DIAGNOSTIC_ARRAY = "diagnostic_msgs" / "DiagnosticArray" @ "ros_std/diagnostic_msgs/msg/DiagnosticArray.msg";
@@ -140,6 +144,7 @@ msg_types! {
     GCODE_PROGRESS = "polar_cell_msgs" / "GcodeProgress" @ "msg/GcodeProgress.msg";
     STEP_SEGMENT = "polar_cell_msgs" / "StepSegment" @ "msg/StepSegment.msg";
     SCREW_COMMAND = "polar_cell_msgs" / "ScrewCommand" @ "msg/ScrewCommand.msg";
+    PLAN_CREDIT = "polar_cell_msgs" / "PlanCredit" @ "msg/PlanCredit.msg";
 }
 
 /// Look a definition up by `package/msg/Name` (or `package/Name`).

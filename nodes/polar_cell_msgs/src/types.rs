@@ -170,6 +170,60 @@ pub struct PoseStamped {
 }
 ros_message!(PoseStamped => schema::POSE_STAMPED);
 
+/// `geometry_msgs/msg/Vector3`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Vector3 {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+ros_message!(Vector3 => schema::VECTOR3);
+
+/// `geometry_msgs/msg/Transform`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Transform {
+    pub translation: Vector3,
+    pub rotation: Quaternion,
+}
+ros_message!(Transform => schema::TRANSFORM);
+
+/// `geometry_msgs/msg/TransformStamped`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TransformStamped {
+    pub header: Header,
+    pub child_frame_id: String,
+    pub transform: Transform,
+}
+ros_message!(TransformStamped => schema::TRANSFORM_STAMPED);
+
+// ---------------------------------------------------------------- tf2_msgs
+
+/// `tf2_msgs/msg/TFMessage` (what `/tf` and `/tf_static` carry).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TFMessage {
+    pub transforms: Vec<TransformStamped>,
+}
+ros_message!(TFMessage => schema::TF_MESSAGE);
+
+// ---------------------------------------------------------------- std_srvs
+
+/// The request of `std_srvs/srv/Trigger` (`ros_std/std_srvs/srv/Trigger.srv`): an empty
+/// request, which rosidl gives one placeholder byte.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TriggerRequest {
+    pub structure_needs_at_least_one_member: u8,
+}
+
+/// The response of `std_srvs/srv/Trigger`.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TriggerResponse {
+    pub success: bool,
+    pub message: String,
+}
+
+/// The definition of `std_srvs/srv/Trigger`.
+pub const TRIGGER_SRV: &str = include_str!("../ros_std/std_srvs/srv/Trigger.srv");
+
 // ---------------------------------------------------------------- diagnostic_msgs
 
 /// `diagnostic_msgs/msg/KeyValue`.
@@ -374,6 +428,18 @@ pub struct ScrewCommand {
 }
 ros_message!(ScrewCommand => schema::SCREW_COMMAND);
 
+/// `polar_cell_msgs/msg/PlanCredit`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PlanCredit {
+    pub header: Header,
+    pub executor: String,
+    pub executed_until: Time,
+    pub accept_until: Time,
+    pub horizon_s: f64,
+    pub closed: bool,
+}
+ros_message!(PlanCredit => schema::PLAN_CREDIT);
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -436,6 +502,27 @@ mod tests {
         let d = Duration::from_secs_f64(2.75);
         assert_eq!((d.sec, d.nanosec), (2, 750_000_000));
         assert!((d.as_secs_f64() - 2.75).abs() < 1e-12);
+    }
+
+    /// The Trigger types mirror the `.srv` file: an empty request (rosidl's placeholder
+    /// byte), a response of `bool success`, `string message`; the CDR is the bytes rosidl
+    /// writes.
+    #[test]
+    fn trigger_mirrors_its_srv_file() {
+        let (request, response) = TRIGGER_SRV.split_once("---").unwrap();
+        assert_eq!(request.trim(), "");
+        assert_eq!(
+            response.split_whitespace().collect::<Vec<_>>(),
+            ["bool", "success", "string", "message"]
+        );
+        let bytes = cdr::encode(&TriggerRequest::default()).unwrap();
+        assert_eq!(bytes, [0, 1, 0, 0, 0]);
+        let reply = TriggerResponse {
+            success: true,
+            message: "ok".into(),
+        };
+        let bytes = cdr::encode(&reply).unwrap();
+        assert_eq!(bytes, [0, 1, 0, 0, 1, 0, 0, 0, 3, 0, 0, 0, b'o', b'k', 0]);
     }
 
     /// Every constant of a `.msg` file has a Rust twin with the same value.

@@ -1,5 +1,11 @@
 //! The `polar_planner` node: `/gcode/moves` in (as a flow-control consumer), `/polar/trajectory`,
-//! `/polar/steps` and `/joint_states` out.
+//! `/polar/steps` and `/polar/planned_joint_states` out.
+//!
+//! With `follow_execution`, the planner plans no further ahead of execution than the
+//! executor's `/cell/plan_credit` allows: moves wait, unacknowledged (so the streamer's window
+//! stops the stream), until the plan published so far ends before the credit. Waiting for
+//! credit is not idle input, so it never flushes the lookahead queue to a stop; only a stream
+//! that really stalls does, and the plan handed to the executor then ends at rest.
 //!
 //! A move is acknowledged only once its plan is published, so a restarted planner resumes
 //! with nothing lost. The lookahead queue is flushed (planned to a stop) when no move arrived
@@ -11,6 +17,7 @@
 //! plan is made (the machine itself would run them later). The Cartesian tool speed is exact
 //! from the published joint velocities: `v = √(ṙ² + r²θ̇² + ż²)`.
 
+use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
@@ -21,7 +28,7 @@ use cell_runtime::{
 };
 use polar_cell_msgs::{
     DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory,
-    StepSegment, Time,
+    PlanCredit, StepSegment, Time,
 };
 
 use crate::steps::{StepGenerator, StepOptions};
@@ -49,7 +56,8 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("steps_per_unit", ParamValue::DoubleArray(s.steps_per_unit.to_vec()), "steps per rad (bed), per m (arm), per m (z)"),
         ParamSpec::new("step_timer_hz", ParamValue::Double(s.timer_hz), "step timer frequency").range(1.0, 1e9),
         ParamSpec::new("publish_steps", ParamValue::Bool(true), "publish /polar/steps"),
-        ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of /joint_states samples (0: none)").range(0.0, 10.0),
+        ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of /polar/planned_joint_states samples (0: none)").range(0.0, 10.0),
+        ParamSpec::new("follow_execution", ParamValue::Bool(false), "plan no further ahead of execution than the executor's /cell/plan_credit allows"),
         ParamSpec::new("plan_epoch_ns", ParamValue::Integer(-1), "stamp of plan time 0 (-1: wall clock at the first move)"),
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.05), "plan the queue to a stop when no move came for this long").range(0.001, 60.0),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves (false: accept moves in sequence order, e.g. from a bag)"),
@@ -149,6 +157,19 @@ pub fn sample_joint_states(
     }
 }
 
+/// Whether the executor's `credit` lets the planner plan past plan time `plan_time_s` (the
+/// end of what it published), on the timeline stamped from `epoch_ns` (< 0: not started).
+pub fn credit_allows(credit: Option<&PlanCredit>, epoch_ns: i64, plan_time_s: f64) -> bool {
+    let Some(c) = credit.filter(|c| !c.closed) else {
+        return false; // no executor heard from yet, or it stopped taking this plan
+    };
+    if c.accept_until == Time::default() || epoch_ns < 0 {
+        // The executor has nothing yet: the first horizon of our own plan.
+        return plan_time_s < c.horizon_s;
+    }
+    Time::after(epoch_ns, plan_time_s).as_nanos() < c.accept_until.as_nanos()
+}
+
 /// Run the planner on `node` until an error; the caller decides when to stop it (signals
 /// belong to whoever owns the process).
 pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
@@ -167,7 +188,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let trajectory_pub =
         node.publisher::<JointTrajectory>("/polar/trajectory", &reliable_qos(10_000))?;
     let steps_pub = node.publisher::<StepSegment>("/polar/steps", &reliable_qos(10_000))?;
-    let joint_states_pub = node.publisher::<JointState>("/joint_states", &reliable_qos(10_000))?;
+    let joint_states_pub =
+        node.publisher::<JointState>("/polar/planned_joint_states", &reliable_qos(10_000))?;
+    let follow_execution = params.bool("follow_execution");
+    let credit_sub = node.subscription::<PlanCredit>("/cell/plan_credit", &reliable_qos(10))?;
+    let mut credit: Option<PlanCredit> = None;
+    // Moves taken in order and not yet given to the planner (waiting for credit).
+    let mut held: VecDeque<GcodeMove> = VecDeque::new();
     let mut intake = Intake::new(
         node.fully_qualified_name(),
         params.bool("acknowledge_moves"),
@@ -189,15 +216,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             taken = moves_sub.async_take() => {
                 let (m, _) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
                 if intake.accept(m.sequence) {
-                    if epoch_ns < 0 {
-                        epoch_ns = now_ns() as i64;
-                    }
                     last_move = Instant::now();
-                    pending += 1;
-                    if let Err(e) = planner.push(&m, &mut planned) {
-                        node.diagnose(DiagnosticStatus::ERROR, &e.to_string(), &[]);
-                        return Err(anyhow!("{e}"));
-                    }
+                    held.push_back(m);
+                }
+            }
+            taken = credit_sub.async_take() => {
+                if let Ok((c, _)) = taken {
+                    credit = Some(c);
                 }
             }
             taken = progress_sub.async_take() => {
@@ -208,7 +233,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 }
             }
             _ = tick.tick() => {
-                if pending > 0 && last_move.elapsed() >= idle_flush {
+                if pending > 0 && held.is_empty() && last_move.elapsed() >= idle_flush {
                     planner.flush(&mut planned);
                 }
                 // Announce until the resume point is known; then repeat the acknowledgement
@@ -218,37 +243,60 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 }
             }
         }
-        if planned.is_empty() {
-            continue;
-        }
-        for plan in planned.drain(..) {
-            publish(
-                &trajectory_pub,
-                trajectory_message(&plan, epoch_ns),
-                PUBLISH_PATIENCE,
-            )
-            .await
-            .context("/polar/trajectory")?;
-            if publish_steps {
-                segments.clear();
-                steps.segments(&plan, &mut segments);
-                for mut s in segments.drain(..) {
-                    s.header.stamp = Time::after(epoch_ns, plan.start_time());
-                    publish(&steps_pub, s, PUBLISH_PATIENCE)
-                        .await
-                        .context("/polar/steps")?;
+        // Feed the planner what the credit allows and publish each plan as it comes, so the
+        // credit is judged against the plan actually published.
+        let mut published = false;
+        loop {
+            while planned.is_empty()
+                && !held.is_empty()
+                && (!follow_execution || credit_allows(credit.as_ref(), epoch_ns, plan_time))
+            {
+                let m = held.pop_front().expect("not empty");
+                if epoch_ns < 0 {
+                    epoch_ns = now_ns() as i64;
+                }
+                pending += 1;
+                if let Err(e) = planner.push(&m, &mut planned) {
+                    node.diagnose(DiagnosticStatus::ERROR, &e.to_string(), &[]);
+                    return Err(anyhow!("{e}"));
                 }
             }
-            sample_joint_states(&plan, js_period, &mut next_state_t, epoch_ns, &mut states);
-            for s in states.drain(..) {
-                publish(&joint_states_pub, s, PUBLISH_PATIENCE)
-                    .await
-                    .context("/joint_states")?;
+            if planned.is_empty() {
+                break;
             }
-            planned_until = plan.sequence + 1;
-            moves_planned += 1;
-            plan_time = plan.end_time();
-            pending = pending.saturating_sub(1);
+            published = true;
+            for plan in planned.drain(..) {
+                publish(
+                    &trajectory_pub,
+                    trajectory_message(&plan, epoch_ns),
+                    PUBLISH_PATIENCE,
+                )
+                .await
+                .context("/polar/trajectory")?;
+                if publish_steps {
+                    segments.clear();
+                    steps.segments(&plan, &mut segments);
+                    for mut s in segments.drain(..) {
+                        s.header.stamp = Time::after(epoch_ns, plan.start_time());
+                        publish(&steps_pub, s, PUBLISH_PATIENCE)
+                            .await
+                            .context("/polar/steps")?;
+                    }
+                }
+                sample_joint_states(&plan, js_period, &mut next_state_t, epoch_ns, &mut states);
+                for s in states.drain(..) {
+                    publish(&joint_states_pub, s, PUBLISH_PATIENCE)
+                        .await
+                        .context("/polar/planned_joint_states")?;
+                }
+                planned_until = plan.sequence + 1;
+                moves_planned += 1;
+                plan_time = plan.end_time();
+                pending = pending.saturating_sub(1);
+            }
+        }
+        if !published {
+            continue;
         }
         // Acknowledge what is planned and published; the lookahead queue is not.
         if let Some(ack) = intake.ack(planned_until) {
@@ -274,5 +322,35 @@ pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
     tokio::select! {
         result = run(&mut node) => result,
         _ = cell_runtime::shutdown_signal() => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn credit(accept_until_ns: i64, closed: bool) -> PlanCredit {
+        PlanCredit {
+            accept_until: Time::from_nanos(accept_until_ns),
+            horizon_s: 2.0,
+            closed,
+            ..PlanCredit::default()
+        }
+    }
+
+    /// No executor heard from, or one that closed: nothing. Before the executor has a
+    /// segment: the first horizon of the plan. Then: up to the stamp it grants.
+    #[test]
+    fn the_credit_bounds_the_plan_ahead() {
+        assert!(!credit_allows(None, -1, 0.0));
+        assert!(!credit_allows(Some(&credit(0, true)), -1, 0.0));
+        let fresh = credit(0, false);
+        assert!(credit_allows(Some(&fresh), -1, 0.0));
+        assert!(credit_allows(Some(&fresh), 1_000, 1.999));
+        assert!(!credit_allows(Some(&fresh), 1_000, 2.0));
+        let epoch = 5_000_000_000;
+        let granted = credit(epoch + 3_500_000_000, false);
+        assert!(credit_allows(Some(&granted), epoch, 3.4999));
+        assert!(!credit_allows(Some(&granted), epoch, 3.5));
     }
 }

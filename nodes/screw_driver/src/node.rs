@@ -1,7 +1,7 @@
 //! The `screw_driver` node: `/gcode/moves` (as a flow-control consumer) and `/polar/trajectory`
-//! in, `/screw/command` out, stamped on the planned timeline, and the `screw` joint's angle
-//! on `/joint_states` (beside the planner's stage joints, so `robot_state_publisher` has
-//! every joint of `urdf/polar_cell.urdf`).
+//! in, `/screw/command` out, stamped on the planned timeline, and the `screw` joint's planned
+//! angle on `/polar/planned_joint_states` (beside the planner's stage joints; the executed
+//! joints are the executor's `/joint_states`).
 //!
 //! The k-th trajectory is the plan of the k-th move (the planner publishes exactly one per
 //! move, in order); they are paired whichever arrives first. Commands are computed per chunk of moves: a chunk ends when input goes
@@ -59,7 +59,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("stall_flush_s", ParamValue::Double(2.0), "with flow compensation: when input pauses before the file is all read, commands are computed up to a closed-pin gap; after this long without input, for everything (the pin closes)").range(0.001, 3600.0),
         ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
-        ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of the screw joint's /joint_states samples (0: none)").range(0.0, 10.0),
+        ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of the screw joint's /polar/planned_joint_states samples (0: none)").range(0.0, 10.0),
     ]
 }
 
@@ -186,8 +186,9 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         node.publisher::<ScrewCommand>("/screw/command", &reliable_qos(100_000))?,
     );
     node.keep(commands_pub.clone());
-    let joint_states_pub =
-        std::sync::Arc::new(node.publisher::<JointState>("/joint_states", &reliable_qos(10_000))?);
+    let joint_states_pub = std::sync::Arc::new(
+        node.publisher::<JointState>("/polar/planned_joint_states", &reliable_qos(10_000))?,
+    );
     node.keep(joint_states_pub.clone());
     let joint_state_period_s = params.f64("joint_state_period_s");
     let mut angle = (joint_state_period_s > 0.0).then(|| {
@@ -299,7 +300,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                         PUBLISH_PATIENCE,
                     )
                     .await
-                    .context("/joint_states")?;
+                    .context("/polar/planned_joint_states")?;
                 }
             }
             if let Some(ack) = intake.ack(done_until) {

@@ -1,0 +1,515 @@
+//! The `cell_executor` node: the machine, in software, on the ROS graph.
+//!
+//! In: `/polar/steps` and `/screw/command` (the plan, ahead of time), `/gcode/progress` (to
+//! learn that the plan is complete). Out, from *execution* and not from the plan:
+//! `/joint_states` (the four joints of `urdf/polar_cell.urdf`) and `/tf` at `rate_hz` of machine
+//! time, `/tf_static` and `/robot_description` (transient local) once, `/diagnostics` every
+//! second, and `/cell/plan_credit`: how far ahead of execution the producers may plan
+//! (`horizon_s`), which bounds the whole pipeline's plan-ahead in time. Services (std_srvs
+//! Trigger): `/cell/pause`, `/cell/resume`, `/cell/cancel`, `/cell/estop`, `/cell/reset`.
+//!
+//! The clock is the process's monotonic clock times `speed` (a `speed`× faster simulation of
+//! the same timeline); stamps are the wall clock at start plus machine time, so at speed 1
+//! they are the wall clock. The core ([`crate::Executor`]) decides everything; this loop only
+//! feeds it messages and the time, and publishes what it says.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, Context as _};
+use cell_runtime::{
+    now_ns, parse_service_mapping, reliable_qos, transient_local_qos, CellNode, LogLevel,
+    ParamSpec, ParamValue, Params, Wire,
+};
+use polar_cell_msgs::{
+    DiagnosticStatus, GcodeProgress, Header, Hold, JointState, PlanCredit, ScrewCommand,
+    StepSegment, StringMsg, TFMessage, Time, TriggerRequest, TriggerResponse,
+};
+use step_core::StepOptions;
+use tokio::sync::{mpsc, watch};
+
+use crate::session::{Executor, ExecutorOptions};
+use crate::tf::TfTree;
+use crate::{HoldReason, PlayerOptions, PlayerState};
+
+/// Default node name.
+pub const NODE_NAME: &str = "cell_executor";
+
+/// The cell's URDF (the default of `urdf_file`).
+pub const POLAR_CELL_URDF: &str = include_str!("../../../urdf/polar_cell.urdf");
+
+/// The joints of `/joint_states`, in the order of [`crate::MachineState::positions`].
+pub const JOINT_NAMES: [&str; 4] = ["bed_theta", "arm_r", "z", "screw"];
+
+/// The pin's opening delay the screw driver assumes by default (its `pin_open_delay_s`).
+pub const DEFAULT_PIN_OPEN_DELAY_S: f64 = 0.25;
+
+/// The joint acceleration limits the planner plans within by default (its
+/// `joint_accelerations`): a hold keeps to them.
+pub const DEFAULT_JOINT_ACCELERATIONS: [f64; 3] = [40.0, 3.0, 0.5];
+
+pub fn param_specs() -> Vec<ParamSpec> {
+    let s = StepOptions::default();
+    vec![
+        ParamSpec::new("urdf_file", ParamValue::String(String::new()), "URDF of the cell for /tf and /robot_description (empty: the shipped urdf/polar_cell.urdf)"),
+        ParamSpec::new("rate_hz", ParamValue::Double(50.0), "/joint_states and /tf per second of machine time").range(0.1, 1000.0),
+        ParamSpec::new("horizon_s", ParamValue::Double(2.0), "plan time the producers may run ahead of execution").range(0.05, 3600.0),
+        ParamSpec::new("speed", ParamValue::Double(1.0), "machine seconds per wall second (a faster simulation of the same timeline)").range(0.01, 1000.0),
+        ParamSpec::new("control_period_s", ParamValue::Double(0.001), "period of the executor's clock (and of a feed hold's control)").range(1e-5, 0.1),
+        ParamSpec::new("steps_per_unit", ParamValue::DoubleArray(s.steps_per_unit.to_vec()), "steps per rad (bed), per m (arm), per m (z): the planner's"),
+        ParamSpec::new("step_timer_hz", ParamValue::Double(s.timer_hz), "step timer frequency: the planner's").range(1.0, 1e9),
+        ParamSpec::new("joint_accelerations", ParamValue::DoubleArray(DEFAULT_JOINT_ACCELERATIONS.to_vec()), "bed (rad/s²), arm, z (m/s²) limits a pause or cancel keeps to: the planner's"),
+        ParamSpec::new("pin_open_delay_s", ParamValue::Double(DEFAULT_PIN_OPEN_DELAY_S), "a resume waits this long at rest with the pin open: the screw driver's").range(0.0, 60.0),
+        ParamSpec::new("screw_hold", ParamValue::String("zero_order".into()), "how rpm runs between screw commands: zero_order (compensated, smoothed or resampled commands) or first_order (raw breakpoints)"),
+        ParamSpec::new("queue_capacity", ParamValue::Integer(4096), "step segments and screw commands held ahead of execution at most").range(16.0, 1e7),
+        ParamSpec::new("service_mapping", ParamValue::String("cyclone".into()), "request/reply wire format of the services: cyclone (rmw_cyclonedds clients), enhanced (rmw_fastrtps) or basic"),
+    ]
+}
+
+/// What a caller in the same process asks of the machine (the services ask the same).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Command {
+    Pause,
+    Resume,
+    /// Stop on the path, then drop the rest of the plan.
+    Cancel,
+    EmergencyStop,
+    Reset,
+}
+
+/// The executor's state for a caller in the same process (a print's progress and its end).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Status {
+    pub state: Option<PlayerState>,
+    pub hold: Option<HoldReason>,
+    pub machine_time_s: f64,
+    pub plan_time_s: f64,
+    /// Plan queued ahead of execution (s).
+    pub plan_ahead_s: f64,
+    /// The move and G-code line executing now (or last).
+    pub current: Option<(u64, u32)>,
+    pub segments_received: u64,
+    pub segments_completed: u64,
+    pub underruns: u64,
+    /// The plan is complete (the stream finished) and all of it has been executed.
+    pub done: bool,
+    /// A cancel came to rest and the plan was dropped.
+    pub cancelled: bool,
+    pub positions: [f64; 4],
+    pub fault: Option<String>,
+    /// Machine time at which the first segment started (s).
+    pub first_motion_s: Option<f64>,
+    /// Machine time at which the whole plan had been executed (s).
+    pub done_at_s: Option<f64>,
+}
+
+struct Options {
+    executor: ExecutorOptions,
+    rate_hz: f64,
+    horizon_s: f64,
+    speed: f64,
+    urdf: String,
+}
+
+fn options_from_params(p: &Params) -> anyhow::Result<Options> {
+    let three = |name: &str| -> anyhow::Result<[f64; 3]> {
+        let v = p.f64s(name);
+        match *v {
+            [a, b, c] if v.iter().all(|x| x.is_finite() && *x > 0.0) => Ok([a, b, c]),
+            _ => anyhow::bail!("parameter {name} needs 3 positive values (bed, arm, z), got {v:?}"),
+        }
+    };
+    let steps = StepOptions {
+        steps_per_unit: three("steps_per_unit")?,
+        timer_hz: p.f64("step_timer_hz"),
+    };
+    let mut player = PlayerOptions::new(
+        steps,
+        three("joint_accelerations")?,
+        p.f64("pin_open_delay_s"),
+    );
+    player.control_period_s = p.f64("control_period_s");
+    player.queue_capacity = p.i64("queue_capacity") as usize;
+    let hold = match p.string("screw_hold") {
+        "zero_order" => Hold::ZeroOrder,
+        "first_order" => Hold::FirstOrder,
+        other => anyhow::bail!("parameter screw_hold: `{other}` is not zero_order or first_order"),
+    };
+    let urdf = match p.string("urdf_file") {
+        "" => POLAR_CELL_URDF.to_string(),
+        path => std::fs::read_to_string(path).with_context(|| format!("reading URDF {path}"))?,
+    };
+    Ok(Options {
+        executor: ExecutorOptions::new(player, hold),
+        rate_hz: p.f64("rate_hz"),
+        horizon_s: p.f64("horizon_s"),
+        speed: p.f64("speed"),
+        urdf,
+    })
+}
+
+const SERVICES: [(&str, Command); 5] = [
+    ("/cell/pause", Command::Pause),
+    ("/cell/resume", Command::Resume),
+    ("/cell/cancel", Command::Cancel),
+    ("/cell/estop", Command::EmergencyStop),
+    ("/cell/reset", Command::Reset),
+];
+
+/// Apply `command` to the machine; the reply a service caller gets.
+fn apply(executor: &mut Executor, command: Command) -> (bool, String) {
+    let state = executor.state().state;
+    match command {
+        Command::Pause if state == PlayerState::Stopped => {
+            (false, "emergency stop in force: /cell/reset first".into())
+        }
+        Command::Pause => {
+            executor.pause();
+            (true, "pausing: decelerating along the path to rest".into())
+        }
+        Command::Resume if executor.state().hold == Some(HoldReason::Pause) => {
+            executor.resume();
+            (true, "resuming after the pin's opening delay".into())
+        }
+        Command::Resume => (false, "not paused".into()),
+        Command::Cancel if state == PlayerState::Stopped => {
+            (false, "emergency stop in force: /cell/reset first".into())
+        }
+        Command::Cancel => {
+            executor.cancel();
+            (
+                true,
+                "cancelling: stopping along the path, then dropping the plan".into(),
+            )
+        }
+        Command::EmergencyStop => {
+            executor.emergency_stop();
+            (
+                true,
+                "emergency stop: stepping stopped, pin closed, screw stopped".into(),
+            )
+        }
+        Command::Reset if state == PlayerState::Stopped => {
+            executor.reset();
+            (true, "reset: ready for a new plan".into())
+        }
+        Command::Reset => (false, "not stopped".into()),
+    }
+}
+
+/// Run the executor on `node` until an error. `commands` come from the same process (a
+/// print's Ctrl-C); `status` tells it how the machine is doing.
+pub async fn run(
+    node: &mut CellNode,
+    mut commands: mpsc::UnboundedReceiver<Command>,
+    status: watch::Sender<Status>,
+) -> anyhow::Result<()> {
+    let options = options_from_params(&node.params)?;
+    let mapping = parse_service_mapping(node.params.string("service_mapping"))?;
+    let tree = TfTree::from_urdf(&options.urdf).context("URDF")?;
+    let capacity = options.executor.player.queue_capacity;
+    let mut executor = Executor::new(options.executor.clone());
+
+    let steps_sub = node.subscription::<StepSegment>("/polar/steps", &reliable_qos(capacity))?;
+    let screw_sub = node.subscription::<ScrewCommand>("/screw/command", &reliable_qos(capacity))?;
+    let progress_sub =
+        node.subscription::<GcodeProgress>("/gcode/progress", &reliable_qos(1000))?;
+    let joint_states = node.publisher::<JointState>("/joint_states", &reliable_qos(100))?;
+    let tf = node.publisher::<TFMessage>("/tf", &reliable_qos(100))?;
+    let tf_static = node.publisher::<TFMessage>("/tf_static", &transient_local_qos(1))?;
+    let description = node.publisher::<StringMsg>("/robot_description", &transient_local_qos(1))?;
+    let credit_pub = node.publisher::<PlanCredit>("/cell/plan_credit", &reliable_qos(10))?;
+    let mut servers = Vec::new();
+    for (name, command) in SERVICES {
+        let server = node.service::<TriggerRequest, TriggerResponse>(
+            name,
+            ("std_srvs", "Trigger"),
+            mapping,
+        )?;
+        servers.push((server, command));
+    }
+
+    let wall_start_ns = now_ns() as i64;
+    let started = Instant::now();
+    let speed = options.speed;
+    let machine_ns = |at: Instant| ((at - started).as_nanos() as f64 * speed) as i64;
+    let stamp_at = |machine_ns: i64| Time::from_nanos(wall_start_ns + machine_ns);
+    tf_static
+        .publish(TFMessage {
+            transforms: tree.static_transforms(stamp_at(0)),
+        })
+        .map_err(|e| anyhow!("/tf_static: {e:?}"))?;
+    description
+        .publish(StringMsg {
+            data: options.urdf.clone(),
+        })
+        .map_err(|e| anyhow!("/robot_description: {e:?}"))?;
+    node.log(
+        LogLevel::Info,
+        &format!(
+            "executing /polar/steps and /screw/command at {speed}× machine pace, horizon {} s",
+            options.horizon_s
+        ),
+    );
+
+    let sample_ns = (1e9 / options.rate_hz) as i64;
+    let mut next_sample_ns = 0i64;
+    let mut first_motion_s: Option<f64> = None;
+    let mut start_wait: Option<Instant> = None;
+    let mut done_at_s: Option<f64> = None;
+    let mut pending_steps: VecDeque<StepSegment> = VecDeque::new();
+    let mut pending_screw: VecDeque<ScrewCommand> = VecDeque::new();
+    let mut received = 0u64;
+    let mut input_finished = false;
+    let mut cancelled = false;
+    let mut fault: Option<String> = None;
+    let mut last_credit = (Instant::now() - Duration::from_secs(1), f64::NAN);
+    let mut last_diagnostics = Instant::now();
+    let mut reported_underruns = 0u64;
+    let period = Duration::from_secs_f64(
+        (options.executor.player.control_period_s / speed).clamp(1e-4, 0.01),
+    );
+    let mut tick = tokio::time::interval(period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        let mut requested: Option<(usize, ros2_client::RmwRequestId, Command)> = None;
+        tokio::select! {
+            taken = steps_sub.async_take() => {
+                let (s, _) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
+                received += 1;
+                pending_steps.push_back(s);
+            }
+            taken = screw_sub.async_take() => {
+                let (c, _) = taken.map_err(|e| anyhow!("/screw/command: {e:?}"))?;
+                pending_screw.push_back(c);
+            }
+            taken = progress_sub.async_take() => {
+                if let Ok((p, _)) = taken {
+                    input_finished |= p.finished;
+                }
+            }
+            Some(command) = commands.recv() => {
+                if command == Command::Reset {
+                    cancelled = false;
+                }
+                let (_, message) = apply(&mut executor, command);
+                node.log(LogLevel::Info, &message);
+            }
+            (index, request) = next_request(&servers) => {
+                if let Some(id) = request {
+                    requested = Some((index, id, servers[index].1));
+                }
+            }
+            _ = tick.tick() => {}
+        }
+        if let Some((index, id, command)) = requested {
+            if command == Command::Reset {
+                cancelled = false;
+            }
+            let (success, message) = apply(&mut executor, command);
+            node.log(LogLevel::Info, &format!("{}: {message}", SERVICES[index].0));
+            let reply = TriggerResponse { success, message };
+            if let Err(e) = servers[index].0.send_response(id, Wire(reply)) {
+                node.log(
+                    LogLevel::Warn,
+                    &format!("{}: reply lost: {e:?}", SERVICES[index].0),
+                );
+            }
+        }
+        // Queue what the core has room for; the rest waits (the credit bounds how much).
+        let (mut free_steps, free_screw) = executor.free_slots();
+        for _ in 0..free_screw.min(pending_screw.len()) {
+            let c = pending_screw.pop_front().expect("counted");
+            if let Err(e) = executor.on_screw(&c) {
+                fault.get_or_insert(format!("screw command at line {}: {e}", c.source_line));
+            }
+        }
+        // From rest, start only with half a horizon of plan in hand (or the whole plan, or
+        // after half a second): a start on the first segment alone would underrun at once.
+        let starting = executor.is_drained() && !input_finished;
+        if starting && !pending_steps.is_empty() {
+            let waiting_since = *start_wait.get_or_insert_with(Instant::now);
+            let in_hand_s: f64 = pending_steps.iter().map(|s| s.duration_s).sum();
+            if in_hand_s < options.horizon_s / 2.0
+                && waiting_since.elapsed() < Duration::from_millis(500)
+            {
+                free_steps = 0;
+            }
+        }
+        if !starting {
+            start_wait = None;
+        }
+        for _ in 0..free_steps.min(pending_steps.len()) {
+            let s = pending_steps.pop_front().expect("counted");
+            if let Err(e) = executor.on_segment(&s) {
+                fault.get_or_insert(format!(
+                    "step segment of move {} (line {}): {e}",
+                    s.move_sequence, s.source_line
+                ));
+            }
+        }
+        if input_finished && pending_steps.is_empty() {
+            executor.finish_input();
+        }
+        let now = Instant::now();
+        let machine_now = machine_ns(now);
+        // Samples on a regular grid of machine time: execute to each grid instant, sample
+        // there (a late tick publishes late, but what it publishes is exact for its stamp).
+        // Catch up after a late tick; after a real stall of the process (a quarter second
+        // of wall time), skip to now rather than publish a burst.
+        if machine_now - next_sample_ns > (10 * sample_ns).max((0.25e9 * speed) as i64) {
+            next_sample_ns = machine_now - machine_now % sample_ns; // fell far behind: skip
+        }
+        while next_sample_ns <= machine_now {
+            if let Err(e) = executor.on_tick(next_sample_ns) {
+                fault.get_or_insert(e.to_string());
+            }
+            let state = executor.state();
+            let stamp = stamp_at(next_sample_ns);
+            let _ = joint_states.publish(JointState {
+                header: Header {
+                    stamp,
+                    frame_id: String::new(),
+                },
+                name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+                position: state.positions.to_vec(),
+                velocity: state.velocities.to_vec(),
+                effort: vec![],
+            });
+            let _ = tf.publish(TFMessage {
+                transforms: tree.moving_transforms(stamp, |joint| {
+                    JOINT_NAMES
+                        .iter()
+                        .position(|n| *n == joint)
+                        .map(|i| state.positions[i])
+                }),
+            });
+            next_sample_ns += sample_ns;
+        }
+        if let Err(e) = executor.on_tick(machine_now) {
+            fault.get_or_insert(e.to_string());
+        }
+        if fault.is_some() && executor.state().state != PlayerState::Stopped {
+            executor.emergency_stop();
+        }
+        let state = executor.state();
+        if first_motion_s.is_none() && state.state == PlayerState::Running {
+            first_motion_s = Some(state.machine_time_s);
+        }
+        if state.hold == Some(HoldReason::Cancel) || (cancelled && state.state == PlayerState::Idle)
+        {
+            cancelled = true;
+            pending_steps.clear();
+            pending_screw.clear();
+        }
+        // Credit: as far as the producers may plan; repeated so a late joiner learns it.
+        let credit_due = now - last_credit.0 >= Duration::from_millis(100)
+            || (state.plan_time_s - last_credit.1).abs() >= options.horizon_s / 20.0;
+        if credit_due {
+            last_credit = (now, state.plan_time_s);
+            let (executed_until, accept_until) = match executor.epoch_ns() {
+                Some(epoch) => (
+                    Time::after(epoch, state.plan_time_s),
+                    Time::after(epoch, state.plan_time_s + options.horizon_s),
+                ),
+                None => (Time::default(), Time::default()),
+            };
+            let _ = credit_pub.publish(PlanCredit {
+                header: Header {
+                    stamp: stamp_at(machine_now),
+                    frame_id: String::new(),
+                },
+                executor: node.fully_qualified_name(),
+                executed_until,
+                accept_until,
+                horizon_s: options.horizon_s,
+                closed: cancelled || state.state == PlayerState::Stopped,
+            });
+        }
+        let (completed, _) = executor.player().completed();
+        let underruns = executor.player().underruns();
+        let done = input_finished && pending_steps.is_empty() && executor.is_drained();
+        if done && done_at_s.is_none() {
+            done_at_s = Some(state.machine_time_s);
+        }
+        status.send_replace(Status {
+            state: Some(state.state),
+            hold: state.hold,
+            machine_time_s: state.machine_time_s,
+            plan_time_s: state.plan_time_s,
+            plan_ahead_s: executor.plan_ahead_s(),
+            current: state.current.or(executor.player().completed().1),
+            segments_received: received,
+            segments_completed: completed,
+            underruns,
+            done,
+            cancelled,
+            positions: state.positions,
+            fault: fault.clone(),
+            first_motion_s,
+            done_at_s,
+        });
+        if last_diagnostics.elapsed() >= Duration::from_secs(1) || underruns > reported_underruns {
+            last_diagnostics = Instant::now();
+            let (level, message) = match (&fault, state.state, state.hold) {
+                (Some(f), _, _) => (DiagnosticStatus::ERROR, format!("fault: {f}")),
+                (None, PlayerState::Stopped, _) => (
+                    DiagnosticStatus::ERROR,
+                    "emergency stop: /cell/reset to leave".into(),
+                ),
+                (None, _, Some(HoldReason::Underrun)) => (
+                    DiagnosticStatus::WARN,
+                    "underrun: the plan ran short, holding at rest on the path".into(),
+                ),
+                (None, _, Some(HoldReason::Pause)) => (DiagnosticStatus::OK, "paused".into()),
+                (None, _, Some(HoldReason::Cancel)) => (DiagnosticStatus::OK, "cancelling".into()),
+                (None, PlayerState::Idle, None) => (DiagnosticStatus::OK, "idle".into()),
+                (None, _, None) => (DiagnosticStatus::OK, "executing".into()),
+            };
+            reported_underruns = underruns;
+            node.diagnose(
+                level,
+                &message,
+                &[
+                    ("machine_time_s", format!("{:.3}", state.machine_time_s)),
+                    ("plan_time_s", format!("{:.3}", state.plan_time_s)),
+                    ("plan_ahead_s", format!("{:.3}", executor.plan_ahead_s())),
+                    ("feed", format!("{:.3}", state.feed)),
+                    ("segments_received", received.to_string()),
+                    ("segments_completed", completed.to_string()),
+                    ("underruns", underruns.to_string()),
+                    ("screw_rpm", format!("{:.2}", state.screw_rpm)),
+                    ("pin_open", state.pin_open.to_string()),
+                ],
+            );
+        }
+    }
+}
+
+type TriggerServer = ros2_client::Server<Wire<TriggerRequest>, Wire<TriggerResponse>>;
+
+/// The first service with a request waiting, and its request id.
+async fn next_request(
+    servers: &[(TriggerServer, Command)],
+) -> (usize, Option<ros2_client::RmwRequestId>) {
+    let futures = servers.iter().enumerate().map(|(i, (s, _))| {
+        Box::pin(async move {
+            match s.async_receive_request().await {
+                Ok((id, _)) => (i, Some(id)),
+                Err(_) => (i, None),
+            }
+        })
+    });
+    futures::future::select_all(futures).await.0
+}
+
+/// Run the node from its own command line until SIGINT/SIGTERM.
+pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
+    let mut node = CellNode::start_from_argv(NODE_NAME, &param_specs(), &argv)?;
+    let (_commands, receiver) = mpsc::unbounded_channel();
+    let (status, _) = watch::channel(Status::default());
+    tokio::select! {
+        result = run(&mut node, receiver, status) => result,
+        _ = cell_runtime::shutdown_signal() => Ok(()),
+    }
+}

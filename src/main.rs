@@ -5,6 +5,7 @@
 //! `name`, a node-prefixed one (`-p gcode_streamer:window:=64`) to that node only.
 
 mod bag_cmd;
+mod demo;
 mod mechanism_cmd;
 mod plot_cmd;
 mod print_cmd;
@@ -36,8 +37,9 @@ enum Command {
     },
     /// Print a G-code file through the cell's nodes over DDS, recording every topic.
     Print {
-        /// The G-code file (`-` for stdin).
-        file: String,
+        /// The G-code file (`-` for stdin; none: the built-in demo, a spiral vase and a star
+        /// through the bed's centre).
+        file: Option<String>,
         /// Where to record the bag (a bare MCAP file, or a directory with --bag-dir).
         #[arg(long, default_value = "print.mcap")]
         bag: PathBuf,
@@ -177,7 +179,20 @@ async fn main() -> anyhow::Result<()> {
                 run_preflight: !no_preflight,
                 execution: (!dry_run).then_some(speed),
             };
-            print_cmd::print(&file, &options, &ros_args).await
+            match file {
+                Some(file) => print_cmd::print(&file, &options, &ros_args).await,
+                None => {
+                    let dir = std::env::temp_dir()
+                        .join(format!("polar-cell-demo-{}", std::process::id()));
+                    std::fs::create_dir_all(&dir)?;
+                    let path = dir.join(demo::DEMO_NAME);
+                    std::fs::write(&path, demo::demo_gcode())?;
+                    let result =
+                        print_cmd::print(&path.display().to_string(), &options, &ros_args).await;
+                    let _ = std::fs::remove_dir_all(&dir);
+                    result
+                }
+            }
         }
         Command::Check { file, parse_only } => print_cmd::check(&file, parse_only, &ros_args),
         Command::Plot { bag, out } => plot_cmd::plot(&bag, &out),

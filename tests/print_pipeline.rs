@@ -337,3 +337,24 @@ fn ctrl_c_cancels_on_the_path_and_a_second_stops_at_once() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// With no file, `print` prints the built-in demo (a clone alone is enough to run the cell),
+/// executed like any file.
+#[test]
+fn print_without_a_file_prints_the_built_in_demo() {
+    let bag = std::env::temp_dir().join(format!("polar-cell-demo-{}.mcap", std::process::id()));
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .env("ROS_DOMAIN_ID", "63")
+        .args(["print", "--no-progress", "--speed", "25", "--bag"])
+        .arg(&bag)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("demo-vase-and-star.gcode: pre-flight passed: 735 moves"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("executed 3795 step segments"), "{stderr}");
+    std::fs::remove_file(&bag).ok();
+}

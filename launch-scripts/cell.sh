@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Start each node of the cell as its own process, parameters from params/cell.yaml.
 #   launch-scripts/cell.sh FILE.gcode [BAG.mcap]
+# The executor plays the plan at machine pace ($POLAR_CELL_SPEED times faster, default 1) and
+# the script ends once it has executed all of it.
 # Binaries come from target/release (build with `cargo build --release --workspace`) or from
 # $POLAR_CELL_BIN_DIR. Extra ROS arguments for every node can go in $POLAR_CELL_ROS_ARGS.
 set -euo pipefail
@@ -13,7 +15,8 @@ if [[ $# -lt 1 ]]; then
 fi
 gcode=$1
 bag=${2:-cell.mcap}
-for b in bag_recorder polar_planner screw_driver gcode_streamer; do
+speed=${POLAR_CELL_SPEED:-1.0}
+for b in bag_recorder polar_planner screw_driver cell_executor gcode_streamer; do
   [[ -x $bin/$b ]] || { echo "$bin/$b missing: cargo build --release --workspace" >&2; exit 1; }
 done
 # shellcheck disable=SC2086
@@ -25,13 +28,17 @@ planner=$!
 # shellcheck disable=SC2086
 "$bin/screw_driver" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &
 screw=$!
+# shellcheck disable=SC2086
+"$bin/cell_executor" --ros-args --params-file "$params" -p "speed:=$speed" -p exit_when_done:=true ${POLAR_CELL_ROS_ARGS:-} &
+executor=$!
 stop_nodes() {
-  kill -INT "$screw" "$planner" 2>/dev/null || true
-  wait "$screw" "$planner" || true
+  kill -INT "$executor" "$screw" "$planner" 2>/dev/null || true
+  wait "$executor" "$screw" "$planner" || true
   kill -INT "$recorder" 2>/dev/null || true
   wait "$recorder"
 }
 trap stop_nodes EXIT
 # shellcheck disable=SC2086
 "$bin/gcode_streamer" "$gcode" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-}
-sleep 0.3 # the last progress and diagnostics reach the recorder
+wait "$executor" # every move is planned; the machine runs to the end of the plan
+sleep 0.3 # the last samples, progress and diagnostics reach the recorder

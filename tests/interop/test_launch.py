@@ -13,7 +13,7 @@ LAUNCH = ROOT / "launch-scripts"
 def test_cell_sh_prints_a_fixture_with_one_process_per_node(tmp_path):
     bag = tmp_path / "cell.mcap"
     run([LAUNCH / "cell.sh", FIXTURES / "polartest.gcode", bag], env={
-        "POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin",
+        "POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin", "POLAR_CELL_SPEED": "25",
     })
     assert_readable_by_independent_readers(bag)
     with open(bag, "rb") as f:
@@ -23,7 +23,9 @@ def test_cell_sh_prints_a_fixture_with_one_process_per_node(tmp_path):
     }
     expected = len(gcode_motion_lines(FIXTURES / "polartest.gcode"))
     assert counts["/gcode/moves"] == expected
-    assert counts["/polar/trajectory"] == expected, "the planner ran as its own process" 
+    assert counts["/polar/trajectory"] == expected, "the planner ran as its own process"
+    # The executor ran as its own process, to the end of the plan (125 s at 25×).
+    assert counts["/joint_states"] >= 124.9 / 0.02, counts["/joint_states"]
 
 
 def test_launch_xml_names_existing_binaries_and_parameter_file():
@@ -31,7 +33,7 @@ def test_launch_xml_names_existing_binaries_and_parameter_file():
     args = {a.get("name"): a.get("default") for a in root.iter("arg")}
     assert set(args) == {"gcode_file", "bag", "bin_dir", "params"}
     commands = [e.get("cmd") for e in root.iter("executable")]
-    assert len(commands) == 4
+    assert len(commands) == 5
     for cmd in commands:
         binary = re.match(r"\$\(var bin_dir\)/(\S+)", cmd).group(1)
         assert (BIN_DIR / binary).exists(), binary

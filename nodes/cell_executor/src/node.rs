@@ -62,6 +62,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("pin_open_delay_s", ParamValue::Double(DEFAULT_PIN_OPEN_DELAY_S), "a resume waits this long at rest with the pin open: the screw driver's").range(0.0, 60.0),
         ParamSpec::new("screw_hold", ParamValue::String("zero_order".into()), "how rpm runs between screw commands: zero_order (compensated, smoothed or resampled commands) or first_order (raw breakpoints)"),
         ParamSpec::new("queue_capacity", ParamValue::Integer(4096), "step segments and screw commands held ahead of execution at most").range(16.0, 1e7),
+        ParamSpec::new("exit_when_done", ParamValue::Bool(false), "end the node once a complete plan (its stream finished) has been executed (for scripts)"),
         ParamSpec::new("service_mapping", ParamValue::String("cyclone".into()), "request/reply wire format of the services: cyclone (rmw_cyclonedds clients), enhanced (rmw_fastrtps) or basic"),
     ]
 }
@@ -206,6 +207,7 @@ pub async fn run(
 ) -> anyhow::Result<()> {
     let options = options_from_params(&node.params)?;
     let mapping = parse_service_mapping(node.params.string("service_mapping"))?;
+    let exit_when_done = node.params.bool("exit_when_done");
     let tree = TfTree::from_urdf(&options.urdf).context("URDF")?;
     let capacity = options.executor.player.queue_capacity;
     let mut executor = Executor::new(options.executor.clone());
@@ -449,6 +451,16 @@ pub async fn run(
             first_motion_s,
             done_at_s,
         });
+        if done && exit_when_done {
+            node.log(
+                LogLevel::Info,
+                &format!(
+                    "plan executed: {completed} segments, {:.3} s of machine time",
+                    state.machine_time_s - first_motion_s.unwrap_or(0.0)
+                ),
+            );
+            return Ok(());
+        }
         if last_diagnostics.elapsed() >= Duration::from_secs(1) || underruns > reported_underruns {
             last_diagnostics = Instant::now();
             let (level, message) = match (&fault, state.state, state.hold) {

@@ -124,13 +124,16 @@ pub fn plot(bag_path: &Path, out: &Path) -> anyhow::Result<()> {
                 ("sans-serif", 22),
             )
             .margin(8)
-            .x_label_area_size(30)
+            // Room for the tick labels and, below them, the axis description (30 px put
+            // one on top of the other).
+            .x_label_area_size(46)
             .y_label_area_size(70)
             .build_cartesian_2d(0.0..t_max, (lo - pad)..(hi + pad))?;
         chart
             .configure_mesh()
             .x_desc("time (s)")
             .label_style(("sans-serif", 14))
+            .axis_desc_style(("sans-serif", 14))
             .draw()?;
         chart.draw_series(LineSeries::new(series.points.iter().copied(), colour))?;
     }

@@ -178,6 +178,7 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
     // Before any node starts (no DDS, no bag): the whole file with the parameters the nodes
     // will get.
     let mut machine_time_s = None;
+    let mut total_moves = None;
     if options.run_preflight && file != "-" {
         let (streamer, planner) = preflight_params(ros_args)?;
         let started = std::time::Instant::now();
@@ -187,6 +188,7 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
             describe(&report, started.elapsed())
         );
         machine_time_s = Some(report.plan_time_s);
+        total_moves = Some(report.moves);
     }
     let (input, total) = open_input(file)?;
 
@@ -256,7 +258,7 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
         (planner_node, result)
     });
 
-    let bar = progress_bar(options, total, machine_time_s);
+    let bar = progress_bar(options, total_moves, machine_time_s);
     let executing = options.execution.is_some();
     let show_execution = {
         let bar = bar.clone();
@@ -285,7 +287,8 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
         e = executor_failed => Err(Stop::Failed(e.unwrap_err())),
         r = gcode_streamer::node::stream(&mut streamer, input, file, total, |p| {
             if !executing {
-                bar.set_position(p.bytes_read);
+                // Moves every consumer acknowledged: what is done, not what was read.
+                bar.set_position(p.moves_acknowledged);
                 bar.set_message(format!(
                     "line {} · {} moves sent · {} acknowledged",
                     p.lines_read, p.moves_published, p.moves_acknowledged
@@ -450,9 +453,11 @@ fn execution_overrides(
     Ok((executor_overrides, planner_extra, screw_extra))
 }
 
+/// Executing: over the plan's machine time; dry run: over the moves (from the pre-flight;
+/// without it, a spinner).
 fn progress_bar(
     options: &PrintOptions,
-    total_bytes: u64,
+    total_moves: Option<u64>,
     machine_time_s: Option<f64>,
 ) -> ProgressBar {
     if !options.show_progress {
@@ -461,7 +466,10 @@ fn progress_bar(
     let bar = match (options.execution, machine_time_s) {
         (Some(_), Some(t)) => ProgressBar::new(((t * 1000.0) as u64).max(1)),
         (Some(_), None) => ProgressBar::new_spinner(),
-        (None, _) => ProgressBar::new(total_bytes.max(1)),
+        (None, _) => match total_moves {
+            Some(moves) => ProgressBar::new(moves.max(1)),
+            None => ProgressBar::new_spinner(),
+        },
     };
     bar.set_style(
         ProgressStyle::with_template("{spinner} {bar:40} {percent:>3}% {msg}")

@@ -224,7 +224,20 @@ fn an_executed_print_records_the_executed_joints_at_50_hz() {
     let fixture =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
     let bag = std::env::temp_dir().join(format!("polar-cell-exec-{}.mcap", std::process::id()));
-    let stderr = print(60, &fixture, &bag, &["--speed", "40"]);
+    // At 40× the default 2 s horizon is 50 ms of the test's time; on a loaded CI machine a
+    // starved planner could fall behind it. Twenty seconds of plan is half a second here.
+    let stderr = print(
+        60,
+        &fixture,
+        &bag,
+        &[
+            "--speed",
+            "40",
+            "--ros-args",
+            "-p",
+            "cell_executor:horizon_s:=20.0",
+        ],
+    );
     // "executed N step segments in m:ss.s of machine time from the first step (T s; planned P s)"
     let executed_line = stderr
         .lines()

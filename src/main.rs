@@ -10,6 +10,7 @@ mod mechanism_cmd;
 mod plot_cmd;
 mod print_cmd;
 mod screw_cmd;
+mod serve_cmd;
 
 use std::path::PathBuf;
 
@@ -59,6 +60,20 @@ enum Command {
         /// the plan, not its execution.
         #[arg(long, conflicts_with = "speed")]
         dry_run: bool,
+    },
+    /// Serve the ROS 2 action /print (polar_cell_msgs/action/Print): each goal prints its file
+    /// through the node graph at machine pace, recorded to a bag.
+    Serve {
+        /// Machine seconds per wall second, for goals that give 0.
+        #[arg(long, default_value_t = 1.0, value_parser = parse_speed)]
+        speed: f64,
+        /// Where each goal's bag goes (print-N.mcap).
+        #[arg(long, default_value = ".")]
+        bag_dir: PathBuf,
+        /// Request/reply format of the action's services: cyclone (rmw_cyclonedds clients),
+        /// enhanced (rmw_fastrtps) or basic.
+        #[arg(long, default_value = "cyclone")]
+        service_mapping: String,
     },
     /// Check a G-code file without DDS: parse it (counts, warnings, the first error), then
     /// plan it whole as a print would (pre-flight: reach, limits, steps).
@@ -193,6 +208,18 @@ async fn main() -> anyhow::Result<()> {
                     result
                 }
             }
+        }
+        Command::Serve {
+            speed,
+            bag_dir,
+            service_mapping,
+        } => {
+            let options = serve_cmd::ServeOptions {
+                speed,
+                bag_dir,
+                mapping: cell_runtime::parse_service_mapping(&service_mapping)?,
+            };
+            serve_cmd::serve(options, &ros_args).await
         }
         Command::Check { file, parse_only } => print_cmd::check(&file, parse_only, &ros_args),
         Command::Plot { bag, out } => plot_cmd::plot(&bag, &out),

@@ -141,7 +141,76 @@ enum Stop {
     Failed(anyhow::Error),
 }
 
+/// What a print job is told and tells while it runs: interrupts (the first is a cancel, the
+/// second an emergency stop) and the executor's status.
+pub struct JobIo {
+    pub interrupts: tokio::sync::watch::Receiver<u32>,
+    pub status: tokio::sync::watch::Sender<cell_executor::node::Status>,
+    /// The pre-flight's machine time of the plan, once known.
+    pub planned: tokio::sync::watch::Sender<Option<f64>>,
+}
+
+/// How a print job that did not fail ended.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Ending {
+    Finished,
+    /// Interrupted; executing, the machine stopped as said (cancel or emergency stop).
+    Interrupted {
+        emergency: bool,
+        how: Option<String>,
+    },
+}
+
+/// A print job's end.
+pub struct JobReport {
+    pub ending: Ending,
+    pub summary: Option<StreamSummary>,
+}
+
+/// Resolves once `interrupts` has counted `n`.
+async fn interrupted(interrupts: &tokio::sync::watch::Receiver<u32>, n: u32) {
+    let mut rx = interrupts.clone();
+    if rx.wait_for(|&count| count >= n).await.is_err() {
+        std::future::pending::<()>().await;
+    }
+}
+
+/// `polar-cell print`: a job whose interrupts are SIGINT/SIGTERM, its end said on stderr
+/// and in the exit code.
 pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> anyhow::Result<()> {
+    let (count, interrupts) = tokio::sync::watch::channel(0u32);
+    let signals = tokio::spawn(async move {
+        loop {
+            cell_runtime::shutdown_signal().await;
+            count.send_modify(|n| *n += 1);
+        }
+    });
+    let (status, _) = tokio::sync::watch::channel(cell_executor::node::Status::default());
+    let (planned, _) = tokio::sync::watch::channel(None);
+    let io = JobIo {
+        interrupts,
+        status,
+        planned,
+    };
+    let report = run_job(file, options, ros_args, io).await;
+    signals.abort();
+    let report = report?;
+    match report.ending {
+        Ending::Interrupted { how: Some(how), .. } => bail!("{how}; the bag was finished"),
+        Ending::Interrupted { how: None, .. } => {
+            bail!("interrupted before the end of {file}; the bag was finished")
+        }
+        Ending::Finished => Ok(()),
+    }
+}
+
+/// Run one print: the whole graph for `file`, until it is printed, interrupted or failed.
+pub async fn run_job(
+    file: &str,
+    options: &PrintOptions,
+    ros_args: &RosArgs,
+    io: JobIo,
+) -> anyhow::Result<JobReport> {
     let recorder_specs = cell_bag::node::param_specs();
     let streamer_specs = gcode_streamer::node::param_specs();
     let planner_specs = polar_planner::node::param_specs();
@@ -189,6 +258,7 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
         );
         machine_time_s = Some(report.plan_time_s);
         total_moves = Some(report.moves);
+        io.planned.send_replace(machine_time_s);
     }
     let (input, total) = open_input(file)?;
 
@@ -221,7 +291,8 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
         ours,
     )?;
     let (commands, command_rx) = tokio::sync::mpsc::unbounded_channel();
-    let (status_tx, status) = tokio::sync::watch::channel(cell_executor::node::Status::default());
+    let status_tx = io.status;
+    let status = status_tx.subscribe();
     let mut executor = match options.execution {
         Some(_) => {
             let mut node = start_node(
@@ -297,7 +368,7 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
         }) => r.map_err(Stop::Failed),
         e = machine_failed(status.clone()), if executing => Err(Stop::Failed(e)),
         _ = show_execution => unreachable!("the progress display never ends"),
-        _ = cell_runtime::shutdown_signal() => Err(Stop::Interrupted),
+        _ = interrupted(&io.interrupts, 1) => Err(Stop::Interrupted),
     };
     // Executing: the stream is over once every move is planned; the machine runs on until it
     // has executed the plan (or is stopped).
@@ -309,7 +380,7 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
                 r = wait_executed(&mut status, &bar, machine_time_s) => r.map(|()| summary).map_err(Stop::Failed),
                 finished = &mut planner => Err(Stop::Failed(stopped(polar_planner::node::NODE_NAME, finished).unwrap_err())),
                 finished = &mut screw => Err(Stop::Failed(stopped(screw_driver::node::NODE_NAME, finished).unwrap_err())),
-                _ = cell_runtime::shutdown_signal() => Err(Stop::Interrupted),
+                _ = interrupted(&io.interrupts, 1) => Err(Stop::Interrupted),
             }
         }
         (other, _) => other,
@@ -317,7 +388,7 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
     // Ctrl-C while the machine moves: a controlled stop on the path; a second: stop at once.
     let mut ended = None;
     if executing && matches!(outcome, Err(Stop::Interrupted)) {
-        ended = Some(stop_machine(&commands, &status, &bar).await);
+        ended = Some(stop_machine(&commands, &status, &bar, &io.interrupts).await);
     }
     bar.finish_and_clear();
     if outcome.is_ok() {
@@ -344,10 +415,13 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
     match outcome {
         Err(Stop::Interrupted) => {
             print_summary(&recorded);
-            match ended {
-                Some(how) => bail!("{how}; the bag was finished"),
-                None => bail!("interrupted before the end of {file}; the bag was finished"),
-            }
+            Ok(JobReport {
+                ending: Ending::Interrupted {
+                    emergency: ended.as_ref().is_some_and(|(emergency, _)| *emergency),
+                    how: ended.map(|(_, how)| how),
+                },
+                summary: None,
+            })
         }
         Err(Stop::Failed(e)) => {
             print_summary(&recorded);
@@ -380,7 +454,10 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
                 );
             }
             print_summary(&recorded);
-            Ok(())
+            Ok(JobReport {
+                ending: Ending::Finished,
+                summary: Some(s),
+            })
         }
     }
 }
@@ -570,7 +647,8 @@ async fn stop_machine(
     commands: &tokio::sync::mpsc::UnboundedSender<cell_executor::node::Command>,
     status: &tokio::sync::watch::Receiver<cell_executor::node::Status>,
     bar: &ProgressBar,
-) -> String {
+    interrupts: &tokio::sync::watch::Receiver<u32>,
+) -> (bool, String) {
     use cell_executor::node::Command;
     use cell_executor::PlayerState;
     let _ = commands.send(Command::Cancel);
@@ -594,7 +672,7 @@ async fn stop_machine(
     };
     let (s, emergency) = tokio::select! {
         s = at_rest => (s, false),
-        _ = cell_runtime::shutdown_signal() => {
+        _ = interrupted(interrupts, 2) => {
             let _ = commands.send(Command::EmergencyStop);
             let mut watch = status.clone();
             loop {
@@ -615,9 +693,12 @@ async fn stop_machine(
     } else {
         "cancelled: stopped on the path"
     };
-    format!(
-        "{how}{line} after {} of machine time (bed {bed:.6} rad, arm {arm:.6} m, z {z:.6} m)",
-        clock(s.machine_time_s)
+    (
+        emergency,
+        format!(
+            "{how}{line} after {} of machine time (bed {bed:.6} rad, arm {arm:.6} m, z {z:.6} m)",
+            clock(s.machine_time_s)
+        ),
     )
 }
 

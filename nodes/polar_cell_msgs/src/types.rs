@@ -428,6 +428,38 @@ pub struct ScrewCommand {
 }
 ros_message!(ScrewCommand => schema::SCREW_COMMAND);
 
+/// The goal of `polar_cell_msgs/action/Print` (`action/Print.action`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PrintGoal {
+    pub gcode_file: String,
+    pub speed: f64,
+}
+
+/// The result of `polar_cell_msgs/action/Print`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PrintResult {
+    pub ended: String,
+    pub message: String,
+    pub moves_executed: u64,
+    pub machine_time_s: f64,
+    pub stop_position: Vec<f64>,
+    pub bag: String,
+}
+
+/// The feedback of `polar_cell_msgs/action/Print`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PrintFeedback {
+    pub line: u32,
+    pub move_sequence: u64,
+    pub percent: f32,
+    pub elapsed_s: f64,
+    pub remaining_s: f64,
+    pub state: String,
+}
+
+/// The definition of `polar_cell_msgs/action/Print`.
+pub const PRINT_ACTION: &str = include_str!("../action/Print.action");
+
 /// `polar_cell_msgs/msg/PlanCredit`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct PlanCredit {
@@ -523,6 +555,65 @@ mod tests {
         };
         let bytes = cdr::encode(&reply).unwrap();
         assert_eq!(bytes, [0, 1, 0, 0, 1, 0, 0, 0, 3, 0, 0, 0, b'o', b'k', 0]);
+    }
+
+    /// The Print types mirror `action/Print.action` field by field, in order.
+    #[test]
+    fn print_types_mirror_the_action_file() {
+        let sections: Vec<Vec<(String, String)>> = PRINT_ACTION
+            .split("\n---\n")
+            .map(|part| {
+                part.lines()
+                    .map(|l| l.split('#').next().unwrap().trim())
+                    .filter(|l| !l.is_empty())
+                    .map(|l| {
+                        let (t, n) = l.split_once(' ').unwrap();
+                        (t.to_string(), n.trim().to_string())
+                    })
+                    .collect()
+            })
+            .collect();
+        let names = |s: &Vec<(String, String)>| s.iter().map(|f| f.1.clone()).collect::<Vec<_>>();
+        assert_eq!(sections.len(), 3);
+        assert_eq!(names(&sections[0]), ["gcode_file", "speed"]);
+        assert_eq!(
+            names(&sections[1]),
+            [
+                "ended",
+                "message",
+                "moves_executed",
+                "machine_time_s",
+                "stop_position",
+                "bag"
+            ]
+        );
+        assert_eq!(
+            names(&sections[2]),
+            [
+                "line",
+                "move_sequence",
+                "percent",
+                "elapsed_s",
+                "remaining_s",
+                "state"
+            ]
+        );
+        // Types: the CDR of a value with each field set decodes back (positional order).
+        let result = PrintResult {
+            ended: "cancelled".into(),
+            message: "m".into(),
+            moves_executed: 7,
+            machine_time_s: 1.5,
+            stop_position: vec![1.0, 2.0, 3.0, 4.0],
+            bag: "b".into(),
+        };
+        let bytes = cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&result).unwrap();
+        let back: PrintResult = cdr_encoding::from_bytes::<_, byteorder::LittleEndian>(&bytes)
+            .unwrap()
+            .0;
+        assert_eq!(back, result);
+        assert_eq!(sections[1][2].0, "uint64");
+        assert_eq!(sections[2][2].0, "float32");
     }
 
     /// Every constant of a `.msg` file has a Rust twin with the same value.

@@ -1,0 +1,372 @@
+//! `polar-cell serve`: the cell waiting for work. It serves the ROS 2 action `/print`
+//! (`polar_cell_msgs/action/Print`): each accepted goal runs one print job — the whole node
+//! graph for its file, executed at machine pace and recorded to a bag — with feedback from the
+//! executor, cancel as a controlled stop on the path, and a result that says how it ended
+//! and where the machine stands. While a job runs, the executor's services
+//! (`/cell/pause`, `/cell/resume`, `/cell/estop`, …) work as in `print`.
+//!
+//! One goal at a time: a goal sent while another runs is rejected. The endpoints are
+//! ros2-client's synchronous `ActionServer` (its async wrapper needs `Copy` goals and has the
+//! pitfalls listed in docs/design/actions-and-services.md); the goal states follow rcl's table.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context as _;
+use cell_runtime::{reliable_qos, transient_local_qos, CellNode, RosArgs, Wire};
+use polar_cell_msgs::{PrintFeedback, PrintGoal, PrintResult};
+use ros2_client::action::{GetResultResponse, SendGoalResponse};
+use ros2_client::action_msgs::{
+    CancelGoalResponse, CancelGoalResponseEnum, GoalInfo, GoalStatus, GoalStatusArray,
+    GoalStatusEnum,
+};
+use ros2_client::{ActionTypeName, Name, RmwRequestId};
+
+use crate::print_cmd::{self, Ending, JobIo, JobReport, PrintOptions};
+
+/// Default node name of the action server.
+pub const NODE_NAME: &str = "print_server";
+
+type Server = ros2_client::ActionServer<Wire<PrintGoal>, Wire<PrintResult>, Wire<PrintFeedback>>;
+type GoalId = ros2_client::action_msgs::GoalId;
+
+/// How `serve` runs its jobs.
+pub struct ServeOptions {
+    /// Machine seconds per wall second for goals that do not say.
+    pub speed: f64,
+    /// Where each goal's bag goes (`print-<n>.mcap`).
+    pub bag_dir: PathBuf,
+    pub mapping: cell_runtime::ServiceMapping,
+}
+
+/// A cancel request's goal, read from its wire form (ros2-client keeps the field private).
+#[derive(serde::Deserialize)]
+struct CancelWire {
+    goal_info: GoalInfoWire,
+}
+
+#[derive(serde::Deserialize)]
+struct GoalInfoWire {
+    goal_id: GoalId,
+}
+
+struct Running {
+    goal_id: GoalId,
+    accepted: GoalInfo,
+    interrupts: tokio::sync::watch::Sender<u32>,
+    status: tokio::sync::watch::Receiver<cell_executor::node::Status>,
+    /// The pre-flight's machine time, once the job has run it.
+    planned: tokio::sync::watch::Receiver<Option<f64>>,
+    cancelling: bool,
+}
+
+/// A print job as a future polled by the serve loop itself (the node graph's handles are
+/// not `Sync`, so the job cannot be a spawned task).
+type Job =
+    std::pin::Pin<Box<dyn std::future::Future<Output = (anyhow::Result<JobReport>, String)>>>;
+
+struct Finished {
+    info: GoalInfo,
+    status: GoalStatusEnum,
+    result: PrintResult,
+}
+
+pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<()> {
+    let mut node = CellNode::start(NODE_NAME, &[], ros_args)?;
+    let service_qos = reliable_qos(10);
+    let qos = ros2_client::action::ActionServerQosPolicies {
+        goal_service: service_qos.clone(),
+        result_service: service_qos.clone(),
+        cancel_service: service_qos.clone(),
+        feedback_publisher: service_qos,
+        status_publisher: transient_local_qos(1),
+    };
+    let name = node.names.resolve("/print")?;
+    let name = Name::parse(&name).map_err(|e| anyhow::anyhow!("{name}: {e:?}"))?;
+    let server: Server = node
+        .node
+        .create_action_server(
+            options.mapping,
+            &name,
+            &ActionTypeName::new("polar_cell_msgs", "Print"),
+            qos,
+        )
+        .map_err(|e| anyhow::anyhow!("action /print: {e:?}"))?;
+    std::fs::create_dir_all(&options.bag_dir)
+        .with_context(|| format!("creating {}", options.bag_dir.display()))?;
+    eprintln!(
+        "serving the action /print (polar_cell_msgs/action/Print); bags go to {}",
+        options.bag_dir.display()
+    );
+    let mut running: Option<Running> = None;
+    let mut job: Option<Job> = None;
+    let mut finished: Vec<Finished> = Vec::new();
+    let mut result_requests: Vec<(RmwRequestId, GoalId)> = Vec::new();
+    let mut jobs = 0u32;
+    let mut poll = tokio::time::interval(Duration::from_millis(10));
+    let mut last_feedback = std::time::Instant::now();
+    let publish_statuses = |server: &Server, running: &Option<Running>, finished: &[Finished]| {
+        let mut list: Vec<GoalStatus> = finished
+            .iter()
+            .map(|f| GoalStatus {
+                goal_info: f.info.clone(),
+                status: f.status,
+            })
+            .collect();
+        if let Some(r) = running {
+            list.push(GoalStatus {
+                goal_info: r.accepted.clone(),
+                status: if r.cancelling {
+                    GoalStatusEnum::Canceling
+                } else {
+                    GoalStatusEnum::Executing
+                },
+            });
+        }
+        let _ = server.send_goal_statuses(GoalStatusArray { status_list: list });
+    };
+    loop {
+        let job_done = async {
+            match job.as_mut() {
+                Some(j) => j.await,
+                None => std::future::pending().await,
+            }
+        };
+        let ended = tokio::select! {
+            _ = poll.tick() => None,
+            ended = job_done => Some(ended),
+            _ = cell_runtime::shutdown_signal() => {
+                if let (Some(r), Some(j)) = (running.take(), job.take()) {
+                    let _ = r.interrupts.send(1);
+                    let _ = j.await;
+                }
+                return Ok(());
+            }
+        };
+        // New goals: accept one when idle, reject while busy.
+        while let Ok(Some((request_id, request))) = server.receive_goal() {
+            let stamp = ros2_client::builtin_interfaces::Time::now();
+            if running.is_some() {
+                let _ = server.send_goal_response(
+                    request_id,
+                    SendGoalResponse {
+                        accepted: false,
+                        stamp,
+                    },
+                );
+                continue;
+            }
+            jobs += 1;
+            let goal = request.goal.0;
+            let bag = options.bag_dir.join(format!("print-{jobs}.mcap"));
+            let speed = if goal.speed > 0.0 {
+                goal.speed
+            } else {
+                options.speed
+            };
+            let (interrupts, interrupts_rx) = tokio::sync::watch::channel(0u32);
+            let (status_tx, status) =
+                tokio::sync::watch::channel(cell_executor::node::Status::default());
+            let (planned_tx, planned) = tokio::sync::watch::channel(None);
+            let job_options = PrintOptions {
+                bag: bag.clone(),
+                bag_dir: false,
+                show_progress: false,
+                run_preflight: true,
+                execution: Some(speed),
+            };
+            let file = goal.gcode_file.clone();
+            let args = ros_args.clone();
+            job = Some(Box::pin(async move {
+                let io = JobIo {
+                    interrupts: interrupts_rx,
+                    status: status_tx,
+                    planned: planned_tx,
+                };
+                let report = print_cmd::run_job(&file, &job_options, &args, io).await;
+                (report, bag.display().to_string())
+            }));
+            let accepted = GoalInfo {
+                goal_id: request.goal_id,
+                stamp,
+            };
+            running = Some(Running {
+                goal_id: request.goal_id,
+                accepted: accepted.clone(),
+                interrupts,
+                status,
+                planned,
+                cancelling: false,
+            });
+            // rcl's order: the status (accepted, then executing at once), then the reply.
+            publish_statuses(&server, &running, &finished);
+            let _ = server.send_goal_response(
+                request_id,
+                SendGoalResponse {
+                    accepted: true,
+                    stamp,
+                },
+            );
+        }
+        // Cancel requests: the running goal (by its id, or all goals), else refused.
+        while let Ok(Some((request_id, request))) = server.receive_cancel_request() {
+            let target = serde_json::to_value(&request)
+                .ok()
+                .and_then(|v| serde_json::from_value::<CancelWire>(v).ok())
+                .map(|c| c.goal_info.goal_id);
+            let response = match (&mut running, target) {
+                (Some(r), Some(id)) if id == r.goal_id || id == GoalId::ZERO => {
+                    let _ = r.interrupts.send(1);
+                    r.cancelling = true;
+                    CancelGoalResponse {
+                        return_code: CancelGoalResponseEnum::None,
+                        goals_canceling: vec![r.accepted.clone()],
+                    }
+                }
+                (_, Some(id)) if finished.iter().any(|f| f.info.goal_id == id) => {
+                    CancelGoalResponse {
+                        return_code: CancelGoalResponseEnum::GoalTerminated,
+                        goals_canceling: vec![],
+                    }
+                }
+                (_, Some(id)) if id != GoalId::ZERO => CancelGoalResponse {
+                    return_code: CancelGoalResponseEnum::UnknownGoal,
+                    goals_canceling: vec![],
+                },
+                _ => CancelGoalResponse {
+                    return_code: CancelGoalResponseEnum::Rejected,
+                    goals_canceling: vec![],
+                },
+            };
+            publish_statuses(&server, &running, &finished);
+            let _ = server.send_cancel_response(request_id, response);
+        }
+        while let Ok(Some((request_id, request))) = server.receive_result_request() {
+            result_requests.push((request_id, request.goal_id));
+        }
+        // Feedback at 4 Hz.
+        if let Some(r) = &running {
+            if last_feedback.elapsed() >= Duration::from_millis(250) {
+                last_feedback = std::time::Instant::now();
+                let s = r.status.borrow().clone();
+                let planned_s = *r.planned.borrow();
+                let _ = server.send_feedback(r.goal_id, Wire(feedback(&s, planned_s)));
+            }
+        }
+        // The job's end: its result, and the answer to every result request for it.
+        if let Some((report, bag)) = ended {
+            job = None;
+            let r = running.take().expect("a job runs only for a running goal");
+            let status = r.status.borrow().clone();
+            let (goal_status, result) = outcome(report, &status, bag);
+            finished.push(Finished {
+                info: r.accepted.clone(),
+                status: goal_status,
+                result,
+            });
+            if finished.len() > 8 {
+                finished.remove(0);
+            }
+            publish_statuses(&server, &running, &finished);
+        }
+        result_requests.retain(|(request_id, goal_id)| {
+            let Some(f) = finished.iter().find(|f| f.info.goal_id == *goal_id) else {
+                // Unknown and not running: answer at once (rcl answers UNKNOWN).
+                if running.as_ref().is_some_and(|r| r.goal_id == *goal_id) {
+                    return true;
+                }
+                let _ = server.send_result(
+                    *request_id,
+                    GetResultResponse {
+                        status: GoalStatusEnum::Unknown,
+                        result: Wire(PrintResult::default()),
+                    },
+                );
+                return false;
+            };
+            let _ = server.send_result(
+                *request_id,
+                GetResultResponse {
+                    status: f.status,
+                    result: Wire(f.result.clone()),
+                },
+            );
+            false
+        });
+    }
+}
+
+fn feedback(s: &cell_executor::node::Status, planned_s: Option<f64>) -> PrintFeedback {
+    use cell_executor::{HoldReason, PlayerState};
+    let state = match (s.state, s.hold) {
+        (Some(PlayerState::Stopped), _) => "emergency_stop",
+        (_, Some(HoldReason::Pause)) => "paused",
+        (_, Some(HoldReason::Cancel)) => "cancelling",
+        (_, Some(HoldReason::Underrun)) => "underrun",
+        (Some(PlayerState::Running), None) => "printing",
+        _ => "waiting",
+    };
+    let (move_sequence, line) = s.current.unwrap_or((0, 0));
+    PrintFeedback {
+        line,
+        move_sequence,
+        percent: planned_s
+            .map(|t| (100.0 * s.plan_time_s / t.max(1e-9)).min(100.0) as f32)
+            .unwrap_or(0.0),
+        elapsed_s: s.first_motion_s.map_or(0.0, |t0| s.machine_time_s - t0),
+        remaining_s: planned_s.map_or(0.0, |t| (t - s.plan_time_s).max(0.0)),
+        state: state.to_string(),
+    }
+}
+
+/// The goal's end state and result from the job's report.
+fn outcome(
+    report: anyhow::Result<JobReport>,
+    status: &cell_executor::node::Status,
+    bag: String,
+) -> (GoalStatusEnum, PrintResult) {
+    let machine_time_s = status.done_at_s.unwrap_or(status.machine_time_s)
+        - status.first_motion_s.unwrap_or(status.machine_time_s);
+    let mut result = PrintResult {
+        machine_time_s: machine_time_s.max(0.0),
+        stop_position: status.positions.to_vec(),
+        bag,
+        ..PrintResult::default()
+    };
+    let goal_status = match report {
+        Ok(JobReport {
+            ending: Ending::Finished,
+            summary,
+            ..
+        }) => {
+            result.ended = "succeeded".into();
+            result.moves_executed = summary.map_or(0, |s| s.moves);
+            result.message = "printed".into();
+            GoalStatusEnum::Succeeded
+        }
+        Ok(JobReport {
+            ending: Ending::Interrupted { emergency, how },
+            ..
+        }) => {
+            result.ended = if emergency {
+                "emergency_stop"
+            } else {
+                "cancelled"
+            }
+            .into();
+            result.message = how.unwrap_or_else(|| "cancelled before any motion".into());
+            // Moves before the one that was executing.
+            result.moves_executed = status.current.map_or(0, |(sequence, _)| sequence);
+            GoalStatusEnum::Canceled
+        }
+        Err(e) => {
+            let stopped =
+                status.state == Some(cell_executor::PlayerState::Stopped) && status.fault.is_none();
+            result.ended = if stopped { "emergency_stop" } else { "aborted" }.into();
+            result.message = format!("{e:#}");
+            result.moves_executed = status.current.map_or(0, |(sequence, _)| sequence);
+            GoalStatusEnum::Aborted
+        }
+    };
+    (goal_status, result)
+}

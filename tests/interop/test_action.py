@@ -1,0 +1,275 @@
+"""The /print action from outside, as `ros2 action send_goal` on rmw_cyclonedds makes it.
+
+Written from rcl's and rmw_cyclonedds's sources (docs/design/actions-and-services.md §2, §4):
+three services (`<action>/_action/send_goal`, `cancel_goal`, `get_result`) in rmw_cyclonedds's
+request/reply format (the `{guid, seq}` header before the body), the feedback topic, and the
+transient-local status topic. `polar-cell serve` runs each goal as a print at machine pace.
+"""
+
+import math
+import os
+import random
+import signal
+import subprocess
+import time
+from dataclasses import dataclass
+
+import cyclonedds.idl.annotations as annotate
+import cyclonedds.idl.types as t
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.idl import IdlStruct
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+
+from conftest import binary
+from test_dds import Time, ros_qos
+
+DOMAIN = 78
+PKG = "polar_cell_msgs::action::dds_::"
+
+
+@dataclass
+@annotate.final
+class UUID(IdlStruct, typename="unique_identifier_msgs::msg::dds_::UUID_"):
+    uuid: t.array[t.uint8, 16]
+
+
+@dataclass
+@annotate.final
+class GoalInfo(IdlStruct, typename="action_msgs::msg::dds_::GoalInfo_"):
+    goal_id: UUID
+    stamp: Time
+
+
+@dataclass
+@annotate.final
+class GoalStatus(IdlStruct, typename="action_msgs::msg::dds_::GoalStatus_"):
+    goal_info: GoalInfo
+    status: t.int8
+
+
+@dataclass
+@annotate.final
+class GoalStatusArray(IdlStruct, typename="action_msgs::msg::dds_::GoalStatusArray_"):
+    status_list: t.sequence[GoalStatus]
+
+
+@dataclass
+@annotate.final
+class PrintGoal(IdlStruct, typename=PKG + "Print_Goal_"):
+    gcode_file: str
+    speed: float
+
+
+@dataclass
+@annotate.final
+class PrintResult(IdlStruct, typename=PKG + "Print_Result_"):
+    ended: str
+    message: str
+    moves_executed: t.uint64
+    machine_time_s: float
+    stop_position: t.sequence[float]
+    bag: str
+
+
+@dataclass
+@annotate.final
+class PrintFeedback(IdlStruct, typename=PKG + "Print_Feedback_"):
+    line: t.uint32
+    move_sequence: t.uint64
+    percent: t.float32
+    elapsed_s: float
+    remaining_s: float
+    state: str
+
+
+@dataclass
+@annotate.final
+class SendGoalRequest(IdlStruct, typename=PKG + "Print_SendGoal_Request_"):
+    guid: t.uint64
+    seq: t.int64
+    goal_id: UUID
+    goal: PrintGoal
+
+
+@dataclass
+@annotate.final
+class SendGoalResponse(IdlStruct, typename=PKG + "Print_SendGoal_Response_"):
+    guid: t.uint64
+    seq: t.int64
+    accepted: bool
+    stamp: Time
+
+
+@dataclass
+@annotate.final
+class GetResultRequest(IdlStruct, typename=PKG + "Print_GetResult_Request_"):
+    guid: t.uint64
+    seq: t.int64
+    goal_id: UUID
+
+
+@dataclass
+@annotate.final
+class GetResultResponse(IdlStruct, typename=PKG + "Print_GetResult_Response_"):
+    guid: t.uint64
+    seq: t.int64
+    status: t.int8
+    result: PrintResult
+
+
+@dataclass
+@annotate.final
+class CancelRequest(IdlStruct, typename="action_msgs::srv::dds_::CancelGoal_Request_"):
+    guid: t.uint64
+    seq: t.int64
+    goal_info: GoalInfo
+
+
+@dataclass
+@annotate.final
+class CancelResponse(IdlStruct, typename="action_msgs::srv::dds_::CancelGoal_Response_"):
+    guid: t.uint64
+    seq: t.int64
+    return_code: t.int8
+    goals_canceling: t.sequence[GoalInfo]
+
+
+@dataclass
+@annotate.final
+class FeedbackMessage(IdlStruct, typename=PKG + "Print_FeedbackMessage_"):
+    goal_id: UUID
+    feedback: PrintFeedback
+
+
+SUCCEEDED, CANCELED = 4, 5
+
+
+def same(a, b):
+    """Goal ids compare by their 16 bytes (Cyclone hands the array back as bytes)."""
+    return bytes(a.uuid) == bytes(b.uuid)
+
+
+class ServiceClient:
+    """A client of one service in rmw_cyclonedds's format: a random guid, seq counting up;
+    the reply is the one echoing both."""
+
+    def __init__(self, participant, service, request_type, response_type):
+        qos = ros_qos(depth=10)
+        self.writer = DataWriter(participant, Topic(participant, f"rq{service}Request", request_type), qos=qos)
+        self.reader = DataReader(participant, Topic(participant, f"rr{service}Reply", response_type), qos=qos)
+        self.guid = random.getrandbits(63) | 1
+        self.seq = 0
+        self.response_type = response_type
+
+    def wait_for_server(self, deadline):
+        while not (self.writer.get_matched_subscriptions() and self.reader.get_matched_publications()):
+            assert time.monotonic() < deadline, "no server"
+            time.sleep(0.05)
+
+    def send(self, make_request):
+        self.seq += 1
+        self.writer.write(make_request(self.guid, self.seq))
+        return self.seq
+
+    def reply(self, seq, timeout_s):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for r in self.reader.take(N=10):
+                if isinstance(r, self.response_type) and (r.guid, r.seq) == (self.guid, seq):
+                    return r
+            time.sleep(0.01)
+        raise AssertionError(f"no reply to request {seq}")
+
+
+def circle(path, turns):
+    lines = ["G1 X50 Y0 F3000"]
+    for i in range(1, 200 * turns + 1):
+        a = i * 2 * math.pi / 200
+        lines.append(f"G1 X{50 * math.cos(a):.3f} Y{50 * math.sin(a):.3f} F3000")
+    path.write_text("\n".join(lines) + "\n")
+    return len(lines)
+
+
+def test_print_action_feedback_cancel_and_success_from_a_cyclone_client(tmp_path):
+    long_file, short_file = tmp_path / "long.gcode", tmp_path / "short.gcode"
+    circle(long_file, 3)
+    short_moves = circle(short_file, 1)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN))
+    server = subprocess.Popen(
+        [str(binary("polar-cell")), "serve", "--bag-dir", str(tmp_path / "bags")],
+        env=env, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        p = DomainParticipant(DOMAIN)
+        send_goal = ServiceClient(p, "/print/_action/send_goal", SendGoalRequest, SendGoalResponse)
+        get_result = ServiceClient(p, "/print/_action/get_result", GetResultRequest, GetResultResponse)
+        cancel = ServiceClient(p, "/print/_action/cancel_goal", CancelRequest, CancelResponse)
+        feedback = DataReader(p, Topic(p, "rt/print/_action/feedback", FeedbackMessage), qos=ros_qos(100))
+        status = DataReader(p, Topic(p, "rt/print/_action/status", GoalStatusArray),
+                            qos=ros_qos(1, transient_local=True))
+        deadline = time.monotonic() + 20
+        for client in (send_goal, get_result, cancel):
+            client.wait_for_server(deadline)
+
+        def goal(path, speed):
+            goal_id = UUID([random.randrange(256) for _ in range(16)])
+            seq = send_goal.send(lambda g, s: SendGoalRequest(g, s, goal_id, PrintGoal(str(path), speed)))
+            return goal_id, send_goal.reply(seq, 10)
+
+        # A long print at machine pace; its result is asked for at once, as send_goal does.
+        goal_id, accepted = goal(long_file, 1.0)
+        assert accepted.accepted
+        result_seq = get_result.send(lambda g, s: GetResultRequest(g, s, goal_id))
+
+        # Feedback at ≥ 2 Hz while it prints, its progress rising.
+        time.sleep(3.0)
+        ours = [m.feedback for m in feedback.take(N=1000)
+                if isinstance(m, FeedbackMessage) and same(m.goal_id, goal_id)]
+        assert len(ours) >= 6, len(ours)
+        assert ours[-1].state == "printing" and ours[-1].line > 1
+        assert ours[-1].percent > ours[0].percent and ours[-1].remaining_s > 0
+
+        # Busy: another goal is rejected.
+        _, refused = goal(short_file, 1.0)
+        assert not refused.accepted
+
+        # Cancel: accepted for exactly our goal; the result says where it stopped.
+        seq = cancel.send(lambda g, s: CancelRequest(g, s, GoalInfo(goal_id, Time(0, 0))))
+        reply = cancel.reply(seq, 10)
+        assert reply.return_code == 0
+        assert len(reply.goals_canceling) == 1 and same(reply.goals_canceling[0].goal_id, goal_id)
+        result = get_result.reply(result_seq, 30)
+        assert result.status == CANCELED, result
+        assert result.result.ended == "cancelled"
+        assert "stopped on the path" in result.result.message
+        assert len(result.result.stop_position) == 4
+        assert 0 < result.result.moves_executed < 601
+        statuses = [s for a in status.take(N=100) if isinstance(a, GoalStatusArray) for s in a.status_list
+                    if same(s.goal_info.goal_id, goal_id)]
+        assert statuses and statuses[-1].status == CANCELED
+
+        # A short print to its end, 20× faster.
+        goal_id, accepted = goal(short_file, 20.0)
+        assert accepted.accepted
+        seq = get_result.send(lambda g, s: GetResultRequest(g, s, goal_id))
+        result = get_result.reply(seq, 120)
+        assert result.status == SUCCEEDED, result
+        assert result.result.ended == "succeeded"
+        assert result.result.moves_executed == short_moves
+        # Executed in the plan's time (the pre-flight's figure, from `polar-cell check`), and
+        # ended where the file ends: once round the bed at r = 50 mm.
+        check = subprocess.run([str(binary("polar-cell")), "check", str(short_file)],
+                               capture_output=True, text=True, check=True).stdout
+        m, s = check.split("of machine time")[0].split()[-1].split(":")[-2:]
+        assert abs(result.result.machine_time_s - (60 * int(m) + float(s))) < 0.1, check
+        bed, arm, z, _ = result.result.stop_position
+        assert abs(bed - 2 * math.pi) < 1e-3 and abs(arm - 0.05) < 2e-5 and z == 0.0
+        assert os.path.exists(result.result.bag)
+    finally:
+        server.send_signal(signal.SIGINT)
+        try:
+            server.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            server.kill()

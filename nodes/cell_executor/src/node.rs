@@ -55,6 +55,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("rate_hz", ParamValue::Double(50.0), "/joint_states and /tf per second of machine time").range(0.1, 1000.0),
         ParamSpec::new("horizon_s", ParamValue::Double(2.0), "plan time the producers may run ahead of execution").range(0.05, 3600.0),
         ParamSpec::new("speed", ParamValue::Double(1.0), "machine seconds per wall second (a faster simulation of the same timeline)").range(0.01, 1000.0),
+        ParamSpec::new("tick_period_s", ParamValue::Double(0.005), "wall time between the node's looks at the clock when nothing arrives").range(1e-4, 0.1),
         ParamSpec::new("control_period_s", ParamValue::Double(0.001), "period of the executor's clock (and of a feed hold's control)").range(1e-5, 0.1),
         ParamSpec::new("steps_per_unit", ParamValue::DoubleArray(s.steps_per_unit.to_vec()), "steps per rad (bed), per m (arm), per m (z): the planner's"),
         ParamSpec::new("step_timer_hz", ParamValue::Double(s.timer_hz), "step timer frequency: the planner's").range(1.0, 1e9),
@@ -156,6 +157,17 @@ const SERVICES: [(&str, Command); 5] = [
     ("/cell/estop", Command::EmergencyStop),
     ("/cell/reset", Command::Reset),
 ];
+
+/// Whether the plan is cancelled after `command` (applied or refused): a cancel may come to
+/// rest within the same tick (from a rest in the plan), so it is known from the command, not
+/// from watching the hold.
+fn next_cancelled(cancelled: bool, command: Command, accepted: bool) -> bool {
+    match (command, accepted) {
+        (Command::Cancel, true) => true,
+        (Command::Reset, true) => false,
+        _ => cancelled,
+    }
+}
 
 /// Apply `command` to the machine; the reply a service caller gets.
 fn apply(executor: &mut Executor, command: Command) -> (bool, String) {
@@ -267,10 +279,13 @@ pub async fn run(
     let mut fault: Option<String> = None;
     let mut last_credit = (Instant::now() - Duration::from_secs(1), f64::NAN);
     let mut last_diagnostics = Instant::now();
+    let mut last_status = Instant::now();
     let mut reported_underruns = 0u64;
-    let period = Duration::from_secs_f64(
-        (options.executor.player.control_period_s / speed).clamp(1e-4, 0.01),
-    );
+    // The loop's own period (wall time). The core steps σ every control period whatever
+    // the loop's period (it advances period by period to "now"), samples land on their grid,
+    // and commands and messages wake the loop at once: the tick only bounds how stale the
+    // published state and credit may be. 1 ms cost a fifth of a core in timer wake-ups.
+    let period = Duration::from_secs_f64(node.params.f64("tick_period_s"));
     let mut tick = tokio::time::interval(period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
@@ -291,10 +306,8 @@ pub async fn run(
                 }
             }
             Some(command) = commands.recv() => {
-                if command == Command::Reset {
-                    cancelled = false;
-                }
-                let (_, message) = apply(&mut executor, command);
+                let (accepted, message) = apply(&mut executor, command);
+                cancelled = next_cancelled(cancelled, command, accepted);
                 node.log(LogLevel::Info, &message);
             }
             (index, request) = next_request(&servers) => {
@@ -305,10 +318,8 @@ pub async fn run(
             _ = tick.tick() => {}
         }
         if let Some((index, id, command)) = requested {
-            if command == Command::Reset {
-                cancelled = false;
-            }
             let (success, message) = apply(&mut executor, command);
+            cancelled = next_cancelled(cancelled, command, success);
             node.log(LogLevel::Info, &format!("{}: {message}", SERVICES[index].0));
             let reply = TriggerResponse { success, message };
             if let Err(e) = servers[index].0.send_response(id, Wire(reply)) {
@@ -398,9 +409,8 @@ pub async fn run(
         if first_motion_s.is_none() && state.state == PlayerState::Running {
             first_motion_s = Some(state.machine_time_s);
         }
-        if state.hold == Some(HoldReason::Cancel) || (cancelled && state.state == PlayerState::Idle)
-        {
-            cancelled = true;
+        // Once cancelled, what is still in flight for the dropped plan is dropped too.
+        if cancelled {
             pending_steps.clear();
             pending_screw.clear();
         }
@@ -434,7 +444,9 @@ pub async fn run(
         if done && done_at_s.is_none() {
             done_at_s = Some(state.machine_time_s);
         }
-        status.send_replace(Status {
+        // The status watch wakes whoever watches it (a print's progress, its end): at once
+        // when the state changes, else at most every 50 ms of wall time.
+        let next = Status {
             state: Some(state.state),
             hold: state.hold,
             machine_time_s: state.machine_time_s,
@@ -450,7 +462,29 @@ pub async fn run(
             fault: fault.clone(),
             first_motion_s,
             done_at_s,
-        });
+        };
+        let changed = {
+            let last = status.borrow();
+            (
+                last.state,
+                last.hold,
+                last.done,
+                last.cancelled,
+                &last.fault,
+                last.first_motion_s,
+            ) != (
+                next.state,
+                next.hold,
+                next.done,
+                next.cancelled,
+                &next.fault,
+                next.first_motion_s,
+            )
+        };
+        if changed || last_status.elapsed() >= Duration::from_millis(50) {
+            last_status = Instant::now();
+            status.send_replace(next);
+        }
         if done && exit_when_done {
             node.log(
                 LogLevel::Info,
@@ -523,5 +557,36 @@ pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
     tokio::select! {
         result = run(&mut node, receiver, status) => result,
         _ = cell_runtime::shutdown_signal() => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A cancel that comes to rest within one tick (the plan was resting) never shows its
+    /// hold; the node knows it was cancelled from the accepted command (a print waited
+    /// forever for a Ctrl-C during a dwell before).
+    #[test]
+    fn a_cancel_is_known_from_the_command() {
+        assert!(next_cancelled(false, Command::Cancel, true));
+        assert!(
+            !next_cancelled(false, Command::Cancel, false),
+            "refused (e-stop in force)"
+        );
+        assert!(next_cancelled(true, Command::Pause, true));
+        assert!(!next_cancelled(true, Command::Reset, true));
+        let opts = ExecutorOptions::new(
+            PlayerOptions::new(StepOptions::default(), DEFAULT_JOINT_ACCELERATIONS, 0.25),
+            Hold::ZeroOrder,
+        );
+        let mut executor = Executor::new(opts);
+        let (accepted, _) = apply(&mut executor, Command::Cancel);
+        assert!(accepted);
+        let (accepted, message) = apply(&mut executor, Command::Resume);
+        assert_eq!((accepted, message.as_str()), (false, "not paused"));
+        apply(&mut executor, Command::EmergencyStop);
+        assert!(!apply(&mut executor, Command::Cancel).0);
+        assert!(apply(&mut executor, Command::Reset).0);
     }
 }

@@ -193,11 +193,14 @@ impl Executor {
         self.last_ns = now_ns;
         let now_q32 = self.ns_to_q32(now_ns - origin);
         let result = self.player.advance_to(now_q32, |_| {});
-        self.screw.advance(
-            self.player.plan_time_q32(),
-            self.player.feed(),
-            self.player.pin_allowed(),
-        );
+        // The screw turns only while the steppers may move: idle (ran dry, or a cancel's
+        // plan dropped) or stopped, it stands whatever σ says.
+        let feed = match self.player.state() {
+            PlayerState::Running | PlayerState::Held => self.player.feed(),
+            PlayerState::Idle | PlayerState::Stopped => 0.0,
+        };
+        self.screw
+            .advance(self.player.plan_time_q32(), feed, self.player.pin_allowed());
         if result.is_err() {
             self.screw.stop();
         }

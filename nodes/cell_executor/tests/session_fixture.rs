@@ -184,3 +184,56 @@ fn pauses_stop_the_screw_and_close_the_pin_and_change_nothing_else() {
     let added = end.machine_time_s - print.plan_end_s;
     assert!(added > 3.0 * 0.65 && added < 3.0 * 0.9, "{added} s");
 }
+
+/// A plan that runs dry (input not finished: an upstream stall) leaves the machine idle with
+/// the screw stopped and the pin closed, though the last screw command said to turn; so does a
+/// cancel that comes to rest.
+#[test]
+fn an_idle_machine_has_its_screw_stopped() {
+    let print = finger();
+    for cancel in [false, true] {
+        let mut exec = Executor::new(ExecutorOptions::new(
+            common::player_options(),
+            Hold::FirstOrder,
+        ));
+        // The first 60 s of commands, and segments only up to 20 s of plan.
+        for c in print
+            .commands
+            .iter()
+            .filter(|c| c.header.stamp.as_nanos() - EPOCH_NS < 60_000_000_000)
+        {
+            let _ = exec.on_screw(c);
+        }
+        let mut t = 0.0;
+        for s in &print.segments {
+            if t > 20.0 {
+                break;
+            }
+            exec.on_segment(s).unwrap();
+            t += s.duration_s;
+        }
+        let mut turning_seen = false;
+        for ms in 0..40_000i64 {
+            if cancel && ms == 10_000 {
+                exec.cancel();
+            }
+            exec.on_tick(ms * 1_000_000).unwrap();
+            turning_seen |= exec.state().screw_rpm > 0.0;
+        }
+        let state = exec.state();
+        assert!(turning_seen);
+        // Ran dry: held at rest by the underrun hold; cancelled: the plan dropped, idle.
+        let expected = if cancel {
+            PlayerState::Idle
+        } else {
+            PlayerState::Held
+        };
+        assert_eq!(state.state, expected);
+        assert_eq!(
+            (state.screw_rpm, state.pin_open),
+            (0.0, false),
+            "cancel: {cancel}"
+        );
+        assert_eq!(state.velocities, [0.0; 4]);
+    }
+}

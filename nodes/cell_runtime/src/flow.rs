@@ -98,6 +98,8 @@ pub struct SendWindow<T> {
     consumers: Vec<ConsumerState>,
     last_progress: Duration,
     resends: u64,
+    /// Resends since acknowledgements last advanced.
+    stalled_resends: u32,
 }
 
 impl<T: Sequenced + Clone> SendWindow<T> {
@@ -119,6 +121,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
                 .collect(),
             last_progress: Duration::ZERO,
             resends: 0,
+            stalled_resends: 0,
         }
     }
 
@@ -181,6 +184,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
             if ack.next_expected > c.next_expected {
                 c.next_expected = ack.next_expected.min(sent_end);
                 self.last_progress = now;
+                self.stalled_resends = 0;
             }
         }
         let new_base = self
@@ -199,12 +203,19 @@ impl<T: Sequenced + Clone> SendWindow<T> {
 
     /// Call periodically: goes back to the oldest unacknowledged move when acknowledgements
     /// stalled for `resend_after`. Returns true when it did.
+    ///
+    /// Each further resend without progress waits twice as long (up to 16 × `resend_after`):
+    /// a consumer that holds moves on purpose (a planner waiting for the executor's credit)
+    /// acknowledges slowly, and going back over the whole window every `resend_after` would
+    /// flood it with duplicates (306 go-backs in a 168 s executed print before this).
     pub fn on_tick(&mut self, now: Duration) -> bool {
         let outstanding = self.next_to_send > self.base;
-        if outstanding && now.saturating_sub(self.last_progress) >= self.options.resend_after {
+        let wait = self.options.resend_after * (1u32 << self.stalled_resends.min(4));
+        if outstanding && now.saturating_sub(self.last_progress) >= wait {
             self.next_to_send = self.base;
             self.last_progress = now;
             self.resends += 1;
+            self.stalled_resends += 1;
             return true;
         }
         false
@@ -577,6 +588,22 @@ mod tests {
         assert!(!w.on_tick(ms(50)));
         assert!(w.on_tick(ms(102)));
         assert_eq!(w.next_to_send().map(|m| m.sequence), Some(2));
+        // Still no progress: the next go-backs wait 200, 400, 800 ms, then 1.6 s each.
+        let _ = std::iter::from_fn(|| w.next_to_send()).count();
+        assert!(!w.on_tick(ms(301)) && w.on_tick(ms(302)));
+        let _ = std::iter::from_fn(|| w.next_to_send()).count();
+        assert!(!w.on_tick(ms(701)) && w.on_tick(ms(702)));
+        let _ = std::iter::from_fn(|| w.next_to_send()).count();
+        assert!(!w.on_tick(ms(1501)) && w.on_tick(ms(1502)));
+        let _ = std::iter::from_fn(|| w.next_to_send()).count();
+        assert!(!w.on_tick(ms(3101)) && w.on_tick(ms(3102)));
+        let _ = std::iter::from_fn(|| w.next_to_send()).count();
+        assert!(!w.on_tick(ms(4701)) && w.on_tick(ms(4702)), "capped at 16×");
+        // Progress resets the wait to resend_after.
+        let _ = std::iter::from_fn(|| w.next_to_send()).count();
+        w.on_ack(&ack("/a", 3), ms(4710));
+        w.on_ack(&ack("/b", 3), ms(4710));
+        assert!(!w.on_tick(ms(4809)) && w.on_tick(ms(4810)));
     }
 
     #[test]

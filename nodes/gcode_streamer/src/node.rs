@@ -298,8 +298,12 @@ pub async fn stream(
             );
         }
         if !sent_any {
-            // Nothing to do until an acknowledgement arrives (or the parser catches up).
-            let wait = tokio::time::timeout(Duration::from_millis(2), acks.async_take()).await;
+            // Nothing to do until an acknowledgement arrives (or the parser catches up: with
+            // room in the window, look again soon; a full window waits for acknowledgements,
+            // which wake this at once, and looks again only for the resend timer).
+            let patience = if window.has_room() && !eof { 2 } else { 20 };
+            let wait =
+                tokio::time::timeout(Duration::from_millis(patience), acks.async_take()).await;
             if let Ok(Ok((ack, _))) = wait {
                 progress_due |= ack.resume;
                 window.on_ack(&(&ack).into(), start.elapsed());

@@ -470,25 +470,12 @@ fn execution_overrides(
     ros_args: &RosArgs,
     speed: f64,
 ) -> anyhow::Result<(Vec<ParamOverride>, Vec<ParamOverride>, Vec<ParamOverride>)> {
-    let resolve = |name: &str, specs: &[ParamSpec], ours| {
-        cell_runtime::resolve_node(name, specs, &args_for(ros_args, name, specs, ours))
-            .map(|(_, params)| params)
-    };
-    let screw = resolve(
-        screw_driver::node::NODE_NAME,
-        &screw_driver::node::param_specs(),
-        vec![],
-    )?;
-    let planner = resolve(
-        polar_planner::node::NODE_NAME,
-        &polar_planner::node::param_specs(),
-        planner_overrides(&screw),
-    )?;
-    let executor = resolve(
-        cell_executor::node::NODE_NAME,
-        &cell_executor::node::param_specs(),
-        vec![],
-    )?;
+    let NodeParams {
+        screw,
+        planner,
+        executor,
+        ..
+    } = node_params(ros_args)?;
     let screw_options = screw_driver::node::options_from_params(&screw)?;
     let hold = match screw_driver::node::command_hold(&screw_options, screw.f64("command_period_s"))
     {
@@ -572,15 +559,7 @@ fn clock(seconds: f64) -> String {
 }
 
 fn execution_message(s: &cell_executor::node::Status, machine_time_s: Option<f64>) -> String {
-    use cell_executor::{HoldReason, PlayerState};
-    let state = match (s.state, s.hold) {
-        (Some(PlayerState::Stopped), _) => "EMERGENCY STOP",
-        (_, Some(HoldReason::Pause)) => "paused",
-        (_, Some(HoldReason::Cancel)) => "cancelling",
-        (_, Some(HoldReason::Underrun)) => "underrun: holding",
-        (Some(PlayerState::Running), None) => "printing",
-        _ => "waiting",
-    };
+    let state = s.state_label().replace('_', " ");
     let line = s
         .current
         .map(|(_, line)| format!(" · line {line}"))
@@ -702,11 +681,16 @@ async fn stop_machine(
     )
 }
 
-/// The streamer's and the planner's parameters exactly as `print` gives them to its nodes
-/// (global `-p` only where a node declares it, the planner told of the screw), without DDS.
-fn preflight_params(
-    ros_args: &RosArgs,
-) -> anyhow::Result<(cell_runtime::Params, cell_runtime::Params)> {
+/// The nodes' parameters exactly as `print` gives them (global `-p` only where a node
+/// declares it, the planner told of the screw), without DDS.
+struct NodeParams {
+    streamer: cell_runtime::Params,
+    planner: cell_runtime::Params,
+    screw: cell_runtime::Params,
+    executor: cell_runtime::Params,
+}
+
+fn node_params(ros_args: &RosArgs) -> anyhow::Result<NodeParams> {
     let resolve = |name: &str, specs: &[ParamSpec], ours| {
         cell_runtime::resolve_node(name, specs, &args_for(ros_args, name, specs, ours))
             .map(|(_, params)| params)
@@ -716,16 +700,33 @@ fn preflight_params(
         &screw_driver::node::param_specs(),
         vec![],
     )?;
-    let planner = resolve(
-        polar_planner::node::NODE_NAME,
-        &polar_planner::node::param_specs(),
-        planner_overrides(&screw),
-    )?;
-    let streamer = resolve(
-        gcode_streamer::node::NODE_NAME,
-        &gcode_streamer::node::param_specs(),
-        vec![],
-    )?;
+    Ok(NodeParams {
+        planner: resolve(
+            polar_planner::node::NODE_NAME,
+            &polar_planner::node::param_specs(),
+            planner_overrides(&screw),
+        )?,
+        streamer: resolve(
+            gcode_streamer::node::NODE_NAME,
+            &gcode_streamer::node::param_specs(),
+            vec![],
+        )?,
+        executor: resolve(
+            cell_executor::node::NODE_NAME,
+            &cell_executor::node::param_specs(),
+            vec![],
+        )?,
+        screw,
+    })
+}
+
+/// The streamer's and the planner's parameters, for the pre-flight.
+fn preflight_params(
+    ros_args: &RosArgs,
+) -> anyhow::Result<(cell_runtime::Params, cell_runtime::Params)> {
+    let NodeParams {
+        streamer, planner, ..
+    } = node_params(ros_args)?;
     Ok((streamer, planner))
 }
 

@@ -297,15 +297,6 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
 }
 
 fn feedback(s: &cell_executor::node::Status, planned_s: Option<f64>) -> PrintFeedback {
-    use cell_executor::{HoldReason, PlayerState};
-    let state = match (s.state, s.hold) {
-        (Some(PlayerState::Stopped), _) => "emergency_stop",
-        (_, Some(HoldReason::Pause)) => "paused",
-        (_, Some(HoldReason::Cancel)) => "cancelling",
-        (_, Some(HoldReason::Underrun)) => "underrun",
-        (Some(PlayerState::Running), None) => "printing",
-        _ => "waiting",
-    };
     let (move_sequence, line) = s.current.unwrap_or((0, 0));
     PrintFeedback {
         line,
@@ -315,7 +306,7 @@ fn feedback(s: &cell_executor::node::Status, planned_s: Option<f64>) -> PrintFee
             .unwrap_or(0.0),
         elapsed_s: s.first_motion_s.map_or(0.0, |t0| s.machine_time_s - t0),
         remaining_s: planned_s.map_or(0.0, |t| (t - s.plan_time_s).max(0.0)),
-        state: state.to_string(),
+        state: s.state_label().to_string(),
     }
 }
 

@@ -105,6 +105,21 @@ pub struct Status {
     pub done_at_s: Option<f64>,
 }
 
+impl Status {
+    /// The machine's state in one word: `printing`, `paused`, `cancelling`, `underrun`,
+    /// `emergency_stop` or `waiting` (the action's feedback, the progress bar).
+    pub fn state_label(&self) -> &'static str {
+        match (self.state, self.hold) {
+            (Some(PlayerState::Stopped), _) => "emergency_stop",
+            (_, Some(HoldReason::Pause)) => "paused",
+            (_, Some(HoldReason::Cancel)) => "cancelling",
+            (_, Some(HoldReason::Underrun)) => "underrun",
+            (Some(PlayerState::Running), None) => "printing",
+            _ => "waiting",
+        }
+    }
+}
+
 struct Options {
     executor: ExecutorOptions,
     rate_hz: f64,

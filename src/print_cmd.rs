@@ -77,11 +77,11 @@ fn planner_overrides(screw: &cell_runtime::Params) -> Vec<ParamOverride> {
 fn stopped(
     name: &str,
     finished: Result<(CellNode, anyhow::Result<()>), tokio::task::JoinError>,
-) -> anyhow::Result<StreamSummary> {
+) -> anyhow::Error {
     match finished {
-        Ok((_, Err(e))) => Err(e.context(name.to_string())),
-        Ok((_, Ok(()))) => Err(anyhow::anyhow!("{name} stopped")),
-        Err(e) => Err(anyhow::anyhow!("{name} task: {e}")),
+        Ok((_, Err(e))) => e.context(name.to_string()),
+        Ok((_, Ok(()))) => anyhow::anyhow!("{name} stopped"),
+        Err(e) => anyhow::anyhow!("{name} task: {e}"),
     }
 }
 
@@ -331,21 +331,6 @@ pub async fn run_job(
 
     let bar = progress_bar(options, total_moves, machine_time_s);
     let executing = options.execution.is_some();
-    let show_execution = {
-        let bar = bar.clone();
-        let mut status = status.clone();
-        async move {
-            if !executing {
-                return std::future::pending::<()>().await;
-            }
-            while status.changed().await.is_ok() {
-                let s = status.borrow_and_update().clone();
-                bar.set_position((s.plan_time_s * 1000.0) as u64);
-                bar.set_message(execution_message(&s, machine_time_s));
-                tokio::time::sleep(Duration::from_millis(100)).await;
-            }
-        }
-    };
     let executor_failed = async {
         match executor.as_mut() {
             Some(task) => stopped(cell_executor::node::NODE_NAME, task.await),
@@ -353,9 +338,9 @@ pub async fn run_job(
         }
     };
     let streamed = tokio::select! {
-        finished = &mut planner => Err(Stop::Failed(stopped(polar_planner::node::NODE_NAME, finished).unwrap_err())),
-        finished = &mut screw => Err(Stop::Failed(stopped(screw_driver::node::NODE_NAME, finished).unwrap_err())),
-        e = executor_failed => Err(Stop::Failed(e.unwrap_err())),
+        finished = &mut planner => Err(Stop::Failed(stopped(polar_planner::node::NODE_NAME, finished))),
+        finished = &mut screw => Err(Stop::Failed(stopped(screw_driver::node::NODE_NAME, finished))),
+        e = executor_failed => Err(Stop::Failed(e)),
         r = gcode_streamer::node::stream(&mut streamer, input, file, total, |p| {
             if !executing {
                 // Moves every consumer acknowledged: what is done, not what was read.
@@ -367,19 +352,21 @@ pub async fn run_job(
             }
         }) => r.map_err(Stop::Failed),
         e = machine_failed(status.clone()), if executing => Err(Stop::Failed(e)),
-        _ = show_execution => unreachable!("the progress display never ends"),
+        _ = show_execution(&bar, status.clone(), machine_time_s), if executing => unreachable!("the progress display never ends"),
         _ = interrupted(&io.interrupts, 1) => Err(Stop::Interrupted),
     };
     // Executing: the stream is over once every move is planned; the machine runs on until it
     // has executed the plan (or is stopped).
     let outcome = match (streamed, executing) {
         (Ok(summary), true) => {
-            let mut status = status.clone();
-            let bar = bar.clone();
             tokio::select! {
-                r = wait_executed(&mut status, &bar, machine_time_s) => r.map(|()| summary).map_err(Stop::Failed),
-                finished = &mut planner => Err(Stop::Failed(stopped(polar_planner::node::NODE_NAME, finished).unwrap_err())),
-                finished = &mut screw => Err(Stop::Failed(stopped(screw_driver::node::NODE_NAME, finished).unwrap_err())),
+                // A fault or an e-stop wins over an end seen at the same time.
+                biased;
+                e = machine_failed(status.clone()) => Err(Stop::Failed(e)),
+                r = wait_executed(status.clone()) => r.map(|()| summary).map_err(Stop::Failed),
+                finished = &mut planner => Err(Stop::Failed(stopped(polar_planner::node::NODE_NAME, finished))),
+                finished = &mut screw => Err(Stop::Failed(stopped(screw_driver::node::NODE_NAME, finished))),
+                _ = show_execution(&bar, status.clone(), machine_time_s) => unreachable!("the progress display never ends"),
                 _ = interrupted(&io.interrupts, 1) => Err(Stop::Interrupted),
             }
         }
@@ -441,8 +428,7 @@ pub async fn run_job(
             );
             if executing {
                 let st = status.borrow().clone();
-                let executed_s =
-                    st.done_at_s.unwrap_or(st.machine_time_s) - st.first_motion_s.unwrap_or(0.0);
+                let executed_s = st.executed_s();
                 eprintln!(
                     "{file}: executed {} step segments in {} of machine time from the first \
                      step ({:.3} s; planned {}), {} underruns",
@@ -595,29 +581,27 @@ async fn machine_failed(
 
 /// Wait until the executor has executed the whole plan.
 async fn wait_executed(
-    status: &mut tokio::sync::watch::Receiver<cell_executor::node::Status>,
-    bar: &ProgressBar,
-    machine_time_s: Option<f64>,
+    mut status: tokio::sync::watch::Receiver<cell_executor::node::Status>,
 ) -> anyhow::Result<()> {
-    loop {
-        {
-            let s = status.borrow_and_update();
-            if let Some(fault) = &s.fault {
-                bail!("the executor stopped the machine: {fault}");
-            }
-            if s.state == Some(cell_executor::PlayerState::Stopped) {
-                bail!("emergency stop (/cell/estop) during the print");
-            }
-            if s.done {
-                return Ok(());
-            }
-            bar.set_position((s.plan_time_s * 1000.0) as u64);
-            bar.set_message(execution_message(&s, machine_time_s));
-        }
-        if status.changed().await.is_err() {
-            bail!("the executor ended");
-        }
+    match status.wait_for(|s| s.done).await {
+        Ok(_) => Ok(()),
+        Err(_) => bail!("the executor ended"),
     }
+}
+
+/// The progress bar from the executor's status, at most ten times a second; never ends.
+async fn show_execution(
+    bar: &ProgressBar,
+    mut status: tokio::sync::watch::Receiver<cell_executor::node::Status>,
+    machine_time_s: Option<f64>,
+) {
+    while status.changed().await.is_ok() {
+        let s = status.borrow_and_update().clone();
+        bar.set_position((s.plan_time_s * 1000.0) as u64);
+        bar.set_message(execution_message(&s, machine_time_s));
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    std::future::pending().await
 }
 
 /// Ctrl-C while executing: cancel (stop on the path within the acceleration limits, pin

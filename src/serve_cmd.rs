@@ -20,7 +20,7 @@ use ros2_client::action_msgs::{
     CancelGoalResponse, CancelGoalResponseEnum, GoalInfo, GoalStatus, GoalStatusArray,
     GoalStatusEnum,
 };
-use ros2_client::{ActionTypeName, Name, RmwRequestId};
+use ros2_client::{ActionTypeName, RmwRequestId};
 
 use crate::print_cmd::{self, Ending, JobIo, JobReport, PrintOptions};
 
@@ -58,6 +58,7 @@ struct Running {
     /// The pre-flight's machine time, once the job has run it.
     planned: tokio::sync::watch::Receiver<Option<f64>>,
     cancelling: bool,
+    job: Job,
 }
 
 /// A print job as a future polled by the serve loop itself (the node graph's handles are
@@ -81,8 +82,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
         feedback_publisher: service_qos,
         status_publisher: transient_local_qos(1),
     };
-    let name = node.names.resolve("/print")?;
-    let name = Name::parse(&name).map_err(|e| anyhow::anyhow!("{name}: {e:?}"))?;
+    let name = node.ros_name("/print")?;
     let server: Server = node
         .node
         .create_action_server(
@@ -99,7 +99,6 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
         options.bag_dir.display()
     );
     let mut running: Option<Running> = None;
-    let mut job: Option<Job> = None;
     let mut finished: Vec<Finished> = Vec::new();
     let mut result_requests: Vec<(RmwRequestId, GoalId)> = Vec::new();
     let mut jobs = 0u32;
@@ -126,19 +125,18 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
         let _ = server.send_goal_statuses(GoalStatusArray { status_list: list });
     };
     loop {
-        let job_done = async {
-            match job.as_mut() {
-                Some(j) => j.await,
-                None => std::future::pending().await,
-            }
-        };
         let ended = tokio::select! {
             _ = poll.tick() => None,
-            ended = job_done => Some(ended),
+            ended = async {
+                match running.as_mut() {
+                    Some(r) => (&mut r.job).await,
+                    None => std::future::pending().await,
+                }
+            } => Some(ended),
             _ = cell_runtime::shutdown_signal() => {
-                if let (Some(r), Some(j)) = (running.take(), job.take()) {
+                if let Some(r) = running.take() {
                     let _ = r.interrupts.send(1);
-                    let _ = j.await;
+                    let _ = r.job.await;
                 }
                 return Ok(());
             }
@@ -177,7 +175,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
             };
             let file = goal.gcode_file.clone();
             let args = ros_args.clone();
-            job = Some(Box::pin(async move {
+            let job: Job = Box::pin(async move {
                 let io = JobIo {
                     interrupts: interrupts_rx,
                     status: status_tx,
@@ -185,7 +183,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 };
                 let report = print_cmd::run_job(&file, &job_options, &args, io).await;
                 (report, bag.display().to_string())
-            }));
+            });
             let accepted = GoalInfo {
                 goal_id: request.goal_id,
                 stamp,
@@ -197,6 +195,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 status,
                 planned,
                 cancelling: false,
+                job,
             });
             // rcl's order: the status (accepted, then executing at once), then the reply.
             publish_statuses(&server, &running, &finished);
@@ -254,9 +253,8 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
             }
         }
         // The job's end: its result, and the answer to every result request for it.
-        if let Some((report, bag)) = ended {
-            job = None;
-            let r = running.take().expect("a job runs only for a running goal");
+        // (Only a running goal's job can end, and then the goal is no longer running.)
+        if let Some(((report, bag), r)) = ended.and_then(|e| running.take().map(|r| (e, r))) {
             let status = r.status.borrow().clone();
             let (goal_status, result) = outcome(report, &status, bag);
             finished.push(Finished {
@@ -304,7 +302,7 @@ fn feedback(s: &cell_executor::node::Status, planned_s: Option<f64>) -> PrintFee
         percent: planned_s
             .map(|t| (100.0 * s.plan_time_s / t.max(1e-9)).min(100.0) as f32)
             .unwrap_or(0.0),
-        elapsed_s: s.first_motion_s.map_or(0.0, |t0| s.machine_time_s - t0),
+        elapsed_s: s.executed_s(),
         remaining_s: planned_s.map_or(0.0, |t| (t - s.plan_time_s).max(0.0)),
         state: s.state_label().to_string(),
     }
@@ -316,10 +314,8 @@ fn outcome(
     status: &cell_executor::node::Status,
     bag: String,
 ) -> (GoalStatusEnum, PrintResult) {
-    let machine_time_s = status.done_at_s.unwrap_or(status.machine_time_s)
-        - status.first_motion_s.unwrap_or(status.machine_time_s);
     let mut result = PrintResult {
-        machine_time_s: machine_time_s.max(0.0),
+        machine_time_s: status.executed_s(),
         stop_position: status.positions.to_vec(),
         bag,
         ..PrintResult::default()

@@ -106,6 +106,13 @@ pub struct Status {
 }
 
 impl Status {
+    /// Machine time from the first step to the end of the plan (or to now, while it runs);
+    /// 0 before anything moved (s).
+    pub fn executed_s(&self) -> f64 {
+        self.first_motion_s
+            .map_or(0.0, |t0| self.done_at_s.unwrap_or(self.machine_time_s) - t0)
+    }
+
     /// The machine's state in one word: `printing`, `paused`, `cancelling`, `underrun`,
     /// `emergency_stop` or `waiting` (the action's feedback, the progress bar).
     pub fn state_label(&self) -> &'static str {
@@ -304,7 +311,8 @@ pub async fn run(
     let mut tick = tokio::time::interval(period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
-        let mut requested: Option<(usize, ros2_client::RmwRequestId, Command)> = None;
+        // A command, and the service request to answer if it came from one.
+        let mut requested: Option<(Command, Option<(usize, ros2_client::RmwRequestId)>)> = None;
         tokio::select! {
             taken = steps_sub.async_take() => {
                 let (s, _) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
@@ -320,28 +328,27 @@ pub async fn run(
                     input_finished |= p.finished;
                 }
             }
-            Some(command) = commands.recv() => {
-                let (accepted, message) = apply(&mut executor, command);
-                cancelled = next_cancelled(cancelled, command, accepted);
-                node.log(LogLevel::Info, &message);
-            }
+            Some(command) = commands.recv() => requested = Some((command, None)),
             (index, request) = next_request(&servers) => {
                 if let Some(id) = request {
-                    requested = Some((index, id, servers[index].1));
+                    requested = Some((servers[index].1, Some((index, id))));
                 }
             }
             _ = tick.tick() => {}
         }
-        if let Some((index, id, command)) = requested {
+        if let Some((command, caller)) = requested {
             let (success, message) = apply(&mut executor, command);
             cancelled = next_cancelled(cancelled, command, success);
-            node.log(LogLevel::Info, &format!("{}: {message}", SERVICES[index].0));
-            let reply = TriggerResponse { success, message };
-            if let Err(e) = servers[index].0.send_response(id, Wire(reply)) {
-                node.log(
-                    LogLevel::Warn,
-                    &format!("{}: reply lost: {e:?}", SERVICES[index].0),
-                );
+            match caller {
+                None => node.log(LogLevel::Info, &message),
+                Some((index, id)) => {
+                    let service = SERVICES[index].0;
+                    node.log(LogLevel::Info, &format!("{service}: {message}"));
+                    let reply = TriggerResponse { success, message };
+                    if let Err(e) = servers[index].0.send_response(id, Wire(reply)) {
+                        node.log(LogLevel::Warn, &format!("{service}: reply lost: {e:?}"));
+                    }
+                }
             }
         }
         // Queue what the core has room for; the rest waits (the credit bounds how much).
@@ -453,7 +460,7 @@ pub async fn run(
                 closed: cancelled || state.state == PlayerState::Stopped,
             });
         }
-        let (completed, _) = executor.player().completed();
+        let (completed, last_completed) = executor.player().completed();
         let underruns = executor.player().underruns();
         let done = input_finished && pending_steps.is_empty() && executor.is_drained();
         if done && done_at_s.is_none() {
@@ -467,7 +474,7 @@ pub async fn run(
             machine_time_s: state.machine_time_s,
             plan_time_s: state.plan_time_s,
             plan_ahead_s: executor.plan_ahead_s(),
-            current: state.current.or(executor.player().completed().1),
+            current: state.current.or(last_completed),
             segments_received: received,
             segments_completed: completed,
             underruns,
@@ -496,6 +503,7 @@ pub async fn run(
                 next.first_motion_s,
             )
         };
+        let executed_s = next.executed_s();
         if changed || last_status.elapsed() >= Duration::from_millis(50) {
             last_status = Instant::now();
             status.send_replace(next);
@@ -503,10 +511,7 @@ pub async fn run(
         if done && exit_when_done {
             node.log(
                 LogLevel::Info,
-                &format!(
-                    "plan executed: {completed} segments, {:.3} s of machine time",
-                    state.machine_time_s - first_motion_s.unwrap_or(0.0)
-                ),
+                &format!("plan executed: {completed} segments, {executed_s:.3} s of machine time"),
             );
             return Ok(());
         }

@@ -300,6 +300,11 @@ impl CellNode {
             .map_err(|e| RuntimeError::Dds(format!("subscription on {topic}: {e:?}")))
     }
 
+    /// `name` (a topic, service or action) expanded and remapped for this node.
+    pub fn ros_name(&self, name: &str) -> Result<Name, RuntimeError> {
+        ros_name(&self.names, name).map(|(_, parsed)| parsed)
+    }
+
     /// A service server on `service` (expanded and remapped) of type `package/srv/Type`, with
     /// ROS's service QoS (reliable, volatile, keep-last 10) and the given request/reply
     /// mapping: `Cyclone` for rmw_cyclonedds clients, `Enhanced` for rmw_fastrtps ones.
@@ -313,9 +318,7 @@ impl CellNode {
         Req: serde::Serialize + serde::de::DeserializeOwned + Clone + 'static,
         Resp: serde::Serialize + serde::de::DeserializeOwned + 'static,
     {
-        let resolved = self.names.resolve(service)?;
-        let name =
-            Name::parse(&resolved).map_err(|e| RuntimeError::Dds(format!("{resolved}: {e:?}")))?;
+        let (resolved, name) = ros_name(&self.names, service)?;
         let qos = ros_default_qos();
         self.node
             .create_server(
@@ -389,15 +392,21 @@ pub fn parse_service_mapping(text: &str) -> Result<ServiceMapping, RuntimeError>
     }
 }
 
+/// `name` expanded and remapped, as text and as ros2-client's `Name`.
+fn ros_name(names: &NameResolver, name: &str) -> Result<(String, Name), RuntimeError> {
+    let resolved = names.resolve(name)?;
+    let parsed =
+        Name::parse(&resolved).map_err(|e| RuntimeError::Dds(format!("{resolved}: {e:?}")))?;
+    Ok((resolved, parsed))
+}
+
 fn create_topic<T: RosMessage>(
     node: &mut Node,
     names: &NameResolver,
     topic: &str,
     qos: &QosProfile,
 ) -> Result<rustdds::Topic, RuntimeError> {
-    let resolved = names.resolve(topic)?;
-    let name =
-        Name::parse(&resolved).map_err(|e| RuntimeError::Dds(format!("{resolved}: {e:?}")))?;
+    let (resolved, name) = ros_name(names, topic)?;
     node.create_topic(
         &name,
         MessageTypeName::new(T::TYPE.package, T::TYPE.name),

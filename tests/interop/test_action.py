@@ -18,11 +18,11 @@ import cyclonedds.idl.annotations as annotate
 import cyclonedds.idl.types as t
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from conftest import binary
+from rmw_cyclone import ServiceClient
 from test_dds import Time, ros_qos
 
 DOMAIN = 78
@@ -149,38 +149,6 @@ SUCCEEDED, CANCELED = 4, 5
 def same(a, b):
     """Goal ids compare by their 16 bytes (Cyclone hands the array back as bytes)."""
     return bytes(a.uuid) == bytes(b.uuid)
-
-
-class ServiceClient:
-    """A client of one service in rmw_cyclonedds's format: a random guid, seq counting up;
-    the reply is the one echoing both."""
-
-    def __init__(self, participant, service, request_type, response_type):
-        qos = ros_qos(depth=10)
-        self.writer = DataWriter(participant, Topic(participant, f"rq{service}Request", request_type), qos=qos)
-        self.reader = DataReader(participant, Topic(participant, f"rr{service}Reply", response_type), qos=qos)
-        self.guid = random.getrandbits(63) | 1
-        self.seq = 0
-        self.response_type = response_type
-
-    def wait_for_server(self, deadline):
-        while not (self.writer.get_matched_subscriptions() and self.reader.get_matched_publications()):
-            assert time.monotonic() < deadline, "no server"
-            time.sleep(0.05)
-
-    def send(self, make_request):
-        self.seq += 1
-        self.writer.write(make_request(self.guid, self.seq))
-        return self.seq
-
-    def reply(self, seq, timeout_s):
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            for r in self.reader.take(N=10):
-                if isinstance(r, self.response_type) and (r.guid, r.seq) == (self.guid, seq):
-                    return r
-            time.sleep(0.01)
-        raise AssertionError(f"no reply to request {seq}")
 
 
 def circle(path, turns):

@@ -9,7 +9,6 @@ watch its `/joint_states` (the executed joints) to see each service take effect.
 
 import math
 import os
-import random
 import subprocess
 import time
 from dataclasses import dataclass
@@ -18,12 +17,13 @@ import cyclonedds.idl.annotations as annotate
 import cyclonedds.idl.types as t
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from conftest import binary
-from test_dds import Header, ros_qos
+from rmw_cyclone import ServiceClient
+from test_dds import ros_qos
+from test_mechanism import JointState
 
 DOMAIN = 77
 
@@ -45,50 +45,9 @@ class TriggerResponse(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Response
     message: str
 
 
-@dataclass
-@annotate.final
-class JointState(IdlStruct, typename="sensor_msgs::msg::dds_::JointState_"):
-    header: Header
-    name: t.sequence[str]
-    position: t.sequence[float]
-    velocity: t.sequence[float]
-    effort: t.sequence[float]
-
-
-class TriggerClient:
-    """One `std_srvs/srv/Trigger` client in rmw_cyclonedds's wire format."""
-
-    def __init__(self, participant, service):
-        qos = ros_qos(depth=10)
-        self.writer = DataWriter(
-            participant, Topic(participant, f"rq{service}Request", TriggerRequest), qos=qos
-        )
-        self.reader = DataReader(
-            participant, Topic(participant, f"rr{service}Reply", TriggerResponse), qos=qos
-        )
-        self.guid = random.getrandbits(63) | 1
-        self.seq = 0
-        self.service = service
-
-    def call(self, timeout_s=10.0):
-        deadline = time.monotonic() + timeout_s
-        # A volatile request written before the server's reader matched would be lost.
-        while not (
-            self.writer.get_matched_subscriptions() and self.reader.get_matched_publications()
-        ):
-            assert time.monotonic() < deadline, f"{self.service}: no server"
-            time.sleep(0.05)
-        self.seq += 1
-        self.writer.write(TriggerRequest(self.guid, self.seq, 0))
-        while time.monotonic() < deadline:
-            for reply in self.reader.take(N=10):
-                if isinstance(reply, TriggerResponse) and (reply.guid, reply.seq) == (
-                    self.guid,
-                    self.seq,
-                ):
-                    return reply
-            time.sleep(0.01)
-        raise AssertionError(f"{self.service}: no reply to request {self.seq}")
+def trigger(client):
+    """`ros2 service call <service> std_srvs/srv/Trigger`: the response."""
+    return client.call(lambda guid, seq: TriggerRequest(guid, seq, 0))
 
 
 def circle_gcode(path):
@@ -125,7 +84,7 @@ def test_pause_resume_estop_from_a_cyclone_client(tmp_path):
             participant, Topic(participant, "rt/joint_states", JointState), qos=ros_qos(1000)
         )
         pause, resume, estop, reset = (
-            TriggerClient(participant, f"/cell/{name}")
+            ServiceClient(participant, f"/cell/{name}", TriggerRequest, TriggerResponse)
             for name in ("pause", "resume", "estop", "reset")
         )
         moving = recent_states(states, 4.0)
@@ -133,23 +92,23 @@ def test_pause_resume_estop_from_a_cyclone_client(tmp_path):
         assert any(abs(v) > 0 for s in moving[-10:] for v in s.velocity[:3]), "moving"
 
         # Nothing to resume or reset yet: refused, with the reason.
-        reply = resume.call()
+        reply = trigger(resume)
         assert (reply.success, reply.message) == (False, "not paused")
-        assert reset.call().success is False
+        assert trigger(reset).success is False
 
-        reply = pause.call()
+        reply = trigger(pause)
         assert reply.success, reply.message
         held = recent_states(states, 1.5)[-25:]  # the last half second, well after the stop
         assert held and all(v == 0.0 for s in held for v in s.velocity)
         assert len({tuple(s.position) for s in held}) == 1, "held in place"
 
-        assert resume.call().success
+        assert trigger(resume).success
         resumed = recent_states(states, 1.5)
         assert any(abs(v) > 0 for s in resumed[-10:] for v in s.velocity[:3]), "moving again"
         # It continued from where it held: the first new position is next to the held one.
         assert abs(resumed[0].position[0] - held[-1].position[0]) < 0.05
 
-        reply = estop.call()
+        reply = trigger(estop)
         assert reply.success and "emergency stop" in reply.message
         _, stderr = proc.communicate(timeout=20)
         assert proc.returncode == 1, stderr

@@ -16,7 +16,7 @@ if [[ "${1:-}" == "--time" ]]; then
 else
   budget=(-runs="${1:-20000}" -seed=1)
 fi
-targets=(gcode bag cdr text_inputs move_stream)
+targets=(gcode bag cdr text_inputs move_stream mcu_protocol)
 
 cargo fuzz build --fuzz-dir tests/fuzz -O
 for target in "${targets[@]}"; do

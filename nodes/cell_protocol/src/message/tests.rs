@@ -1,0 +1,301 @@
+use proptest::prelude::*;
+use std::vec::Vec;
+
+use super::*;
+
+fn encode_host(m: &HostMessage) -> Vec<u8> {
+    let mut out = [0; MAX_PAYLOAD];
+    let len = m.encode(&mut out);
+    out[..len].to_vec()
+}
+
+fn encode_mcu(m: &McuMessage) -> Vec<u8> {
+    let mut out = [0; MAX_PAYLOAD];
+    let len = m.encode(&mut out);
+    out[..len].to_vec()
+}
+
+fn sample_segment() -> QueuedSegment {
+    QueuedSegment {
+        start_clock: 0x0102_0304_0506_0708,
+        duration_ticks: 0x1122_3344,
+        tag: 77,
+        flags: SEGMENT_ENDS_AT_REST,
+        segment: Segment {
+            step_counts: [1000, 250, 3],
+            negative_mask: 0b010,
+            dominant_axis: 0,
+            accelerate_steps: 400,
+            cruise_steps: 200,
+            decelerate_steps: 400,
+            first_period_q32: 1234 << 32,
+            first_ramp_q62: 1 << 55,
+        },
+    }
+}
+
+#[test]
+fn queue_segment_layout_is_the_documented_one() {
+    // Offsets as PROTOCOL.md tables them, written out byte by byte.
+    let bytes = encode_host(&HostMessage::QueueSegment(sample_segment()));
+    let mut expected = Vec::new();
+    expected.push(0x10);
+    expected.extend_from_slice(&[8, 7, 6, 5, 4, 3, 2, 1]); // start_clock
+    expected.extend_from_slice(&[0x44, 0x33, 0x22, 0x11]); // duration_ticks
+    expected.extend_from_slice(&[77, 0, 0, 0]); // tag
+    expected.push(1); // flags: ends at rest
+    expected.extend_from_slice(&[0xE8, 0x03, 0, 0, 250, 0, 0, 0, 3, 0, 0, 0]); // step_counts
+    expected.extend_from_slice(&[0b010, 0]); // negative_mask, dominant_axis
+    expected.extend_from_slice(&[0x90, 1, 0, 0, 200, 0, 0, 0, 0x90, 1, 0, 0]); // phases
+    expected.extend_from_slice(&[0, 0, 0, 0, 0xD2, 0x04, 0, 0]); // first_period_q32
+    expected.extend_from_slice(&[0, 0, 0, 0, 0, 0, 0x80, 0]); // first_ramp_q62
+    assert_eq!(bytes, expected);
+    assert_eq!(bytes.len(), 60);
+}
+
+#[test]
+fn state_layout_is_the_documented_one() {
+    let state = McuState {
+        clock: 5,
+        plan_clock: 4,
+        position_steps: [-1, 2, 3],
+        screw_millirpm: 60_000,
+        screw_angle_millirev: -7,
+        pin_open: true,
+        queue_free: 300,
+        done_tag: 9,
+        feed_scale_q16: 0xFFFF,
+        mode: Mode::Held,
+        fault: FaultCode::None,
+    };
+    let bytes = encode_mcu(&McuMessage::State(state));
+    assert_eq!(bytes.len(), 48);
+    assert_eq!(bytes[0], 0x83);
+    assert_eq!(&bytes[9..17], &4u64.to_le_bytes()); // plan clock
+    assert_eq!(&bytes[17..21], &[0xFF; 4]); // position of axis 0 = -1
+    assert_eq!(&bytes[29..33], &60_000i32.to_le_bytes());
+    assert_eq!(bytes[37], 1); // pin_open
+    assert_eq!(&bytes[38..40], &300u16.to_le_bytes());
+    assert_eq!(bytes[46], 3); // mode Held
+}
+
+#[test]
+fn bad_payloads_name_kind_and_value() {
+    assert_eq!(HostMessage::decode(&[]), Err(MessageError::Empty));
+    assert_eq!(
+        HostMessage::decode(&[0x83]),
+        Err(MessageError::UnknownKind { kind: 0x83 }),
+        "an MCU message is not a host message"
+    );
+    assert_eq!(
+        McuMessage::decode(&[0x10]),
+        Err(MessageError::UnknownKind { kind: 0x10 })
+    );
+    assert_eq!(
+        HostMessage::decode(&[0x02, 1, 2]),
+        Err(MessageError::Length {
+            kind: 0x02,
+            expected: 5,
+            actual: 3
+        })
+    );
+    let mut screw = encode_host(&HostMessage::Screw(ScrewRamp::default()));
+    *screw.last_mut().unwrap() = 2;
+    assert_eq!(
+        HostMessage::decode(&screw),
+        Err(MessageError::BadValue {
+            kind: 0x11,
+            field: "pin_open",
+            value: 2
+        })
+    );
+    let mut segment = encode_host(&HostMessage::QueueSegment(sample_segment()));
+    segment[17] = 0x80;
+    assert_eq!(
+        HostMessage::decode(&segment),
+        Err(MessageError::BadValue {
+            kind: 0x10,
+            field: "flags",
+            value: 0x80
+        })
+    );
+    let mut state = encode_mcu(&McuMessage::State(McuState::default()));
+    state[46] = 9;
+    assert_eq!(
+        McuMessage::decode(&state),
+        Err(MessageError::BadValue {
+            kind: 0x83,
+            field: "mode",
+            value: 9
+        })
+    );
+}
+
+#[test]
+fn only_the_emergency_stop_and_state_go_unsequenced() {
+    assert!(!HostMessage::EmergencyStop.is_sequenced());
+    assert!(HostMessage::QueueSegment(sample_segment()).is_sequenced());
+    assert!(!McuMessage::State(McuState::default()).is_sequenced());
+    assert!(McuMessage::Fault {
+        code: FaultCode::Underrun,
+        clock: 1,
+        tag: 2
+    }
+    .is_sequenced());
+}
+
+fn any_segment() -> impl Strategy<Value = Segment> {
+    (
+        any::<[u32; 3]>(),
+        any::<u8>(),
+        any::<u8>(),
+        any::<[u32; 3]>(),
+        any::<u64>(),
+        any::<u64>(),
+    )
+        .prop_map(|(counts, mask, dominant, phases, period, ramp)| Segment {
+            step_counts: counts,
+            negative_mask: mask,
+            dominant_axis: dominant,
+            accelerate_steps: phases[0],
+            cruise_steps: phases[1],
+            decelerate_steps: phases[2],
+            first_period_q32: period,
+            first_ramp_q62: ramp,
+        })
+}
+
+fn any_host_message() -> impl Strategy<Value = HostMessage> {
+    prop_oneof![
+        Just(HostMessage::Identify),
+        any::<u32>().prop_map(|token| HostMessage::ClockQuery { token }),
+        (any::<u32>(), any::<u32>()).prop_map(|(a, b)| HostMessage::Configure {
+            host_timeout_ticks: a,
+            state_period_ticks: b
+        }),
+        (
+            any::<u64>(),
+            any::<u32>(),
+            any::<u32>(),
+            any::<bool>(),
+            any_segment()
+        )
+            .prop_map(|(s, d, t, at_rest, seg)| {
+                HostMessage::QueueSegment(QueuedSegment {
+                    start_clock: s,
+                    duration_ticks: d,
+                    tag: t,
+                    flags: at_rest as u8,
+                    segment: seg,
+                })
+            }),
+        (any::<u64>(), any::<u32>(), any::<i32>(), any::<bool>()).prop_map(|(s, r, rpm, pin)| {
+            HostMessage::Screw(ScrewRamp {
+                start_clock: s,
+                ramp_ticks: r,
+                target_millirpm: rpm,
+                pin_open: pin,
+            })
+        }),
+        any::<u32>().prop_map(|rate_q32| HostMessage::FeedHold { rate_q32 }),
+        (any::<u32>(), any::<u32>()).prop_map(|(r, d)| HostMessage::FeedResume {
+            rate_q32: r,
+            delay_ticks: d
+        }),
+        Just(HostMessage::DropQueue),
+        Just(HostMessage::EmergencyStop),
+        Just(HostMessage::Reset),
+        Just(HostMessage::QueryState),
+        Just(HostMessage::QueryCounters),
+    ]
+}
+
+fn any_mode() -> impl Strategy<Value = Mode> {
+    (0u8..5).prop_map(|m| Mode::from_u8(m).unwrap())
+}
+
+fn any_fault() -> impl Strategy<Value = FaultCode> {
+    (0u8..9).prop_map(|f| FaultCode::from_u8(f).unwrap())
+}
+
+fn any_mcu_message() -> impl Strategy<Value = McuMessage> {
+    prop_oneof![
+        (any::<u16>(), any::<u32>(), any::<u16>(), any::<u8>()).prop_map(|(v, hz, q, a)| {
+            McuMessage::Identity(Identity {
+                protocol_version: v,
+                timer_hz: hz,
+                queue_capacity: q,
+                axis_count: a,
+            })
+        }),
+        (any::<u32>(), any::<u64>()).prop_map(|(token, clock)| McuMessage::Clock { token, clock }),
+        (
+            any::<(u64, u64)>(),
+            any::<[i32; 3]>(),
+            any::<(i32, i32, bool, u16, u32, u16)>(),
+            any_mode(),
+            any_fault()
+        )
+            .prop_map(|((clock, plan_clock), position_steps, f, mode, fault)| {
+                McuMessage::State(McuState {
+                    clock,
+                    plan_clock,
+                    position_steps,
+                    screw_millirpm: f.0,
+                    screw_angle_millirev: f.1,
+                    pin_open: f.2,
+                    queue_free: f.3,
+                    done_tag: f.4,
+                    feed_scale_q16: f.5,
+                    mode,
+                    fault,
+                })
+            }),
+        any::<[u32; 7]>().prop_map(|c| McuMessage::Counters(McuCounters {
+            frames_received: c[0],
+            crc_errors: c[1],
+            framing_errors: c[2],
+            naks_sent: c[3],
+            retransmits: c[4],
+            underruns: c[5],
+            late_segments: c[6],
+        })),
+        (any_fault(), any::<u64>(), any::<u32>())
+            .prop_map(|(code, clock, tag)| McuMessage::Fault { code, clock, tag }),
+    ]
+}
+
+proptest! {
+    #[test]
+    fn host_messages_round_trip(m in any_host_message()) {
+        prop_assert_eq!(HostMessage::decode(&encode_host(&m)), Ok(m));
+    }
+
+    #[test]
+    fn mcu_messages_round_trip(m in any_mcu_message()) {
+        prop_assert_eq!(McuMessage::decode(&encode_mcu(&m)), Ok(m));
+    }
+
+    #[test]
+    fn any_payload_decodes_or_errors(bytes in proptest::collection::vec(any::<u8>(), 0..=MAX_PAYLOAD)) {
+        // Decoding never panics, and whatever decodes re-encodes to the same bytes.
+        if let Ok(m) = HostMessage::decode(&bytes) {
+            prop_assert_eq!(encode_host(&m), bytes.clone());
+        }
+        if let Ok(m) = McuMessage::decode(&bytes) {
+            prop_assert_eq!(encode_mcu(&m), bytes);
+        }
+    }
+
+    #[test]
+    fn truncated_messages_are_length_errors(m in any_host_message(), fraction in 0.0f64..1.0) {
+        let bytes = encode_host(&m);
+        prop_assume!(bytes.len() > 1);
+        let cut = 1 + (fraction * (bytes.len() - 1) as f64) as usize;
+        let is_length_error = matches!(
+            HostMessage::decode(&bytes[..cut]),
+            Err(MessageError::Length { .. })
+        );
+        prop_assert!(is_length_error);
+    }
+}

@@ -7,6 +7,7 @@
 //! * [`steps`] — corrected Leib ramp and seed-001 pulse distribution, and their decoder;
 //! * [`check`] — independent checks of a plan: path deviation and limits;
 //! * [`preflight`] — a whole file planned and cut into steps before anything moves;
+//! * [`program`] — a whole program planned into memory, for tests and emulators;
 //! * [`urdf`] — the joint limits from the printer's URDF.
 //!
 //! Pure: no DDS, no files. The node (feature `node`) wires it to topics.
@@ -19,6 +20,7 @@ pub mod messages;
 pub mod path;
 pub mod planner;
 pub mod preflight;
+pub mod program;
 pub mod steps;
 pub mod timing;
 pub mod urdf;
@@ -27,6 +29,7 @@ pub use planner::{
     PlanError, PlannedMove, Planner, PlannerOptions, ScrewLimits, TrajPoint, JOINT_NAMES,
 };
 pub use preflight::{Preflight, PreflightError, PreflightReport};
+pub use program::{plan_program, Program};
 pub use timing::JointLimits;
 
 #[cfg(feature = "node")]

@@ -7,8 +7,8 @@
 use cell_executor::{Edge, Player, PlayerOptions, PlayerState, SegmentJob};
 use gcode_streamer::{parse_all, InterpreterOptions};
 use polar_cell_msgs::{GcodeMove, StepSegment};
-use polar_planner::steps::{StepGenerator, StepOptions};
-use polar_planner::{PlannedMove, Planner, PlannerOptions};
+use polar_planner::steps::StepOptions;
+use polar_planner::{plan_program, PlannedMove, PlannerOptions};
 
 pub struct Fixture {
     pub moves: Vec<GcodeMove>,
@@ -28,23 +28,12 @@ pub fn plan_fixture(name: &str) -> Fixture {
     let moves = parse_all(&src, name, InterpreterOptions::default())
         .unwrap()
         .0;
-    let options = PlannerOptions::default();
-    let mut planner = Planner::new(options.clone()).unwrap();
-    let mut planned = Vec::new();
-    for m in &moves {
-        planner.push(m, &mut planned).unwrap();
-    }
-    planner.flush(&mut planned);
-    let mut generator = StepGenerator::new(StepOptions::default(), options.initial_joints);
-    let mut segments = Vec::new();
-    for p in &planned {
-        generator.segments(p, &mut segments);
-    }
+    let program = plan_program(&moves, PlannerOptions::default(), StepOptions::default()).unwrap();
     Fixture {
         moves,
-        planned,
-        segments,
-        end_steps: generator.position(),
+        planned: program.planned,
+        segments: program.segments,
+        end_steps: program.end_steps,
     }
 }
 

@@ -1,0 +1,532 @@
+//! The machine: segments on the plan clock, played through the shared step core, with feed
+//! hold and resume, positions, the screw, faults and the host watchdog.
+//!
+//! # Two clocks
+//!
+//! The *MCU clock* counts timer ticks. The *plan clock* is the schedule's: segment and screw
+//! start clocks are on it. It runs at the feed scale σ per tick (Q32, 1 = 2³²): equal to the
+//! MCU clock until a feed hold slows it to a stop, behind it by the time lost afterwards. A
+//! pulse the step core times at plan instant `P` goes out at the first MCU tick whose plan
+//! clock, plus half a tick, is beyond `P` — at σ = 1 exactly the tick nearest `P`, so the
+//! edges equal the host decoder's to the tick.
+//!
+//! # Running ahead
+//!
+//! [`Machine::advance`] generates everything up to an MCU clock and hands each step edge to a
+//! sink with its tick. A firmware runs it a little ahead of real time into an edge buffer
+//! that its timer drains at the exact ticks; the emulator and the tests run it to "now".
+//! Checks on arrival (late segment, screw) are against the generated clock: what is already
+//! generated cannot change.
+//!
+//! At σ = 1 it jumps from event to event (pulses, segment ends, the watchdog); during a hold
+//! or resume it walks tick by tick (additions only), which costs a few instructions per tick
+//! for the fraction of a second a ramp lasts.
+
+use cell_protocol::message::{
+    FaultCode, HostMessage, Identity, McuMessage, McuState, Mode, QueuedSegment,
+    SEGMENT_ENDS_AT_REST,
+};
+use cell_protocol::PROTOCOL_VERSION;
+use heapless::Deque;
+use step_core::{PulseTrain, MAX_AXES, ONE_TICK_Q32};
+
+use crate::screw::{Screw, ScrewRefusal};
+
+const ONE: u64 = ONE_TICK_Q32;
+const HALF: u128 = (ONE / 2) as u128;
+
+/// How the machine is built.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MachineConfig {
+    /// MCU clock and step timer frequency.
+    pub timer_hz: u32,
+    /// Steppers driven (1..=3).
+    pub axis_count: u8,
+    /// Step position of each axis at power-up.
+    pub initial_steps: [i32; MAX_AXES],
+}
+
+/// One step edge: the axes in `axes` step at MCU tick `clock`, those in `negative` backwards.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct StepEdge {
+    pub clock: u64,
+    pub axes: u8,
+    pub negative: u8,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Ramp {
+    /// σ constant (1 running, 0 held).
+    Steady,
+    /// σ falls by `rate` per tick to 0.
+    Hold { rate: u64 },
+    /// At rest, pin open again, until MCU tick `until`; then [`Ramp::Resume`].
+    ResumeWait { rate: u64, until: u64 },
+    /// σ rises by `rate` per tick to 1.
+    Resume { rate: u64 },
+}
+
+/// The segment being played.
+#[derive(Clone, Debug)]
+struct Playing {
+    queued: QueuedSegment,
+    train: PulseTrain,
+}
+
+impl Playing {
+    fn start_q32(&self) -> u128 {
+        (self.queued.start_clock as u128) << 32
+    }
+    fn end_q32(&self) -> u128 {
+        ((self.queued.start_clock + self.queued.duration_ticks as u64) as u128) << 32
+    }
+}
+
+/// Counters the MCU reports.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct MachineCounters {
+    pub underruns: u32,
+    pub late_segments: u32,
+}
+
+/// The machine, with room for `Q` queued segments and `S` screw commands.
+#[derive(Clone, Debug)]
+pub struct Machine<const Q: usize, const S: usize> {
+    config: MachineConfig,
+    /// MCU tick generated up to (inclusive).
+    clock: u64,
+    /// Plan clock at `clock`, Q32.
+    plan_q32: u128,
+    sigma_q32: u64,
+    ramp: Ramp,
+    playing: Option<Playing>,
+    queue: Deque<QueuedSegment, Q>,
+    /// Plan tick where the last accepted segment ends (the next must start there).
+    schedule_end: Option<u64>,
+    positions: [i32; MAX_AXES],
+    done_tag: u32,
+    screw: Screw<S>,
+    /// A hold keeps the pin closed whatever the schedule says.
+    pin_held_closed: bool,
+    fault: FaultCode,
+    /// A latched fault not yet reported to the host.
+    unreported_fault: Option<McuMessage>,
+    host_timeout_ticks: u32,
+    state_period_ticks: u32,
+    last_host_frame: u64,
+    counters: MachineCounters,
+}
+
+impl<const Q: usize, const S: usize> Machine<Q, S> {
+    pub fn new(config: MachineConfig) -> Machine<Q, S> {
+        Machine {
+            config,
+            clock: 0,
+            plan_q32: 0,
+            sigma_q32: ONE,
+            ramp: Ramp::Steady,
+            playing: None,
+            queue: Deque::new(),
+            schedule_end: None,
+            positions: config.initial_steps,
+            done_tag: 0,
+            screw: Screw::new(),
+            pin_held_closed: false,
+            fault: FaultCode::None,
+            unreported_fault: None,
+            host_timeout_ticks: 0,
+            state_period_ticks: 0,
+            last_host_frame: 0,
+            counters: MachineCounters::default(),
+        }
+    }
+
+    pub fn config(&self) -> &MachineConfig {
+        &self.config
+    }
+
+    /// MCU tick generated up to.
+    pub fn clock(&self) -> u64 {
+        self.clock
+    }
+
+    /// Plan clock (whole ticks) at [`Machine::clock`].
+    pub fn plan_clock(&self) -> u64 {
+        (self.plan_q32 >> 32) as u64
+    }
+
+    pub fn positions(&self) -> [i32; MAX_AXES] {
+        self.positions
+    }
+
+    pub fn counters(&self) -> MachineCounters {
+        self.counters
+    }
+
+    pub fn fault(&self) -> FaultCode {
+        self.fault
+    }
+
+    /// How often the host wants a state message (0: only on query).
+    pub fn state_period_ticks(&self) -> u32 {
+        self.state_period_ticks
+    }
+
+    /// Free places in the segment queue.
+    pub fn queue_free(&self) -> usize {
+        Q - self.queue.len()
+    }
+
+    pub fn mode(&self) -> Mode {
+        if self.fault != FaultCode::None {
+            Mode::Fault
+        } else if self.sigma_q32 == 0 && matches!(self.ramp, Ramp::Steady) {
+            Mode::Held
+        } else if !matches!(self.ramp, Ramp::Steady) {
+            Mode::Ramping
+        } else if self.playing.is_some() || !self.queue.is_empty() {
+            Mode::Running
+        } else {
+            Mode::Idle
+        }
+    }
+
+    /// Screw speed to output now: the schedule's, scaled by σ (material follows the path's
+    /// speed), 0 in a fault.
+    pub fn screw_millirpm(&self) -> i32 {
+        ((self.screw.millirpm() as i64 * self.sigma_q32 as i64) >> 32) as i32
+    }
+
+    /// Pin output now.
+    pub fn pin_open(&self) -> bool {
+        self.screw.pin_open() && !self.pin_held_closed && self.fault == FaultCode::None
+    }
+
+    /// The state message at MCU clock `now`.
+    pub fn state(&self, now: u64) -> McuState {
+        McuState {
+            clock: now,
+            plan_clock: self.plan_clock(),
+            position_steps: self.positions,
+            screw_millirpm: self.screw_millirpm(),
+            screw_angle_millirev: self.screw.angle_millirev(self.config.timer_hz),
+            pin_open: self.pin_open(),
+            queue_free: self.queue_free().min(u16::MAX as usize) as u16,
+            done_tag: self.done_tag,
+            feed_scale_q16: (self.sigma_q32 >> 16).min(u16::MAX as u64) as u16,
+            mode: self.mode(),
+            fault: self.fault,
+        }
+    }
+
+    /// A fault latched since the last call, as the message that reports it.
+    pub fn take_fault_report(&mut self) -> Option<McuMessage> {
+        self.unreported_fault.take()
+    }
+
+    /// A valid frame arrived at MCU clock `now`: the host is alive.
+    pub fn host_frame(&mut self, now: u64) {
+        self.last_host_frame = now;
+    }
+
+    /// Act on a host message at MCU clock `now`; the reply, if the message asks for one.
+    pub fn handle(&mut self, message: &HostMessage, now: u64) -> Option<McuMessage> {
+        match *message {
+            HostMessage::Identify => {
+                return Some(McuMessage::Identity(Identity {
+                    protocol_version: PROTOCOL_VERSION,
+                    timer_hz: self.config.timer_hz,
+                    queue_capacity: Q.min(u16::MAX as usize) as u16,
+                    axis_count: self.config.axis_count,
+                }))
+            }
+            HostMessage::ClockQuery { token } => {
+                return Some(McuMessage::Clock { token, clock: now })
+            }
+            HostMessage::Configure {
+                host_timeout_ticks,
+                state_period_ticks,
+            } => {
+                self.host_timeout_ticks = host_timeout_ticks;
+                self.state_period_ticks = state_period_ticks;
+                self.last_host_frame = now;
+            }
+            HostMessage::QueueSegment(queued) => self.queue_segment(queued),
+            HostMessage::Screw(command) => {
+                if self.fault == FaultCode::None {
+                    let refused = self.screw.push(command, self.plan_clock());
+                    match refused {
+                        Ok(()) => {}
+                        Err(ScrewRefusal::Late) => self.latch(FaultCode::LateSegment, 0),
+                        Err(ScrewRefusal::OutOfOrder) => self.latch(FaultCode::BadSegment, 0),
+                        Err(ScrewRefusal::Full) => self.latch(FaultCode::QueueOverflow, 0),
+                    }
+                }
+            }
+            HostMessage::FeedHold { rate_q32 } => {
+                if self.fault == FaultCode::None {
+                    self.pin_held_closed = true;
+                    self.ramp = if self.sigma_q32 > 0 {
+                        Ramp::Hold {
+                            rate: (rate_q32 as u64).max(1),
+                        }
+                    } else {
+                        Ramp::Steady // already at rest (perhaps waiting to resume): stay
+                    };
+                }
+            }
+            HostMessage::FeedResume {
+                rate_q32,
+                delay_ticks,
+            } => {
+                let holding = self.ramp != Ramp::Steady || self.sigma_q32 < ONE;
+                if self.fault == FaultCode::None && holding {
+                    self.pin_held_closed = false;
+                    let rate = (rate_q32 as u64).max(1);
+                    self.ramp = if self.sigma_q32 == 0 {
+                        Ramp::ResumeWait {
+                            rate,
+                            until: self.clock + delay_ticks as u64,
+                        }
+                    } else {
+                        Ramp::Resume { rate } // never came to rest: no pin delay to wait
+                    };
+                }
+            }
+            HostMessage::DropQueue => {
+                let moving = self.sigma_q32 > 0 && self.playing.is_some();
+                if moving {
+                    let tag = self.playing.as_ref().map_or(0, |p| p.queued.tag);
+                    self.latch(FaultCode::DropWhileMoving, tag);
+                } else {
+                    self.clear_schedule();
+                }
+            }
+            HostMessage::EmergencyStop => self.emergency_stop(),
+            HostMessage::Reset => {
+                self.clear_schedule();
+                self.fault = FaultCode::None;
+                self.unreported_fault = None;
+                self.last_host_frame = now;
+            }
+            HostMessage::QueryState => return Some(McuMessage::State(self.state(now))),
+            HostMessage::QueryCounters => {} // answered by the endpoint, which has the link's
+        }
+        None
+    }
+
+    /// Stop every output at once and latch the fault.
+    pub fn emergency_stop(&mut self) {
+        self.latch(FaultCode::EmergencyStop, 0);
+    }
+
+    fn queue_segment(&mut self, queued: QueuedSegment) {
+        if self.fault != FaultCode::None {
+            return; // refused silently: the host already has the fault report
+        }
+        let tag = queued.tag;
+        if queued.segment.check().is_err() || queued.flags & !SEGMENT_ENDS_AT_REST != 0 {
+            return self.latch(FaultCode::BadSegment, tag);
+        }
+        match self.schedule_end {
+            Some(end) if queued.start_clock != end => {
+                return self.latch(FaultCode::BadSegment, tag);
+            }
+            None if (queued.start_clock as u128) << 32 < self.plan_q32 => {
+                self.counters.late_segments += 1;
+                return self.latch(FaultCode::LateSegment, tag);
+            }
+            _ => {}
+        }
+        if self.queue.push_back(queued).is_err() {
+            return self.latch(FaultCode::QueueOverflow, tag);
+        }
+        self.schedule_end = Some(queued.start_clock + queued.duration_ticks as u64);
+    }
+
+    fn clear_schedule(&mut self) {
+        self.playing = None;
+        self.queue.clear();
+        self.schedule_end = None;
+        self.screw.stop();
+        self.ramp = Ramp::Steady;
+        self.sigma_q32 = ONE;
+        self.pin_held_closed = false;
+    }
+
+    fn latch(&mut self, code: FaultCode, tag: u32) {
+        if self.fault == FaultCode::None {
+            self.fault = code;
+            self.unreported_fault = Some(McuMessage::Fault {
+                code,
+                clock: self.clock,
+                tag,
+            });
+        }
+        self.playing = None;
+        self.queue.clear();
+        self.schedule_end = None;
+        self.screw.stop();
+        self.ramp = Ramp::Steady;
+    }
+
+    /// Generate everything up to MCU tick `until`, handing each step edge to `sink`.
+    pub fn advance(&mut self, until: u64, sink: &mut impl FnMut(StepEdge)) {
+        while self.clock < until {
+            if self.fault != FaultCode::None {
+                self.plan_q32 += ((until - self.clock) as u128) << 32;
+                self.clock = until;
+                break;
+            }
+            let at_rest =
+                self.sigma_q32 == 0 && matches!(self.ramp, Ramp::Steady | Ramp::ResumeWait { .. });
+            if self.sigma_q32 == ONE && self.ramp == Ramp::Steady {
+                let next = self.next_event_tick().min(until);
+                self.plan_q32 += ((next - self.clock) as u128) << 32;
+                self.clock = next;
+            } else if at_rest {
+                // Held: the plan clock stands; only the watchdog or the end of a resume's
+                // wait can happen.
+                let mut next = until.min(self.watchdog_deadline());
+                if let Ramp::ResumeWait {
+                    until: wait_end, ..
+                } = self.ramp
+                {
+                    next = next.min(wait_end.max(self.clock + 1));
+                }
+                self.clock = next;
+                self.step_ramp();
+            } else {
+                self.clock += 1;
+                self.step_ramp();
+                self.plan_q32 += self.sigma_q32 as u128;
+            }
+            self.screw.advance_to(self.plan_clock());
+            self.check_watchdog();
+            self.emit_due(sink);
+        }
+    }
+
+    /// At σ = 1: the next MCU tick at which something happens (always after `clock`).
+    fn next_event_tick(&self) -> u64 {
+        // Ticks from now until the plan clock (+½ for pulses) passes `target_q32`.
+        let ticks_until = |target_q32: u128, half: u128| -> u64 {
+            let reached = self.plan_q32 + half;
+            if reached > target_q32 {
+                1
+            } else {
+                (((target_q32 - reached) >> 32) as u64).saturating_add(1)
+            }
+        };
+        let mut next = u64::MAX;
+        if let Some(playing) = &self.playing {
+            match playing.train.next_time_q32() {
+                Some(t) => next = next.min(ticks_until(playing.start_q32() + t as u128, HALF)),
+                // All pulses made: the segment ends when the plan clock reaches its end.
+                None => next = next.min(ticks_until(playing.end_q32() - 1, 0)),
+            }
+        } else if !self.queue.is_empty() {
+            next = 1; // taken up at the next tick, then timed
+        }
+        self.clock
+            .saturating_add(next)
+            .min(self.watchdog_deadline())
+    }
+
+    /// The first MCU tick at which the host has been silent too long (after `clock`).
+    fn watchdog_deadline(&self) -> u64 {
+        if self.host_timeout_ticks == 0 {
+            return u64::MAX;
+        }
+        (self.last_host_frame + self.host_timeout_ticks as u64 + 1).max(self.clock + 1)
+    }
+
+    fn step_ramp(&mut self) {
+        match self.ramp {
+            Ramp::Steady => {}
+            Ramp::Hold { rate } => {
+                self.sigma_q32 = self.sigma_q32.saturating_sub(rate);
+                if self.sigma_q32 == 0 {
+                    self.ramp = Ramp::Steady;
+                }
+            }
+            Ramp::ResumeWait { rate, until } => {
+                if self.clock >= until {
+                    self.ramp = Ramp::Resume { rate };
+                }
+            }
+            Ramp::Resume { rate } => {
+                self.sigma_q32 = (self.sigma_q32 + rate).min(ONE);
+                if self.sigma_q32 == ONE {
+                    self.ramp = Ramp::Steady;
+                }
+            }
+        }
+    }
+
+    fn check_watchdog(&mut self) {
+        if self.host_timeout_ticks > 0
+            && self.clock - self.last_host_frame.min(self.clock) > self.host_timeout_ticks as u64
+        {
+            self.latch(FaultCode::HostSilent, 0);
+        }
+    }
+
+    /// Emit every pulse due at the current tick, finishing and taking up segments on the way.
+    fn emit_due(&mut self, sink: &mut impl FnMut(StepEdge)) {
+        while self.fault == FaultCode::None {
+            let Some(playing) = &mut self.playing else {
+                match self.queue.pop_front() {
+                    Some(queued) => {
+                        self.playing = Some(Playing {
+                            train: PulseTrain::new(&queued.segment),
+                            queued,
+                        });
+                        continue;
+                    }
+                    None => return,
+                }
+            };
+            let start = playing.start_q32();
+            match playing.train.next_time_q32() {
+                Some(t) if self.plan_q32 + HALF > start + t as u128 => {
+                    let pulse = match playing.train.next_pulse() {
+                        Ok(Some(pulse)) => pulse,
+                        Ok(None) => unreachable!("next_time_q32 said a pulse remains"),
+                        Err(_) => {
+                            let tag = playing.queued.tag;
+                            return self.latch(FaultCode::StepFault, tag);
+                        }
+                    };
+                    let negative = playing.queued.segment.negative_mask & pulse.axes;
+                    for k in 0..MAX_AXES {
+                        if pulse.axes >> k & 1 == 1 {
+                            self.positions[k] += if negative >> k & 1 == 1 { -1 } else { 1 };
+                        }
+                    }
+                    sink(StepEdge {
+                        clock: self.clock,
+                        axes: pulse.axes,
+                        negative,
+                    });
+                }
+                Some(_) => return,
+                None if self.plan_q32 >= playing.end_q32() => {
+                    let finished = self.playing.take().expect("playing").queued;
+                    self.done_tag = finished.tag;
+                    if self.queue.is_empty() {
+                        self.schedule_end = None;
+                        if finished.flags & SEGMENT_ENDS_AT_REST == 0 {
+                            self.counters.underruns += 1;
+                            return self.latch(FaultCode::Underrun, finished.tag);
+                        }
+                    }
+                }
+                None => return,
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,381 @@
+use proptest::prelude::*;
+use std::vec::Vec;
+
+use super::*;
+use cell_protocol::message::ScrewRamp;
+use step_core::{Segment, SegmentFields};
+
+extern crate std;
+
+type M = Machine<8, 8>;
+
+fn machine() -> M {
+    Machine::new(MachineConfig {
+        timer_hz: 1_000_000,
+        axis_count: 3,
+        initial_steps: [0; 3],
+    })
+}
+
+/// `steps` on axis 0 at a constant `period` ticks (and half as many on axis 1).
+fn cruise(start: u64, steps: u32, period: u64, flags: u8, tag: u32) -> QueuedSegment {
+    let segment = Segment::from_fields(&SegmentFields {
+        step_counts: [steps, steps / 2, 0],
+        directions: [1, -1, 1],
+        dominant_axis: 0,
+        cruise_period_ticks: period as f64,
+        cruise_steps: steps,
+        ..SegmentFields::default()
+    })
+    .unwrap();
+    QueuedSegment {
+        start_clock: start,
+        duration_ticks: (steps as u64 * period) as u32,
+        tag,
+        flags,
+        segment,
+    }
+}
+
+fn run(m: &mut M, until: u64) -> Vec<StepEdge> {
+    let mut edges = Vec::new();
+    m.advance(until, &mut |e| edges.push(e));
+    edges
+}
+
+fn queue(m: &mut M, q: QueuedSegment) {
+    assert_eq!(m.handle(&HostMessage::QueueSegment(q), m.clock()), None);
+}
+
+#[test]
+fn a_cruise_steps_on_its_exact_ticks_and_counts_positions() {
+    let mut m = machine();
+    queue(&mut m, cruise(1000, 10, 100, SEGMENT_ENDS_AT_REST, 7));
+    assert_eq!(m.mode(), Mode::Running);
+    let edges = run(&mut m, 5000);
+    let ticks: Vec<u64> = edges.iter().map(|e| e.clock).collect();
+    assert_eq!(ticks, (1..=10).map(|i| 1000 + 100 * i).collect::<Vec<_>>());
+    // Axis 1 (5 of 10, backwards) steps with every second dominant step.
+    assert_eq!(edges[1].axes, 0b011);
+    assert_eq!(edges[1].negative, 0b010);
+    assert_eq!(edges[0].axes, 0b001);
+    assert_eq!(m.positions(), [10, -5, 0]);
+    assert_eq!(m.mode(), Mode::Idle);
+    assert_eq!(m.state(5000).done_tag, 7);
+    assert_eq!(m.fault(), FaultCode::None);
+}
+
+#[test]
+fn generating_in_any_chunks_gives_the_same_edges() {
+    let mut whole = machine();
+    queue(&mut whole, cruise(0, 50, 37, 0, 1));
+    queue(&mut whole, cruise(50 * 37, 20, 90, SEGMENT_ENDS_AT_REST, 2));
+    let expected = run(&mut whole, 10_000);
+    let mut chunked = machine();
+    queue(&mut chunked, cruise(0, 50, 37, 0, 1));
+    queue(
+        &mut chunked,
+        cruise(50 * 37, 20, 90, SEGMENT_ENDS_AT_REST, 2),
+    );
+    let mut edges = Vec::new();
+    for until in (0..10_000).step_by(13) {
+        chunked.advance(until, &mut |e| edges.push(e));
+    }
+    chunked.advance(10_000, &mut |e| edges.push(e));
+    assert_eq!(edges, expected);
+    assert_eq!(edges.len(), 70);
+}
+
+#[test]
+fn a_late_segment_faults_and_is_reported_once() {
+    let mut m = machine();
+    run(&mut m, 2000);
+    queue(&mut m, cruise(1500, 10, 100, 0, 9));
+    assert_eq!(m.mode(), Mode::Fault);
+    assert_eq!(m.fault(), FaultCode::LateSegment);
+    assert_eq!(m.counters().late_segments, 1);
+    assert_eq!(
+        m.take_fault_report(),
+        Some(McuMessage::Fault {
+            code: FaultCode::LateSegment,
+            clock: 2000,
+            tag: 9
+        })
+    );
+    assert_eq!(m.take_fault_report(), None);
+    // Refused while faulted, accepted after a reset.
+    queue(&mut m, cruise(3000, 10, 100, 0, 10));
+    assert_eq!(m.queue_free(), 8);
+    m.handle(&HostMessage::Reset, 2000);
+    queue(&mut m, cruise(3000, 10, 100, SEGMENT_ENDS_AT_REST, 10));
+    assert_eq!(run(&mut m, 5000).len(), 10);
+}
+
+#[test]
+fn a_gap_between_segments_is_a_bad_segment() {
+    let mut m = machine();
+    queue(&mut m, cruise(0, 10, 100, 0, 1));
+    queue(&mut m, cruise(1001, 10, 100, 0, 2));
+    assert_eq!(m.fault(), FaultCode::BadSegment);
+}
+
+#[test]
+fn running_dry_while_moving_is_an_underrun_but_not_at_rest() {
+    let mut m = machine();
+    queue(&mut m, cruise(0, 10, 100, 0, 3));
+    run(&mut m, 999);
+    assert_eq!(m.fault(), FaultCode::None);
+    run(&mut m, 1000);
+    assert_eq!(m.fault(), FaultCode::Underrun);
+    assert_eq!(m.counters().underruns, 1);
+    assert!(matches!(
+        m.take_fault_report(),
+        Some(McuMessage::Fault {
+            code: FaultCode::Underrun,
+            clock: 1000,
+            tag: 3
+        })
+    ));
+
+    let mut m = machine();
+    queue(&mut m, cruise(0, 10, 100, SEGMENT_ENDS_AT_REST, 3));
+    run(&mut m, 5000);
+    assert_eq!((m.fault(), m.mode()), (FaultCode::None, Mode::Idle));
+}
+
+#[test]
+fn a_silent_host_faults_after_its_timeout() {
+    let mut m = machine();
+    m.handle(
+        &HostMessage::Configure {
+            host_timeout_ticks: 1000,
+            state_period_ticks: 0,
+        },
+        0,
+    );
+    for t in (500..5000).step_by(500) {
+        run(&mut m, t);
+        m.host_frame(t);
+    }
+    assert_eq!(m.fault(), FaultCode::None);
+    // The last frame came at 4500: silent for 1000 ticks is allowed, 1001 is not.
+    run(&mut m, 5500);
+    assert_eq!(m.fault(), FaultCode::None);
+    run(&mut m, 5501);
+    assert_eq!(m.fault(), FaultCode::HostSilent);
+    assert_eq!(
+        m.take_fault_report(),
+        Some(McuMessage::Fault {
+            code: FaultCode::HostSilent,
+            clock: 5501,
+            tag: 0
+        })
+    );
+}
+
+#[test]
+fn an_emergency_stop_stops_at_once_and_holds_until_reset() {
+    let mut m = machine();
+    queue(&mut m, cruise(0, 100, 100, 0, 1));
+    m.handle(
+        &HostMessage::Screw(ScrewRamp {
+            start_clock: 0,
+            ramp_ticks: 0,
+            target_millirpm: 30_000,
+            pin_open: true,
+        }),
+        0,
+    );
+    assert_eq!(run(&mut m, 2050).len(), 20);
+    assert!(m.pin_open());
+    assert_eq!(m.screw_millirpm(), 30_000);
+    m.handle(&HostMessage::EmergencyStop, 2050);
+    assert!(run(&mut m, 20_000).is_empty());
+    assert_eq!(m.positions(), [20, -10, 0]);
+    assert!(!m.pin_open());
+    assert_eq!(m.screw_millirpm(), 0);
+    assert_eq!(m.state(20_000).mode, Mode::Fault);
+    assert_eq!(m.state(20_000).fault, FaultCode::EmergencyStop);
+    m.handle(&HostMessage::Reset, 20_000);
+    assert_eq!(m.mode(), Mode::Idle);
+    assert_eq!(m.positions(), [20, -10, 0], "positions survive a reset");
+}
+
+#[test]
+fn a_feed_hold_stops_on_the_path_and_resume_plays_the_same_steps() {
+    let plain = {
+        let mut m = machine();
+        queue(&mut m, cruise(0, 200, 50, SEGMENT_ENDS_AT_REST, 1));
+        run(&mut m, 100_000)
+    };
+    let mut m = machine();
+    queue(&mut m, cruise(0, 200, 50, SEGMENT_ENDS_AT_REST, 1));
+    m.handle(
+        &HostMessage::Screw(ScrewRamp {
+            start_clock: 0,
+            ramp_ticks: 0,
+            target_millirpm: 10_000,
+            pin_open: true,
+        }),
+        0,
+    );
+    // Between two steps (the 60th at 3000, the next due at 3050).
+    let mut edges = run(&mut m, 3025);
+    // σ from 1 to 0 in 2000 ticks (2001 with the rate rounded down).
+    let rate = (ONE / 2000) as u32;
+    m.handle(&HostMessage::FeedHold { rate_q32: rate }, 3025);
+    assert!(!m.pin_open(), "a hold closes the pin at once");
+    edges.extend(run(&mut m, 4000));
+    assert_eq!(m.mode(), Mode::Ramping);
+    assert!(m.screw_millirpm() < 10_000 && m.screw_millirpm() > 0);
+    edges.extend(run(&mut m, 5025));
+    assert_eq!(m.mode(), Mode::Ramping);
+    edges.extend(run(&mut m, 5026));
+    assert_eq!(m.mode(), Mode::Held);
+    assert_eq!(m.screw_millirpm(), 0);
+    let held_at = m.positions();
+    // Held: nothing moves, the plan clock stands.
+    let plan = m.plan_clock();
+    assert!(run(&mut m, 50_000).is_empty());
+    assert_eq!((m.positions(), m.plan_clock()), (held_at, plan));
+    // Travelled during the ramp: ∫σ ≈ 999.5 ticks of plan, to plan 4024.5: the steps due
+    // at 3050 … 4000, 20 of them.
+    assert_eq!(held_at[0], 60 + 20);
+    m.handle(
+        &HostMessage::FeedResume {
+            rate_q32: rate,
+            delay_ticks: 500,
+        },
+        50_000,
+    );
+    assert!(
+        m.pin_open(),
+        "the pin reopens at the start of the resume's wait"
+    );
+    assert!(
+        run(&mut m, 50_500).is_empty(),
+        "at rest during the pin's delay"
+    );
+    edges.extend(run(&mut m, 200_000));
+    assert_eq!(m.mode(), Mode::Idle);
+    // The same steps in the same order, only later; never faster than planned.
+    let shape = |e: &[StepEdge]| e.iter().map(|e| (e.axes, e.negative)).collect::<Vec<_>>();
+    assert_eq!(shape(&edges), shape(&plain));
+    assert!(edges.windows(2).all(|w| w[1].clock - w[0].clock >= 50));
+    assert_eq!(m.positions(), [200, -100, 0]);
+}
+
+#[test]
+fn drop_queue_needs_rest() {
+    let mut m = machine();
+    queue(&mut m, cruise(0, 100, 100, 0, 4));
+    run(&mut m, 1000);
+    m.handle(&HostMessage::DropQueue, 1000);
+    assert_eq!(m.fault(), FaultCode::DropWhileMoving);
+
+    let mut m = machine();
+    queue(&mut m, cruise(0, 100, 100, 0, 4));
+    run(&mut m, 1000);
+    m.handle(&HostMessage::FeedHold { rate_q32: u32::MAX }, 1000);
+    run(&mut m, 1010);
+    assert_eq!(m.mode(), Mode::Held);
+    m.handle(&HostMessage::DropQueue, 1010);
+    assert_eq!((m.fault(), m.mode()), (FaultCode::None, Mode::Idle));
+    assert!(run(&mut m, 50_000).is_empty());
+}
+
+#[test]
+fn a_full_queue_overflows_into_a_fault() {
+    let mut m = machine();
+    for k in 0..8 {
+        queue(&mut m, cruise(k * 1000, 10, 100, 0, k as u32));
+    }
+    assert_eq!(m.queue_free(), 0);
+    queue(&mut m, cruise(8000, 10, 100, 0, 8));
+    assert_eq!(m.fault(), FaultCode::QueueOverflow);
+}
+
+#[test]
+fn identify_and_clock_answer() {
+    let mut m = machine();
+    assert_eq!(
+        m.handle(&HostMessage::Identify, 0),
+        Some(McuMessage::Identity(Identity {
+            protocol_version: PROTOCOL_VERSION,
+            timer_hz: 1_000_000,
+            queue_capacity: 8,
+            axis_count: 3
+        }))
+    );
+    assert_eq!(
+        m.handle(&HostMessage::ClockQuery { token: 5 }, 1234),
+        Some(McuMessage::Clock {
+            token: 5,
+            clock: 1234
+        })
+    );
+}
+
+/// Trapezoids as the planner makes them: a ramp term r·p² up to 0.05 at the first step, and
+/// no more decelerating than accelerating steps (so the ramp comes back at most to where it
+/// began, inside the recurrence's range).
+fn any_fields() -> impl Strategy<Value = SegmentFields> {
+    (
+        1u32..400,
+        0u32..400,
+        0u32..400,
+        20.0f64..2000.0,
+        1e-6f64..0.05,
+    )
+        .prop_map(|(acc, cruise, dec, period, x)| {
+            let dec = dec.min(acc);
+            SegmentFields {
+                step_counts: [acc + cruise + dec, (acc + cruise + dec) / 3, 1],
+                directions: [1, 1, -1],
+                dominant_axis: 0,
+                first_period_ticks: period,
+                ramp_r: x / (period * period),
+                cruise_period_ticks: period,
+                accelerate_steps: acc,
+                cruise_steps: cruise,
+                decelerate_steps: dec,
+            }
+        })
+}
+
+proptest! {
+    /// Whatever the segment and however the caller slices time, the edges are the step core's
+    /// pulses on the tick nearest their time, and the positions their sum.
+    #[test]
+    fn edges_are_the_step_cores_pulses_on_the_nearest_tick(
+        fields in any_fields(),
+        start in 0u64..5000,
+        chunk in 1u64..5000,
+    ) {
+        let segment = Segment::from_fields(&fields).unwrap();
+        let mut train = PulseTrain::new(&segment);
+        let mut expected = Vec::new();
+        while let Some(p) = train.next_pulse().unwrap() {
+            expected.push((start + p.tick(), p.axes));
+        }
+        let last = expected.last().unwrap().0;
+        let mut m = machine();
+        queue(&mut m, QueuedSegment {
+            start_clock: start,
+            duration_ticks: (last - start + 1) as u32,
+            tag: 1,
+            flags: SEGMENT_ENDS_AT_REST,
+            segment,
+        });
+        let mut edges = Vec::new();
+        let mut until = 0;
+        while until < last + 10 {
+            until += chunk;
+            m.advance(until, &mut |e| edges.push((e.clock, e.axes)));
+        }
+        prop_assert_eq!(edges, expected);
+        let n = fields.step_counts;
+        prop_assert_eq!(m.positions(), [n[0] as i32, n[1] as i32, -(n[2] as i32)]);
+        prop_assert_eq!(m.mode(), Mode::Idle);
+    }
+}

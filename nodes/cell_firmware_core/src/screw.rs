@@ -1,0 +1,216 @@
+//! The screw and the nozzle pin: a queue of speed ramps on the plan clock, and the screw
+//! angle integrated exactly (the speed is piecewise linear, so each piece's trapezoid is its
+//! integral).
+//!
+//! Speeds are evaluated where an output or a report needs them (a control period, a state
+//! message), not per step, so the one integer division of an interpolation stays off the
+//! step path.
+
+use cell_protocol::message::ScrewRamp;
+use heapless::Deque;
+
+/// Why a screw command was refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ScrewRefusal {
+    /// It starts before the plan clock already played.
+    Late,
+    /// It starts before a command queued ahead of it.
+    OutOfOrder,
+    Full,
+}
+
+/// The screw's schedule and state, holding up to `S` future commands.
+#[derive(Clone, Debug)]
+pub struct Screw<const S: usize> {
+    queue: Deque<ScrewRamp, S>,
+    /// The ramp in force: from `from_millirpm` at `start` to `to_millirpm` at `start + ticks`.
+    start: u64,
+    ramp_ticks: u32,
+    from_millirpm: i32,
+    to_millirpm: i32,
+    pin_open: bool,
+    /// Plan tick up to which the angle is integrated, and twice the integral in millirpm·ticks.
+    integrated_to: u64,
+    twice_angle: i64,
+}
+
+impl<const S: usize> Default for Screw<S> {
+    fn default() -> Self {
+        Screw::new()
+    }
+}
+
+impl<const S: usize> Screw<S> {
+    pub const fn new() -> Screw<S> {
+        Screw {
+            queue: Deque::new(),
+            start: 0,
+            ramp_ticks: 0,
+            from_millirpm: 0,
+            to_millirpm: 0,
+            pin_open: false,
+            integrated_to: 0,
+            twice_angle: 0,
+        }
+    }
+
+    /// Queue a command; `plan_now` is the plan tick already played.
+    pub fn push(&mut self, command: ScrewRamp, plan_now: u64) -> Result<(), ScrewRefusal> {
+        if command.start_clock < plan_now {
+            return Err(ScrewRefusal::Late);
+        }
+        if self
+            .queue
+            .back()
+            .is_some_and(|last| command.start_clock < last.start_clock)
+        {
+            return Err(ScrewRefusal::OutOfOrder);
+        }
+        self.queue
+            .push_back(command)
+            .map_err(|_| ScrewRefusal::Full)
+    }
+
+    /// Speed of the ramp in force at plan tick `t` (≥ its start).
+    fn ramp_at(&self, t: u64) -> i32 {
+        let into = t.saturating_sub(self.start);
+        if into >= self.ramp_ticks as u64 {
+            return self.to_millirpm;
+        }
+        let span = self.to_millirpm as i64 - self.from_millirpm as i64;
+        (self.from_millirpm as i64 + span * into as i64 / self.ramp_ticks as i64) as i32
+    }
+
+    /// Integrate from `integrated_to` to `t` within the ramp in force, splitting at its end.
+    fn integrate_piece(&mut self, t: u64) {
+        let ramp_end = self.start + self.ramp_ticks as u64;
+        while self.integrated_to < t {
+            let a = self.integrated_to;
+            let b = if a < ramp_end { t.min(ramp_end) } else { t };
+            let twice = (self.ramp_at(a) as i64 + self.ramp_at(b) as i64) * (b - a) as i64;
+            self.twice_angle = self.twice_angle.saturating_add(twice);
+            self.integrated_to = b;
+        }
+    }
+
+    /// Play the schedule up to plan tick `t`: commands starting by then take effect in order.
+    pub fn advance_to(&mut self, t: u64) {
+        while let Some(next) = self.queue.front().copied() {
+            if next.start_clock > t {
+                break;
+            }
+            self.integrate_piece(next.start_clock);
+            self.queue.pop_front();
+            self.from_millirpm = self.ramp_at(next.start_clock);
+            self.start = next.start_clock;
+            self.ramp_ticks = next.ramp_ticks;
+            self.to_millirpm = next.target_millirpm;
+            self.pin_open = next.pin_open;
+        }
+        self.integrate_piece(t);
+    }
+
+    /// Speed at the plan tick last advanced to.
+    pub fn millirpm(&self) -> i32 {
+        self.ramp_at(self.integrated_to)
+    }
+
+    /// The pin as scheduled (a feed hold may still keep it closed).
+    pub fn pin_open(&self) -> bool {
+        self.pin_open
+    }
+
+    /// Angle turned so far, thousandths of a revolution (rpm × minutes = revolutions).
+    pub fn angle_millirev(&self, timer_hz: u32) -> i32 {
+        (self.twice_angle / (2 * 60 * timer_hz as i64)) as i32
+    }
+
+    /// Commands queued and not yet in force.
+    pub fn queued(&self) -> usize {
+        self.queue.len()
+    }
+
+    /// Stop now: speed 0, pin closed, nothing queued; the angle turned stays.
+    pub fn stop(&mut self) {
+        self.queue.clear();
+        self.start = self.integrated_to;
+        self.ramp_ticks = 0;
+        self.from_millirpm = 0;
+        self.to_millirpm = 0;
+        self.pin_open = false;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp(start: u64, ticks: u32, target: i32, pin: bool) -> ScrewRamp {
+        ScrewRamp {
+            start_clock: start,
+            ramp_ticks: ticks,
+            target_millirpm: target,
+            pin_open: pin,
+        }
+    }
+
+    #[test]
+    fn angle_is_the_exact_integral_of_the_ramps() {
+        let mut screw = Screw::<4>::new();
+        // 0 → 60 rpm over 1 s, hold 60 rpm for 2 s, then straight to 0: at 1 MHz.
+        screw
+            .push(ramp(1_000_000, 1_000_000, 60_000, true), 0)
+            .unwrap();
+        screw.push(ramp(4_000_000, 0, 0, false), 0).unwrap();
+        screw.advance_to(500_000);
+        assert_eq!((screw.millirpm(), screw.pin_open()), (0, false));
+        screw.advance_to(1_500_000);
+        assert_eq!((screw.millirpm(), screw.pin_open()), (30_000, true));
+        screw.advance_to(5_000_000);
+        assert_eq!((screw.millirpm(), screw.pin_open()), (0, false));
+        // ½·1 s·1 rev/s + 2 s·1 rev/s = 2.5 revolutions.
+        assert_eq!(screw.angle_millirev(1_000_000), 2_500);
+    }
+
+    #[test]
+    fn a_command_mid_ramp_starts_from_the_speed_reached() {
+        let mut screw = Screw::<4>::new();
+        screw.push(ramp(0, 1000, 10_000, true), 0).unwrap();
+        screw.push(ramp(500, 1000, 0, true), 0).unwrap();
+        screw.advance_to(500);
+        assert_eq!(screw.millirpm(), 5_000);
+        screw.advance_to(1000);
+        assert_eq!(screw.millirpm(), 2_500);
+    }
+
+    #[test]
+    fn late_out_of_order_and_full_are_refused() {
+        let mut screw = Screw::<2>::new();
+        assert_eq!(screw.push(ramp(5, 0, 1, true), 10), Err(ScrewRefusal::Late));
+        screw.push(ramp(20, 0, 1, true), 10).unwrap();
+        assert_eq!(
+            screw.push(ramp(15, 0, 1, true), 10),
+            Err(ScrewRefusal::OutOfOrder)
+        );
+        screw.push(ramp(20, 0, 2, true), 10).unwrap();
+        assert_eq!(
+            screw.push(ramp(30, 0, 1, true), 10),
+            Err(ScrewRefusal::Full)
+        );
+    }
+
+    #[test]
+    fn stop_keeps_the_angle_and_drops_the_schedule() {
+        let mut screw = Screw::<2>::new();
+        screw.push(ramp(0, 0, 60_000, true), 0).unwrap();
+        screw.push(ramp(2_000_000, 0, 0, false), 0).unwrap();
+        screw.advance_to(1_000_000);
+        screw.stop();
+        screw.advance_to(3_000_000);
+        assert_eq!(screw.angle_millirev(1_000_000), 1_000);
+        assert_eq!(
+            (screw.millirpm(), screw.pin_open(), screw.queued()),
+            (0, false, 0)
+        );
+    }
+}

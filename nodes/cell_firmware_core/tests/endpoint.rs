@@ -1,0 +1,218 @@
+//! The MCU endpoint behind a byte pipe, driven by a host-side link as the bridge will drive
+//! it: session start, identify, a schedule through a line that corrupts frames, periodic
+//! state, and an emergency stop that acts even when the frame before it was lost.
+
+use cell_firmware_core::{Endpoint, MachineConfig, StepEdge};
+use cell_protocol::message::{
+    FaultCode, HostMessage, McuMessage, Mode, QueuedSegment, SEGMENT_ENDS_AT_REST,
+};
+use cell_protocol::{LinkOptions, MAX_WIRE_FRAME, PROTOCOL_VERSION};
+use mcu_bridge::{FromMcu, HostEndpoint};
+use step_core::{Segment, SegmentFields};
+
+type Mcu = Endpoint<16, 64, 16>;
+
+/// The host: its endpoint and everything the MCU sent it.
+struct Host {
+    endpoint: HostEndpoint,
+    received: Vec<McuMessage>,
+}
+
+impl Host {
+    fn new() -> Host {
+        Host {
+            endpoint: HostEndpoint::new(2_000, 0x1234_5678),
+            received: Vec::new(),
+        }
+    }
+
+    fn send(&mut self, m: HostMessage) {
+        self.endpoint.send(&m).unwrap();
+    }
+}
+
+fn mcu() -> Mcu {
+    Endpoint::new(
+        MachineConfig {
+            timer_hz: 1_000_000,
+            axis_count: 3,
+            initial_steps: [0; 3],
+        },
+        LinkOptions {
+            window: 16,
+            retransmit_timeout: 2_000,
+            nonce: 0xC0FFEE,
+        },
+    )
+}
+
+/// One exchange at MCU clock `now`: host → MCU (with `corrupt` deciding per frame), MCU
+/// generates to `now`, MCU → host.
+fn exchange(
+    host: &mut Host,
+    mcu: &mut Mcu,
+    now: u64,
+    corrupt: &mut impl FnMut() -> bool,
+    edges: &mut Vec<StepEdge>,
+) {
+    let mut out = [0; MAX_WIRE_FRAME];
+    while let Some(len) = host.endpoint.poll_transmit(now, &mut out) {
+        let mut bytes = out[..len].to_vec();
+        if corrupt() {
+            bytes[len / 2] ^= 0x21;
+        }
+        mcu.receive(&bytes, now);
+    }
+    mcu.advance(now, &mut |e| edges.push(e));
+    while let Some(len) = mcu.poll_transmit(now, &mut out) {
+        let received = &mut host.received;
+        host.endpoint.receive(&out[..len], now, &mut |m| match m {
+            FromMcu::Message(m) => received.push(m),
+            other => panic!("{other:?}"),
+        });
+    }
+}
+
+fn cruise(start: u64, steps: u32, period: f64, flags: u8, tag: u32) -> QueuedSegment {
+    QueuedSegment {
+        start_clock: start,
+        duration_ticks: (steps as f64 * period) as u32,
+        tag,
+        flags,
+        segment: Segment::from_fields(&SegmentFields {
+            step_counts: [steps, 0, steps / 4],
+            directions: [-1, 1, 1],
+            dominant_axis: 0,
+            cruise_period_ticks: period,
+            cruise_steps: steps,
+            ..SegmentFields::default()
+        })
+        .unwrap(),
+    }
+}
+
+#[test]
+fn a_schedule_through_a_corrupting_line_plays_exactly() {
+    let mut host = Host::new();
+    let mut mcu = mcu();
+    let mut edges = Vec::new();
+    let mut n = 0u32;
+    // Every fifth host frame arrives corrupted.
+    let mut corrupt = || {
+        n += 1;
+        n.is_multiple_of(5)
+    };
+    host.send(HostMessage::Identify);
+    host.send(HostMessage::Configure {
+        host_timeout_ticks: 500_000,
+        state_period_ticks: 20_000,
+    });
+    let mut now = 0;
+    for _ in 0..50 {
+        exchange(&mut host, &mut mcu, now, &mut corrupt, &mut edges);
+        now += 100;
+    }
+    assert!(host.endpoint.link().is_synced());
+    let identities: Vec<_> = host
+        .received
+        .iter()
+        .filter_map(|m| match m {
+            McuMessage::Identity(i) => Some(*i),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(identities.len(), 1, "answered once");
+    assert_eq!(
+        (identities[0].protocol_version, identities[0].queue_capacity),
+        (PROTOCOL_VERSION, 64)
+    );
+    // 40 segments of 100 steps at 50 ticks, back to back from 10 ms.
+    for k in 0..40u32 {
+        let flags = if k == 39 { SEGMENT_ENDS_AT_REST } else { 0 };
+        host.send(HostMessage::QueueSegment(cruise(
+            10_000 + k as u64 * 5_000,
+            100,
+            50.0,
+            flags,
+            k + 1,
+        )));
+        if !host.endpoint.can_send() {
+            for _ in 0..5 {
+                exchange(&mut host, &mut mcu, now, &mut corrupt, &mut edges);
+                now += 100;
+            }
+        }
+    }
+    while now < 260_000 {
+        exchange(&mut host, &mut mcu, now, &mut corrupt, &mut edges);
+        now += 100;
+    }
+    let machine = mcu.machine();
+    assert_eq!(machine.fault(), FaultCode::None);
+    assert_eq!(machine.positions(), [-4000, 0, 1000]);
+    assert_eq!(edges.len(), 4000);
+    let ticks: Vec<u64> = edges.iter().map(|e| e.clock).collect();
+    let expected: Vec<u64> = (1..=4000).map(|i| 10_000 + 50 * i).collect();
+    assert_eq!(ticks, expected);
+    assert!(mcu.counters().crc_errors + mcu.counters().framing_errors > 0);
+    assert!(mcu.link_counters().naks_sent > 0);
+    assert!(host.endpoint.link().counters().retransmits > 0);
+    // Periodic state arrived, the last one idle at the end.
+    let states: Vec<_> = host
+        .received
+        .iter()
+        .filter_map(|m| match m {
+            McuMessage::State(s) => Some(*s),
+            _ => None,
+        })
+        .collect();
+    assert!(states.len() >= 10, "{} states", states.len());
+    let last = states.last().unwrap();
+    assert_eq!(
+        (last.mode, last.done_tag, last.position_steps),
+        (Mode::Idle, 40, [-4000, 0, 1000])
+    );
+}
+
+#[test]
+fn an_emergency_stop_acts_even_behind_a_lost_frame() {
+    let mut host = Host::new();
+    let mut mcu = mcu();
+    let mut edges = Vec::new();
+    let mut never = || false;
+    let mut now = 0;
+    for _ in 0..5 {
+        exchange(&mut host, &mut mcu, now, &mut never, &mut edges);
+        now += 100;
+    }
+    host.send(HostMessage::QueueSegment(cruise(1_000, 1000, 100.0, 0, 1)));
+    exchange(&mut host, &mut mcu, now, &mut never, &mut edges);
+    for _ in 0..100 {
+        now += 100;
+        exchange(&mut host, &mut mcu, now, &mut never, &mut edges);
+    }
+    let before = edges.len();
+    assert!(before > 80, "{before} edges");
+    // A sequenced frame is lost on the line, then the emergency stop (unsequenced) arrives.
+    host.send(HostMessage::QueryState);
+    let mut out = [0; MAX_WIRE_FRAME];
+    while host.endpoint.poll_transmit(now, &mut out).is_some() {}
+    let len = host
+        .endpoint
+        .encode_now(&HostMessage::EmergencyStop, &mut out)
+        .unwrap();
+    mcu.receive(&out[..len], now);
+    mcu.advance(now + 50_000, &mut |e| edges.push(e));
+    assert_eq!(edges.len(), before, "not one step after the stop");
+    assert_eq!(mcu.machine().fault(), FaultCode::EmergencyStop);
+    assert!(!mcu.machine().pin_open());
+    // The host hears about it.
+    exchange(&mut host, &mut mcu, now + 50_000, &mut never, &mut edges);
+    assert!(host.received.iter().any(|m| matches!(
+        m,
+        McuMessage::Fault {
+            code: FaultCode::EmergencyStop,
+            ..
+        }
+    )));
+}

@@ -1,0 +1,297 @@
+//! `mcu_emulator`: the cell's microcontroller on a pseudo-terminal or a Unix socket.
+//!
+//! It prints where it listens on its first line of standard output (`pty /dev/pts/N` or
+//! `socket PATH`) and then runs until killed, paced by the monotonic clock (times `--speed`).
+//! With `--edges FILE` every step edge is written to FILE as `clock,axes,negative` lines.
+
+use std::fs::File;
+use std::io::{BufWriter, ErrorKind, Read, Write};
+use std::os::fd::{AsFd, OwnedFd};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use mcu_emulator::{Crystal, Emulator, EmulatorOptions, LineFaults, Window};
+use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
+
+/// The polar cell's microcontroller, emulated: the firmware core behind a serial link.
+#[derive(Parser, Debug)]
+#[command(version)]
+struct Args {
+    /// Listen on a Unix socket at this path instead of a pseudo-terminal.
+    #[arg(long)]
+    socket: Option<PathBuf>,
+    /// Run the MCU clock this many times faster than real time.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    /// Step timer frequency (Hz).
+    #[arg(long, default_value_t = 1e6)]
+    timer_hz: f64,
+    /// MCU clock at start (ticks).
+    #[arg(long, default_value_t = 0)]
+    offset_ticks: u64,
+    /// Crystal rate error (ppm).
+    #[arg(long, default_value_t = 0.0)]
+    rate_ppm: f64,
+    /// Crystal drift (ppm per second).
+    #[arg(long, default_value_t = 0.0)]
+    drift_ppm_per_s: f64,
+    /// Probability per byte of a corrupted byte.
+    #[arg(long, default_value_t = 0.0)]
+    corrupt_rate: f64,
+    /// Probability per byte of a dropped byte.
+    #[arg(long, default_value_t = 0.0)]
+    drop_rate: f64,
+    /// Probability per byte of a duplicated byte.
+    #[arg(long, default_value_t = 0.0)]
+    duplicate_rate: f64,
+    /// Seed of the line's faults.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Stall (stop answering) at this emulated time (s)...
+    #[arg(long, requires = "stall_for")]
+    stall_at: Option<f64>,
+    /// ...for this long (s).
+    #[arg(long, requires = "stall_at")]
+    stall_for: Option<f64>,
+    /// Power-cycle the MCU at this emulated time (s).
+    #[arg(long)]
+    reset_at: Option<f64>,
+    /// Step position of each axis at power-up, `bed,arm,z`.
+    #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [0, 0, 0])]
+    initial_steps: Vec<i32>,
+    /// Write every step edge to this file (`clock,axes,negative` per line).
+    #[arg(long)]
+    edges: Option<PathBuf>,
+}
+
+/// The serial side: a pty master, or the socket and its current connection.
+enum Port {
+    Pty {
+        master: File,
+        /// Held open so that the master never reads end-of-file between two openings of
+        /// the slave by the host.
+        _slave: OwnedFd,
+    },
+    Socket {
+        listener: UnixListener,
+        stream: Option<UnixStream>,
+    },
+}
+
+fn rate(name: &str, p: f64) -> Result<f64> {
+    if !(0.0..=1.0).contains(&p) {
+        bail!("--{name} {p}: a probability must lie in 0..=1");
+    }
+    Ok(p)
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    if !(args.speed > 0.0 && args.speed.is_finite()) {
+        bail!("--speed {}: must be a positive number", args.speed);
+    }
+    let options = EmulatorOptions {
+        crystal: Crystal {
+            timer_hz: args.timer_hz,
+            offset_ticks: args.offset_ticks,
+            rate_ppm: args.rate_ppm,
+            drift_ppm_per_s: args.drift_ppm_per_s,
+        },
+        faults: LineFaults {
+            corrupt: rate("corrupt-rate", args.corrupt_rate)?,
+            drop: rate("drop-rate", args.drop_rate)?,
+            duplicate: rate("duplicate-rate", args.duplicate_rate)?,
+        },
+        seed: args.seed,
+        stall: args
+            .stall_at
+            .zip(args.stall_for)
+            .map(|(at_s, for_s)| Window { at_s, for_s }),
+        reset_at_s: args.reset_at,
+        initial_steps: [
+            args.initial_steps[0],
+            args.initial_steps[1],
+            args.initial_steps[2],
+        ],
+        ..EmulatorOptions::default()
+    };
+    let mut port = open_port(&args)?;
+    let mut edges = match &args.edges {
+        Some(path) => Some(BufWriter::new(
+            File::create(path).with_context(|| format!("creating {}", path.display()))?,
+        )),
+        None => None,
+    };
+    let mut emulator = Emulator::new(options);
+    let start = Instant::now();
+    let mut input = [0u8; 4096];
+    let mut output = Vec::new();
+    loop {
+        let host_s = start.elapsed().as_secs_f64() * args.speed;
+        let received = read_some(&mut port, &mut input)?;
+        if received > 0 {
+            emulator.receive(&input[..received], host_s);
+        }
+        output.clear();
+        let mut write_error = None;
+        emulator.run_until(
+            host_s,
+            &mut |edge| {
+                if let Some(w) = edges.as_mut() {
+                    if let Err(e) = writeln!(w, "{},{},{}", edge.clock, edge.axes, edge.negative) {
+                        write_error.get_or_insert(e);
+                    }
+                }
+            },
+            &mut output,
+        );
+        if let Some(e) = write_error {
+            return Err(e).context("writing the edge file");
+        }
+        if let Some(w) = edges.as_mut() {
+            w.flush().context("writing the edge file")?;
+        }
+        write_all(&mut port, &output)?;
+        wait_readable(&port, Duration::from_millis(1))?;
+    }
+}
+
+fn open_port(args: &Args) -> Result<Port> {
+    let mut stdout = std::io::stdout().lock();
+    let port = match &args.socket {
+        Some(path) => {
+            let _ = std::fs::remove_file(path);
+            let listener = UnixListener::bind(path)
+                .with_context(|| format!("binding the socket {}", path.display()))?;
+            listener.set_nonblocking(true)?;
+            writeln!(stdout, "socket {}", path.display())?;
+            Port::Socket {
+                listener,
+                stream: None,
+            }
+        }
+        None => {
+            let pty = nix::pty::openpty(None, None).context("opening a pseudo-terminal")?;
+            // Raw: the line carries binary frames, no echo, no line discipline.
+            for fd in [pty.master.as_fd(), pty.slave.as_fd()] {
+                let mut termios = tcgetattr(fd)?;
+                cfmakeraw(&mut termios);
+                tcsetattr(fd, SetArg::TCSANOW, &termios)?;
+            }
+            let path = nix::unistd::ttyname(pty.slave.as_fd())?;
+            let master = File::from(pty.master);
+            set_nonblocking(&master)?;
+            writeln!(stdout, "pty {}", path.display())?;
+            Port::Pty {
+                master,
+                _slave: pty.slave,
+            }
+        }
+    };
+    stdout.flush()?;
+    Ok(port)
+}
+
+fn set_nonblocking(file: &impl AsFd) -> Result<()> {
+    use nix::fcntl::{fcntl, FcntlArg, OFlag};
+    let flags = OFlag::from_bits_truncate(fcntl(file.as_fd(), FcntlArg::F_GETFL)?);
+    fcntl(file.as_fd(), FcntlArg::F_SETFL(flags | OFlag::O_NONBLOCK))?;
+    Ok(())
+}
+
+/// Whatever has arrived (0 if nothing); a socket peer that left is replaced by the next.
+fn read_some(port: &mut Port, buf: &mut [u8]) -> Result<usize> {
+    match port {
+        Port::Pty { master, .. } => match master.read(buf) {
+            Ok(n) => Ok(n),
+            Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(0),
+            // EIO: no process has the slave open at the moment.
+            Err(e) if e.raw_os_error() == Some(libc_eio()) => Ok(0),
+            Err(e) => Err(e).context("reading the pseudo-terminal"),
+        },
+        Port::Socket { listener, stream } => {
+            if stream.is_none() {
+                match listener.accept() {
+                    Ok((s, _)) => {
+                        s.set_nonblocking(true)?;
+                        *stream = Some(s);
+                    }
+                    Err(e) if e.kind() == ErrorKind::WouldBlock => return Ok(0),
+                    Err(e) => return Err(e).context("accepting on the socket"),
+                }
+            }
+            let s = stream.as_mut().expect("connected");
+            match s.read(buf) {
+                Ok(0) => {
+                    *stream = None; // the host hung up
+                    Ok(0)
+                }
+                Ok(n) => Ok(n),
+                Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(0),
+                Err(e) if e.kind() == ErrorKind::ConnectionReset => {
+                    *stream = None;
+                    Ok(0)
+                }
+                Err(e) => Err(e).context("reading the socket"),
+            }
+        }
+    }
+}
+
+fn libc_eio() -> i32 {
+    nix::errno::Errno::EIO as i32
+}
+
+/// Send `bytes` to the host; with nobody listening they are lost, as on a real line.
+fn write_all(port: &mut Port, bytes: &[u8]) -> Result<()> {
+    if bytes.is_empty() {
+        return Ok(());
+    }
+    let result = match port {
+        Port::Pty { master, .. } => master.write_all(bytes),
+        Port::Socket { stream, .. } => match stream {
+            Some(s) => s.write_all(bytes),
+            None => return Ok(()),
+        },
+    };
+    match result {
+        Ok(()) => Ok(()),
+        // Nobody reading (slave closed, socket gone) or the host not keeping up: dropped
+        // like bytes into a UART nobody listens to.
+        Err(e)
+            if matches!(
+                e.kind(),
+                ErrorKind::WouldBlock | ErrorKind::BrokenPipe | ErrorKind::ConnectionReset
+            ) || e.raw_os_error() == Some(libc_eio()) =>
+        {
+            if let Port::Socket { stream, .. } = port {
+                if e.kind() != ErrorKind::WouldBlock {
+                    *stream = None;
+                }
+            }
+            Ok(())
+        }
+        Err(e) => Err(e).context("writing to the host"),
+    }
+}
+
+/// Sleep until input arrives or `timeout` passes.
+fn wait_readable(port: &Port, timeout: Duration) -> Result<()> {
+    let fd = match port {
+        Port::Pty { master, .. } => master.as_fd(),
+        Port::Socket {
+            stream: Some(s), ..
+        } => s.as_fd(),
+        Port::Socket { listener, .. } => listener.as_fd(),
+    };
+    let ms = timeout.as_millis().min(u16::MAX as u128) as u16;
+    let mut fds = [PollFd::new(fd, PollFlags::POLLIN)];
+    match poll(&mut fds, PollTimeout::from(ms)) {
+        Ok(_) | Err(nix::errno::Errno::EINTR) => Ok(()),
+        Err(e) => Err(e).context("waiting for input"),
+    }
+}

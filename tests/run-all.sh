@@ -35,8 +35,9 @@ echo "== cargo fmt"
 cargo fmt --all -- --check
 echo "== cargo clippy"
 cargo clippy --workspace --all-targets --locked --quiet -- -D warnings
-echo "== step_core for the RP2040 (thumbv6m-none-eabi: no_std, no FPU)"
-cargo build --release --locked --quiet -p step_core --target thumbv6m-none-eabi
+echo "== the MCU crates for the RP2040 (thumbv6m-none-eabi: no_std, no alloc, no FPU)"
+cargo build --release --locked --quiet -p step_core -p cell_protocol -p cell_firmware_core \
+  --target thumbv6m-none-eabi
 echo "== cargo test"
 cargo test --workspace --release --locked --no-fail-fast 2>&1 | tee /tmp/polar-cell-cargo-test.log | grep -E "^(test result|running|error|failures)|FAILED|panicked" || true
 if grep -qE "FAILED|error(\[|:)" /tmp/polar-cell-cargo-test.log || ! grep -q "test result" /tmp/polar-cell-cargo-test.log; then

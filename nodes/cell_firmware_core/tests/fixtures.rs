@@ -1,11 +1,13 @@
-//! The firmware core plays the real fixtures' plans as the MCU would receive them (segments
-//! on whole-tick start clocks): every step edge within one timer tick of the planner's own
+//! The firmware core plays the real fixtures' plans as the MCU receives them from the
+//! bridge's schedule (segments on whole-tick start clocks): every step edge within one timer tick of the planner's own
 //! decoder on the exact timeline, every step count exact, the end exactly where the plan ends.
 
 use cell_firmware_core::{Machine, MachineConfig};
 use cell_protocol::message::FaultCode;
-use cell_protocol::message::{HostMessage, Mode, QueuedSegment, SEGMENT_ENDS_AT_REST};
+use cell_protocol::message::{HostMessage, Mode};
 use gcode_streamer::{parse_all, InterpreterOptions};
+use mcu_bridge::Schedule;
+use polar_cell_msgs::Hold;
 use polar_planner::steps::{decode, Pulse, StepOptions};
 use polar_planner::{plan_program, PlannerOptions, Program};
 
@@ -27,26 +29,20 @@ fn the_firmware_core_plays_both_fixtures_within_one_tick_of_the_decoder() {
     let hz = steps.timer_hz;
     for name in ["polartest.gcode", "finger.gcode"] {
         let program = program(name);
-        // The schedule the host sends: exact plan times rounded to whole ticks.
+        // The schedule as the bridge makes it; the decoder's times on the exact timeline.
+        let mut schedule = Schedule::new(hz, Hold::ZeroOrder, 0);
         let mut exact_start = 0.0f64;
-        let mut schedule = Vec::new();
+        let mut queued = Vec::new();
         let mut expected: [Vec<f64>; 3] = Default::default();
         let mut pulses: Vec<Pulse> = Vec::new();
-        for (seg, &at_rest) in program.segments.iter().zip(&program.ends_at_rest) {
+        for seg in &program.segments {
             pulses.clear();
             decode(seg, &mut pulses).unwrap();
             for p in &pulses {
                 expected[p.axis].push(exact_start + p.t * hz);
             }
-            let start = exact_start.round() as u64;
             exact_start += seg.duration_s * hz;
-            schedule.push(QueuedSegment {
-                start_clock: start,
-                duration_ticks: (exact_start.round() as u64 - start) as u32,
-                tag: seg.move_sequence as u32,
-                flags: if at_rest { SEGMENT_ENDS_AT_REST } else { 0 },
-                segment: seg.compile().unwrap(),
-            });
+            queued.push(schedule.segment(seg).unwrap());
         }
         let initial_steps = std::array::from_fn(|k| {
             (PlannerOptions::default().initial_joints[k] * steps.steps_per_unit[k]).round() as i32
@@ -57,7 +53,7 @@ fn the_firmware_core_plays_both_fixtures_within_one_tick_of_the_decoder() {
             initial_steps,
         });
         let mut executed: [Vec<u64>; 3] = Default::default();
-        let mut next = schedule.iter();
+        let mut next = queued.iter();
         let mut pending = next.next();
         let mut until = 0;
         while pending.is_some() || machine.mode() != Mode::Idle {
@@ -86,7 +82,7 @@ fn the_firmware_core_plays_both_fixtures_within_one_tick_of_the_decoder() {
         assert_eq!(end, program.end_steps, "{name}");
         eprintln!(
             "{name}: {} segments, {} edges, worst edge vs decoder {worst:.3} ticks",
-            schedule.len(),
+            queued.len(),
             executed.iter().map(Vec::len).sum::<usize>()
         );
         assert!(worst <= 1.0, "{name}: {worst}");

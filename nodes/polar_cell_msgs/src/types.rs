@@ -371,6 +371,7 @@ pub struct StepSegment {
     pub cruise_steps: u32,
     pub decelerate_steps: u32,
     pub duration_s: f64,
+    pub ends_at_rest: bool,
 }
 ros_message!(StepSegment => schema::STEP_SEGMENT);
 

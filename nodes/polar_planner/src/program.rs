@@ -11,9 +11,6 @@ use crate::steps::{StepGenerator, StepOptions};
 pub struct Program {
     pub planned: Vec<PlannedMove>,
     pub segments: Vec<StepSegment>,
-    /// Per segment: every joint is at rest at its end (a pause, or the end of a move whose
-    /// last plan point has no velocity), so execution may stop there without an underrun.
-    pub ends_at_rest: Vec<bool>,
     /// Where the steps end (the generator's absolute position).
     pub end_steps: [i64; 3],
 }
@@ -32,23 +29,12 @@ pub fn plan_program(
     }
     planner.flush(&mut planned);
     let mut segments = Vec::new();
-    let mut ends_at_rest = Vec::new();
     for plan in &planned {
-        let first = segments.len();
         generator.segments(plan, &mut segments);
-        let stops = plan
-            .points
-            .last()
-            .is_some_and(|p| p.qd.iter().all(|v| *v == 0.0));
-        for (k, seg) in segments[first..].iter().enumerate() {
-            let last = first + k + 1 == segments.len();
-            ends_at_rest.push(seg.step_counts.iter().all(|&c| c == 0) || (last && stops));
-        }
     }
     Ok(Program {
         planned,
         segments,
-        ends_at_rest,
         end_steps: generator.position(),
     })
 }

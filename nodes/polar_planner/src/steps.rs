@@ -52,6 +52,8 @@ impl StepGenerator {
             let counts: Vec<u32> = delta.iter().map(|d| d.unsigned_abs() as u32).collect();
             let dominant = (0..3).max_by_key(|&j| counts[j]).unwrap_or(0);
             let n = counts[dominant] as f64;
+            // A plan point without velocity: the move stops there.
+            let rests = w[1].qd.iter().all(|v| *v == 0.0);
             let seg = StepSegment {
                 move_sequence: plan.sequence,
                 source_line: plan.source_line,
@@ -61,6 +63,7 @@ impl StepGenerator {
                 dominant_axis: dominant as u8,
                 timer_frequency_hz: f,
                 duration_s: dt,
+                ends_at_rest: rests,
                 ..StepSegment::default()
             };
             if n == 0.0 {
@@ -89,6 +92,7 @@ impl StepGenerator {
                 }
                 sub.step_counts[dominant] = part.end - part.start;
                 sub.duration_s = part.duration_s;
+                sub.ends_at_rest = rests && part.end == counts[dominant];
                 fill_timing(&mut sub, &part, a, f);
                 out.push(sub);
             }

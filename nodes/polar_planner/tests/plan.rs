@@ -424,3 +424,49 @@ fn the_screw_limit_slows_moves_that_would_need_more_rpm() {
         free[1].end_time() - free[1].start_time() < planned[1].end_time() - planned[1].start_time()
     );
 }
+
+/// `ends_at_rest` marks exactly the segments that end where the plan's joint velocity is
+/// zero (looked up by time in the plan, not by the generator's own bookkeeping), and the last
+/// segment of a file.
+#[test]
+fn segments_ending_at_rest_are_marked_and_only_those() {
+    for name in ["polartest.gcode", "finger.gcode"] {
+        let program = polar_planner::plan_program(
+            &fixture(name),
+            PlannerOptions::default(),
+            StepOptions::default(),
+        )
+        .unwrap();
+        // Every plan point with its time: the velocity a segment arrives with is the first
+        // point at its end time (a corner repeats the time with the next move's velocity).
+        let points: Vec<_> = program
+            .planned
+            .iter()
+            .flat_map(|p| p.points.iter())
+            .collect();
+        let mut t = points[0].t;
+        let mut marked = 0;
+        for seg in &program.segments {
+            t += seg.duration_s;
+            let i = points.partition_point(|p| p.t < t - 1e-9);
+            let at = points[i.min(points.len() - 1)];
+            let ends_on_point = (at.t - t).abs() < 1e-6;
+            let resting = ends_on_point && at.qd.iter().all(|v| *v == 0.0);
+            if seg.ends_at_rest {
+                marked += 1;
+                assert!(
+                    resting,
+                    "{name}: marked at {t} s but the plan moves: {:?}",
+                    at.qd
+                );
+            } else {
+                assert!(!resting, "{name}: at rest at {t} s but not marked");
+            }
+        }
+        assert!(program.segments.last().unwrap().ends_at_rest, "{name}");
+        eprintln!(
+            "{name}: {marked} of {} segments end at rest",
+            program.segments.len()
+        );
+    }
+}

@@ -1,10 +1,16 @@
 //! The host's side of the cell's MCU protocol, without I/O.
 //!
 //! * [`host`] — the host's protocol endpoint: typed messages over the link;
-//! * [`clock`] — what the MCU clock reads at a host instant, estimated from clock queries.
+//! * [`clock`] — what the MCU clock reads at a host instant, estimated from clock queries;
+//! * [`schedule`] — the plan's step segments and screw commands on the MCU's plan clock;
+//! * [`session`] — one MCU's session: start, identify, clocks, the plan fed within the horizon.
 
 pub mod clock;
 pub mod host;
+pub mod schedule;
+pub mod session;
 
 pub use clock::{ClockFit, ClockSync};
 pub use host::{FromMcu, HostEndpoint};
+pub use schedule::{Schedule, ScheduleError};
+pub use session::{McuSession, SessionError, SessionOptions};

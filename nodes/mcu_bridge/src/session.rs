@@ -1,0 +1,402 @@
+//! The host's session with one MCU: start the link, identify, keep the clocks in step, and
+//! feed the plan to the MCU within its queue and the execution horizon.
+//!
+//! Sans-I/O, like every core here: the caller hands in the bytes it read and the host time
+//! (`now_us`, a monotonic microsecond count), writes out what [`McuSession::poll_transmit`]
+//! gives, and calls [`McuSession::tick`] periodically.
+//!
+//! # Flow
+//!
+//! The planner's segments are converted at once ([`Schedule`]) and wait here. One goes to the
+//! MCU when its queue has room (its last reported `queue_free`, less what was sent since) and
+//! it starts within `horizon_s` of the MCU's plan clock now — so the MCU holds at most a
+//! horizon of motion, as the virtual executor does. The first segment fixes the schedule's
+//! anchor: the MCU's plan clock now plus `lead_s`, time enough for the first frames to
+//! arrive.
+//!
+//! # Keeping in step
+//!
+//! A clock query every `clock_query_period_s` feeds [`ClockSync`] and doubles as the
+//! keep-alive the MCU's watchdog expects; the MCU reports its state every
+//! `state_period_s`. The MCU's plan clock now is its last state's plan clock plus the time
+//! since, at the synchronised rate (exact while no hold is in progress).
+
+use std::collections::VecDeque;
+
+use cell_protocol::message::{
+    FaultCode, HostMessage, Identity, McuMessage, McuState, Mode, QueuedSegment, ScrewRamp,
+};
+use cell_protocol::{LinkError, MAX_WIRE_FRAME, PROTOCOL_VERSION};
+use polar_cell_msgs::{Hold, ScrewCommand, StepSegment};
+
+use crate::clock::ClockSync;
+use crate::host::{FromMcu, HostEndpoint};
+use crate::schedule::{Schedule, ScheduleError};
+
+/// How the session runs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SessionOptions {
+    /// Most motion queued on the MCU ahead of its plan clock (s).
+    pub horizon_s: f64,
+    /// Time between the first segment's conversion and its start on the MCU (s).
+    pub lead_s: f64,
+    pub clock_query_period_s: f64,
+    /// The MCU faults when it hears nothing for this long (s).
+    pub host_timeout_s: f64,
+    /// How often the MCU reports its state (s).
+    pub state_period_s: f64,
+    pub retransmit_timeout_s: f64,
+    /// How rpm runs between screw commands (the screw driver's hold).
+    pub screw_hold: Hold,
+}
+
+impl Default for SessionOptions {
+    fn default() -> Self {
+        SessionOptions {
+            horizon_s: 2.0,
+            lead_s: 0.25,
+            clock_query_period_s: 0.1,
+            host_timeout_s: 1.0,
+            state_period_s: 0.02,
+            retransmit_timeout_s: 0.05,
+            screw_hold: Hold::ZeroOrder,
+        }
+    }
+}
+
+/// What went wrong with the MCU; the machine is (or is being put) in its safe state.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum SessionError {
+    #[error("the MCU speaks protocol version {mcu}, this host {PROTOCOL_VERSION}")]
+    Version { mcu: u16 },
+    #[error("the MCU reported fault {code:?} at its clock {clock} (segment tag {tag})")]
+    Fault {
+        code: FaultCode,
+        clock: u64,
+        tag: u32,
+    },
+    #[error("the MCU restarted (power cycle or reset): its queue and position are gone; {lost} messages were lost")]
+    Restarted { lost: usize },
+    #[error("the MCU has been silent for {silent_s:.3} s (no state since)")]
+    Silent { silent_s: f64 },
+    #[error(transparent)]
+    Schedule(#[from] ScheduleError),
+}
+
+/// The host's session with one MCU.
+pub struct McuSession {
+    options: SessionOptions,
+    endpoint: HostEndpoint,
+    clock: ClockSync,
+    identity: Option<Identity>,
+    configured: bool,
+    /// Outstanding clock queries: token and send time.
+    queries: VecDeque<(u32, u64)>,
+    next_token: u32,
+    next_query_us: u64,
+    schedule: Option<Schedule>,
+    segments: VecDeque<QueuedSegment>,
+    screw: VecDeque<ScrewRamp>,
+    /// The last state and the host time it arrived.
+    state: Option<(McuState, u64)>,
+    /// Segments sent since that state was taken (the MCU's `queue_free` does not know them).
+    sent_since_state: usize,
+    /// Tag and start clock of the last segment sent.
+    last_sent_tag: Option<u32>,
+    last_sent_start: Option<u64>,
+    error: Option<SessionError>,
+    /// An emergency stop was asked for, and when it last went out.
+    emergency: bool,
+    emergency_sent_us: Option<u64>,
+}
+
+fn ticks(seconds: f64, hz: f64) -> u32 {
+    (seconds * hz).round().clamp(0.0, u32::MAX as f64) as u32
+}
+
+impl McuSession {
+    /// `nonce`: random per host session.
+    pub fn new(options: SessionOptions, nonce: u32) -> McuSession {
+        let endpoint = HostEndpoint::new((options.retransmit_timeout_s * 1e6) as u64, nonce);
+        McuSession {
+            options,
+            endpoint,
+            clock: ClockSync::new(1e6, 32),
+            identity: None,
+            configured: false,
+            queries: VecDeque::new(),
+            next_token: 1,
+            next_query_us: 0,
+            schedule: None,
+            segments: VecDeque::new(),
+            screw: VecDeque::new(),
+            state: None,
+            sent_since_state: 0,
+            last_sent_tag: None,
+            last_sent_start: None,
+            error: None,
+            emergency: false,
+            emergency_sent_us: None,
+        }
+    }
+
+    pub fn identity(&self) -> Option<&Identity> {
+        self.identity.as_ref()
+    }
+
+    pub fn clock_sync(&self) -> &ClockSync {
+        &self.clock
+    }
+
+    /// The MCU's last state.
+    pub fn state(&self) -> Option<&McuState> {
+        self.state.as_ref().map(|(s, _)| s)
+    }
+
+    pub fn error(&self) -> Option<&SessionError> {
+        self.error.as_ref()
+    }
+
+    pub fn endpoint(&self) -> &HostEndpoint {
+        &self.endpoint
+    }
+
+    /// Identified, configured and clock-synchronised: ready to take a plan.
+    pub fn is_ready(&self) -> bool {
+        self.configured && self.clock.fit().is_some() && self.state.is_some()
+    }
+
+    /// Segments and screw ramps converted and not yet sent.
+    pub fn waiting(&self) -> (usize, usize) {
+        (self.segments.len(), self.screw.len())
+    }
+
+    /// Everything converted has been sent and played: the MCU is idle after the last one.
+    pub fn is_drained(&self) -> bool {
+        self.segments.is_empty()
+            && self.state().is_some_and(|s| {
+                s.mode == Mode::Idle && self.last_sent_tag.is_none_or(|t| s.done_tag == t)
+            })
+    }
+
+    /// MCU plan clock at which the last segment sent starts.
+    pub fn sent_until_clock(&self) -> Option<u64> {
+        self.last_sent_start
+    }
+
+    /// MCU plan clock of plan time 0, once the first segment fixed it.
+    pub fn anchor_clock(&self) -> Option<u64> {
+        self.schedule.as_ref().map(|s| s.clock_at(0.0))
+    }
+
+    /// The MCU's plan clock at host time `now_us` (estimated), once known.
+    pub fn mcu_plan_clock_at(&self, now_us: u64) -> Option<u64> {
+        let (state, _) = self.state?;
+        let mcu_now = self.clock.mcu_at(now_us as i64 * 1000)?;
+        let lag = state.clock.saturating_sub(state.plan_clock);
+        if state.mode == Mode::Held || state.mode == Mode::Fault {
+            return Some(state.plan_clock);
+        }
+        Some(mcu_now.saturating_sub(lag))
+    }
+
+    /// A planned segment: converted now, sent when the horizon and the MCU's queue allow.
+    pub fn on_segment(&mut self, seg: &StepSegment, now_us: u64) -> Result<(), SessionError> {
+        let hz = self.timer_hz();
+        if self.schedule.is_none() {
+            let anchor =
+                self.mcu_plan_clock_at(now_us).unwrap_or(0) + ticks(self.options.lead_s, hz) as u64;
+            self.schedule = Some(Schedule::new(hz, self.options.screw_hold, anchor));
+        }
+        let schedule = self.schedule.as_mut().expect("anchored above");
+        self.segments.push_back(schedule.segment(seg)?);
+        Ok(())
+    }
+
+    /// A screw command in force from plan time `plan_s` (needs the first segment's anchor).
+    pub fn on_screw(
+        &mut self,
+        cmd: &ScrewCommand,
+        plan_s: f64,
+        now_us: u64,
+    ) -> Result<(), SessionError> {
+        let earliest = self.mcu_plan_clock_at(now_us).unwrap_or(0);
+        if let Some(schedule) = self.schedule.as_mut() {
+            if let Some(ramp) = schedule.screw(cmd, plan_s, earliest)? {
+                self.screw.push_back(ramp);
+            }
+        }
+        Ok(())
+    }
+
+    /// Stop at once: the MCU stops every output on the first frame that reaches it; repeated
+    /// each tick until the MCU reports the fault.
+    pub fn emergency_stop(&mut self) {
+        self.emergency = true;
+        self.segments.clear();
+        self.screw.clear();
+    }
+
+    fn timer_hz(&self) -> f64 {
+        self.identity.map_or(1e6, |i| i.timer_hz as f64)
+    }
+
+    /// Bytes read from the MCU at `now_us`.
+    pub fn receive(&mut self, bytes: &[u8], now_us: u64) {
+        let mut arrived = Vec::new();
+        self.endpoint
+            .receive(bytes, now_us, &mut |m| arrived.push(m));
+        for message in arrived {
+            match message {
+                FromMcu::Message(McuMessage::Identity(identity)) => {
+                    if identity.protocol_version != PROTOCOL_VERSION {
+                        self.fail(SessionError::Version {
+                            mcu: identity.protocol_version,
+                        });
+                    }
+                    self.clock = ClockSync::new(identity.timer_hz as f64, 32);
+                    self.identity = Some(identity);
+                }
+                FromMcu::Message(McuMessage::Clock { token, clock }) => {
+                    while let Some(&(t, sent_us)) = self.queries.front() {
+                        if t == token {
+                            self.clock
+                                .add(sent_us as i64 * 1000, now_us as i64 * 1000, clock);
+                        }
+                        self.queries.pop_front();
+                        if t == token {
+                            break;
+                        }
+                    }
+                }
+                FromMcu::Message(McuMessage::State(state)) => {
+                    let newer = self.state.is_none_or(|(s, _)| state.clock >= s.clock);
+                    if newer {
+                        self.state = Some((state, now_us));
+                        self.sent_since_state = 0;
+                    }
+                    if state.mode == Mode::Fault && self.error.is_none() {
+                        self.fail(SessionError::Fault {
+                            code: state.fault,
+                            clock: state.clock,
+                            tag: 0,
+                        });
+                    }
+                }
+                FromMcu::Message(McuMessage::Fault { code, clock, tag }) => {
+                    self.fail(SessionError::Fault { code, clock, tag });
+                }
+                FromMcu::Message(McuMessage::Counters(_)) | FromMcu::Undecodable => {}
+                FromMcu::Restarted { lost } => self.fail(SessionError::Restarted { lost }),
+            }
+        }
+    }
+
+    fn fail(&mut self, error: SessionError) {
+        // The first error explains; a fault report after an emergency stop is its echo.
+        if self.error.is_none() {
+            self.error = Some(error);
+        }
+        self.segments.clear();
+        self.screw.clear();
+    }
+
+    /// Periodic work at `now_us`: identify and configure, clock queries, feed the plan.
+    pub fn tick(&mut self, now_us: u64) -> Result<(), LinkError> {
+        // An MCU that stops reporting (hung, unplugged) cannot be trusted to be moving as
+        // planned: after ten state periods (at least a quarter second), it is a fault.
+        if let Some((_, at)) = self.state {
+            let silent_s = now_us.saturating_sub(at) as f64 * 1e-6;
+            if self.configured && silent_s > (10.0 * self.options.state_period_s).max(0.25) {
+                self.fail(SessionError::Silent { silent_s });
+            }
+        }
+        if !self.endpoint.link().is_synced() {
+            return Ok(()); // the link is still starting; poll_transmit sends its requests
+        }
+        if self.identity.is_none() && self.endpoint.link().unacknowledged() == 0 {
+            self.endpoint.send(&HostMessage::Identify)?;
+            return Ok(());
+        }
+        let Some(identity) = self.identity else {
+            return Ok(());
+        };
+        let hz = identity.timer_hz as f64;
+        if !self.configured {
+            self.endpoint.send(&HostMessage::Configure {
+                host_timeout_ticks: ticks(self.options.host_timeout_s, hz),
+                state_period_ticks: ticks(self.options.state_period_s, hz),
+            })?;
+            self.configured = true;
+        }
+        if now_us >= self.next_query_us && self.endpoint.can_send() {
+            self.next_query_us = now_us + (self.options.clock_query_period_s * 1e6) as u64;
+            let token = self.next_token;
+            self.next_token = self.next_token.wrapping_add(1);
+            self.endpoint.send(&HostMessage::ClockQuery { token })?;
+            self.queries.push_back((token, now_us));
+            if self.queries.len() > 64 {
+                self.queries.pop_front(); // answers lost with a restarted MCU
+            }
+        }
+        self.feed(now_us)
+    }
+
+    fn feed(&mut self, now_us: u64) -> Result<(), LinkError> {
+        let Some(plan_now) = self.mcu_plan_clock_at(now_us) else {
+            return Ok(());
+        };
+        let Some((state, _)) = self.state else {
+            return Ok(());
+        };
+        let horizon = ticks(self.options.horizon_s, self.timer_hz()) as u64;
+        let mut room = (state.queue_free as usize).saturating_sub(self.sent_since_state);
+        while let Some(next) = self.segments.front() {
+            if room == 0 || next.start_clock > plan_now + horizon || !self.endpoint.can_send() {
+                break;
+            }
+            let next = *next;
+            self.endpoint.send(&HostMessage::QueueSegment(next))?;
+            self.segments.pop_front();
+            self.sent_since_state += 1;
+            self.last_sent_tag = Some(next.tag);
+            self.last_sent_start = Some(next.start_clock);
+            room -= 1;
+        }
+        while let Some(ramp) = self.screw.front() {
+            if ramp.start_clock > plan_now + horizon || !self.endpoint.can_send() {
+                break;
+            }
+            let ramp = *ramp;
+            self.endpoint.send(&HostMessage::Screw(ramp))?;
+            self.screw.pop_front();
+        }
+        Ok(())
+    }
+
+    /// The next bytes to write at `now_us`; call until `None`.
+    pub fn poll_transmit(&mut self, now_us: u64, out: &mut [u8; MAX_WIRE_FRAME]) -> Option<usize> {
+        if self.emergency {
+            let stopped = self
+                .state()
+                .is_some_and(|s| s.fault == FaultCode::EmergencyStop);
+            let due = self.emergency_sent_us.is_none_or(|at| {
+                now_us.saturating_sub(at) >= (self.options.retransmit_timeout_s * 1e6) as u64
+            });
+            if stopped {
+                self.emergency = false;
+            } else if due {
+                // Unsequenced: it acts even behind a lost frame; repeated until reported.
+                self.emergency_sent_us = Some(now_us);
+                return self
+                    .endpoint
+                    .encode_now(&HostMessage::EmergencyStop, out)
+                    .ok();
+            }
+        }
+        self.endpoint.poll_transmit(now_us, out)
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,227 @@
+use super::*;
+use gcode_streamer::{parse_all, InterpreterOptions};
+use mcu_emulator::{Crystal, Emulator, EmulatorOptions};
+use polar_planner::steps::{decode, Pulse, StepOptions};
+use polar_planner::{plan_program, PlannerOptions};
+
+const RATE_PPM: f64 = 80.0;
+
+fn finger_start(moves: usize) -> Vec<StepSegment> {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../../shared/fixtures/gcode/finger.gcode"
+    );
+    let src = std::fs::read(path).unwrap();
+    let mut all = parse_all(&src, "finger.gcode", InterpreterOptions::default())
+        .unwrap()
+        .0;
+    all.truncate(moves);
+    plan_program(&all, PlannerOptions::default(), StepOptions::default())
+        .unwrap()
+        .segments
+}
+
+/// Host and emulated MCU in one simulated time, 1 ms per round.
+struct Rig {
+    session: McuSession,
+    mcu: Emulator,
+    now_us: u64,
+    edges: Vec<cell_firmware_core::StepEdge>,
+    /// Largest lead of a sent segment's start over the MCU's plan clock (ticks).
+    worst_lead: u64,
+}
+
+impl Rig {
+    fn new() -> Rig {
+        Rig::with(EmulatorOptions::default())
+    }
+
+    fn with(options: EmulatorOptions) -> Rig {
+        Rig {
+            session: McuSession::new(SessionOptions::default(), 0xB41D),
+            mcu: Emulator::new(EmulatorOptions {
+                crystal: Crystal {
+                    timer_hz: 1e6,
+                    offset_ticks: 7_777_777,
+                    rate_ppm: RATE_PPM,
+                    drift_ppm_per_s: 0.0,
+                },
+                ..options
+            }),
+            now_us: 0,
+            edges: Vec::new(),
+            worst_lead: 0,
+        }
+    }
+
+    fn round(&mut self) {
+        let t = self.now_us as f64 * 1e-6;
+        self.session.tick(self.now_us).unwrap();
+        let mut out = [0; MAX_WIRE_FRAME];
+        while let Some(len) = self.session.poll_transmit(self.now_us, &mut out) {
+            self.mcu.receive(&out[..len], t);
+        }
+        let mut bytes = Vec::new();
+        let edges = &mut self.edges;
+        self.mcu.run_until(t, &mut |e| edges.push(e), &mut bytes);
+        self.session.receive(&bytes, self.now_us);
+        if let (Some(state), Some(sent)) = (self.session.state(), self.session.sent_until_clock()) {
+            self.worst_lead = self.worst_lead.max(sent.saturating_sub(state.plan_clock));
+        }
+        self.now_us += 1000;
+    }
+}
+
+#[test]
+fn a_plan_reaches_the_mcu_within_the_horizon_and_plays_on_its_ticks() {
+    let segments = finger_start(300);
+    let mut rig = Rig::new();
+    while !rig.session.is_ready() {
+        rig.round();
+        assert!(rig.now_us < 2_000_000, "no session after 2 s");
+    }
+    let ready_at = rig.now_us;
+    for seg in &segments {
+        rig.session.on_segment(seg, rig.now_us).unwrap();
+    }
+    let plan_s: f64 = segments.iter().map(|s| s.duration_s).sum();
+    while !rig.session.is_drained() {
+        rig.round();
+        assert!(rig.session.error().is_none(), "{:?}", rig.session.error());
+        assert!(
+            (rig.now_us - ready_at) as f64 * 1e-6 < plan_s + 5.0,
+            "not done after {plan_s} s of plan"
+        );
+    }
+    // The MCU never held more than the horizon: what was sent started at most 2 s ahead of
+    // its plan clock (as last reported, up to a state period and a round old).
+    assert!(
+        rig.worst_lead <= 2_000_000 + 25_000,
+        "a segment {} ticks ahead",
+        rig.worst_lead
+    );
+    // Every edge where the planner's decoder puts it, on the schedule's anchor.
+    let anchor = rig.session.anchor_clock().unwrap() as f64;
+    let mut expected: [Vec<f64>; 3] = Default::default();
+    let mut start = 0.0f64;
+    let mut pulses: Vec<Pulse> = Vec::new();
+    for seg in &segments {
+        pulses.clear();
+        decode(seg, &mut pulses).unwrap();
+        for p in &pulses {
+            expected[p.axis].push(anchor + start + p.t * 1e6);
+        }
+        start += seg.duration_s * 1e6;
+    }
+    let mut worst = 0.0f64;
+    for (k, expected) in expected.iter().enumerate() {
+        let executed: Vec<u64> = rig
+            .edges
+            .iter()
+            .filter(|e| e.axes >> k & 1 == 1)
+            .map(|e| e.clock)
+            .collect();
+        assert_eq!(executed.len(), expected.len(), "axis {k}");
+        for (&e, &x) in executed.iter().zip(expected) {
+            worst = worst.max((e as f64 - x).abs());
+        }
+    }
+    assert!(worst <= 1.0, "worst edge {worst} ticks");
+    // The clock fit found the crystal's rate error (the simulated round trips are 1 ms
+    // rounds, so the midpoint errs by up to half of one).
+    let ppm = rig.session.clock_sync().rate_error_ppm().unwrap();
+    assert!((ppm - RATE_PPM).abs() < 50.0, "{ppm} ppm");
+    eprintln!(
+        "{} segments, {} edges, worst edge {worst:.3} ticks, plan {plan_s:.2} s, played by {:.2} s; \
+         clock rate error estimated {ppm:.1} ppm (true {RATE_PPM}); most queued ahead {:.3} s",
+        segments.len(),
+        rig.edges.len(),
+        (rig.now_us - ready_at) as f64 * 1e-6,
+        rig.worst_lead as f64 * 1e-6
+    );
+}
+
+/// Start a rig and hand it `segments` once the session is ready.
+fn printing(options: EmulatorOptions, segments: &[StepSegment]) -> Rig {
+    let mut rig = Rig::with(options);
+    while !rig.session.is_ready() {
+        rig.round();
+    }
+    for seg in segments {
+        rig.session.on_segment(seg, rig.now_us).unwrap();
+    }
+    rig
+}
+
+#[test]
+fn an_emergency_stop_stops_the_steps_within_a_round() {
+    let mut rig = printing(EmulatorOptions::default(), &finger_start(300));
+    for _ in 0..3000 {
+        rig.round();
+    }
+    let before = rig.edges.len();
+    assert!(before > 1000, "{before}");
+    rig.session.emergency_stop();
+    rig.round();
+    let at_stop = rig.edges.len();
+    for _ in 0..1000 {
+        rig.round();
+    }
+    assert_eq!(
+        rig.edges.len(),
+        at_stop,
+        "no step after the stop reached the MCU"
+    );
+    let machine = rig.mcu.endpoint().machine();
+    assert_eq!(machine.fault(), FaultCode::EmergencyStop);
+    assert!(!machine.pin_open());
+    assert_eq!(
+        rig.session.state().map(|s| s.fault),
+        Some(FaultCode::EmergencyStop)
+    );
+}
+
+#[test]
+fn a_restarted_or_silent_mcu_is_a_fault_of_the_print() {
+    // A power cycle 4 s in.
+    let mut rig = printing(
+        EmulatorOptions {
+            reset_at_s: Some(4.0),
+            ..EmulatorOptions::default()
+        },
+        &finger_start(300),
+    );
+    while rig.session.error().is_none() && rig.now_us < 10_000_000 {
+        rig.round();
+    }
+    assert!(
+        matches!(rig.session.error(), Some(SessionError::Restarted { .. })),
+        "{:?}",
+        rig.session.error()
+    );
+    assert_eq!(
+        rig.session.waiting(),
+        (0, 0),
+        "nothing more goes to a lost machine"
+    );
+
+    // A hung MCU (stalled 2 s from 4 s): the host notices within its silence bound.
+    let mut rig = printing(
+        EmulatorOptions {
+            stall: Some(mcu_emulator::Window {
+                at_s: 4.0,
+                for_s: 2.0,
+            }),
+            ..EmulatorOptions::default()
+        },
+        &finger_start(300),
+    );
+    while rig.session.error().is_none() && rig.now_us < 10_000_000 {
+        rig.round();
+    }
+    match rig.session.error() {
+        Some(SessionError::Silent { silent_s }) => assert!(*silent_s <= 0.26, "{silent_s}"),
+        other => panic!("{other:?}"),
+    }
+    assert!(rig.now_us < 4_300_000, "noticed at {} µs", rig.now_us);
+}

@@ -48,10 +48,22 @@ pub struct SessionOptions {
     pub retransmit_timeout_s: f64,
     /// How rpm runs between screw commands (the screw driver's hold).
     pub screw_hold: Hold,
+    /// Steps per rad of `bed_theta`, per m of `arm_r` and `z`.
+    pub steps_per_unit: [f64; 3],
+    /// Joint acceleration limits a feed hold and resume keep to (rad/s², m/s², m/s²).
+    pub joint_accelerations: [f64; 3],
+    /// Time at rest with the pin reopened before a resume moves (s).
+    pub pin_open_delay_s: f64,
 }
 
-impl Default for SessionOptions {
-    fn default() -> Self {
+impl SessionOptions {
+    /// The machine's step resolution, joint acceleration limits and pin delay (the planner's
+    /// and screw driver's: no default can know them); the rest as the virtual executor runs.
+    pub fn new(
+        steps_per_unit: [f64; 3],
+        joint_accelerations: [f64; 3],
+        pin_open_delay_s: f64,
+    ) -> SessionOptions {
         SessionOptions {
             horizon_s: 2.0,
             lead_s: 0.25,
@@ -60,6 +72,9 @@ impl Default for SessionOptions {
             state_period_s: 0.02,
             retransmit_timeout_s: 0.05,
             screw_hold: Hold::ZeroOrder,
+            steps_per_unit,
+            joint_accelerations,
+            pin_open_delay_s,
         }
     }
 }
@@ -101,6 +116,8 @@ pub struct McuSession {
     state: Option<(McuState, u64)>,
     /// Segments sent since that state was taken (the MCU's `queue_free` does not know them).
     sent_since_state: usize,
+    /// Segments on the MCU not yet played: where each ends and how fast σ may change in it.
+    on_mcu: VecDeque<(u64, f64)>,
     /// Tag and start clock of the last segment sent.
     last_sent_tag: Option<u32>,
     last_sent_start: Option<u64>,
@@ -132,6 +149,7 @@ impl McuSession {
             screw: VecDeque::new(),
             state: None,
             sent_since_state: 0,
+            on_mcu: VecDeque::new(),
             last_sent_tag: None,
             last_sent_start: None,
             error: None,
@@ -229,6 +247,66 @@ impl McuSession {
         Ok(())
     }
 
+    /// The fastest change of the feed scale σ (per second) that keeps every joint within its
+    /// acceleration limit anywhere in `q`.
+    ///
+    /// Under σ, joint `j` (a share `c = T_j/N` of the dominant axis, whose plan-time rate is
+    /// `R` and acceleration `a`) accelerates at `c·(σ²·a + σ̇·R)`; with `|σ²·a| ≤ |a|` that
+    /// stays within `A_j` when `|σ̇| ≤ (A_j/c − |a|)/R` at the segment's highest rate `R`.
+    fn sigma_rate_bound(&self, q: &QueuedSegment) -> f64 {
+        let hz = self.timer_hz();
+        let seg = &q.segment;
+        let n = seg.dominant_steps() as f64;
+        if n == 0.0 {
+            return f64::INFINITY;
+        }
+        let q32 = step_core::ONE_TICK_Q32 as f64;
+        let first_period_ticks = seg.first_period_q32 as f64 / q32;
+        let v0 = hz / first_period_ticks;
+        // r·p² at the first step gives r; the dominant acceleration is r·hz² (steps/s²).
+        let r = seg.first_ramp_q62 as f64
+            / (1u64 << 62) as f64
+            / (first_period_ticks * first_period_ticks);
+        let a = r * hz * hz;
+        let v_peak = (v0 * v0 + 2.0 * a * seg.accelerate_steps as f64).sqrt();
+        let rate = v0.max(v_peak);
+        (0..3)
+            .filter(|&j| seg.step_counts[j] > 0)
+            .map(|j| {
+                let share = seg.step_counts[j] as f64 / n;
+                let limit = self.options.joint_accelerations[j] * self.options.steps_per_unit[j];
+                ((limit / share - a) / rate).max(1e-3)
+            })
+            .fold(f64::INFINITY, f64::min)
+    }
+
+    fn sigma_rate_q32(&self) -> u32 {
+        let rho = self
+            .on_mcu
+            .iter()
+            .map(|&(_, bound)| bound)
+            .fold(f64::INFINITY, f64::min);
+        // Nothing moving: stop (and start) within a millisecond.
+        let rho = if rho.is_finite() { rho } else { 1000.0 };
+        (rho / self.timer_hz() * step_core::ONE_TICK_Q32 as f64).clamp(1.0, u32::MAX as f64) as u32
+    }
+
+    /// Feed hold: the MCU slows along the path to rest, every joint within its limits.
+    pub fn pause(&mut self) -> Result<(), LinkError> {
+        let rate_q32 = self.sigma_rate_q32();
+        self.endpoint.send(&HostMessage::FeedHold { rate_q32 })
+    }
+
+    /// Leave a hold: the pin reopens, after its delay the MCU speeds back up along the path.
+    pub fn resume(&mut self) -> Result<(), LinkError> {
+        let rate_q32 = self.sigma_rate_q32();
+        let delay_ticks = ticks(self.options.pin_open_delay_s, self.timer_hz());
+        self.endpoint.send(&HostMessage::FeedResume {
+            rate_q32,
+            delay_ticks,
+        })
+    }
+
     /// Stop at once: the MCU stops every output on the first frame that reaches it; repeated
     /// each tick until the MCU reports the fault.
     pub fn emergency_stop(&mut self) {
@@ -274,6 +352,13 @@ impl McuSession {
                     if newer {
                         self.state = Some((state, now_us));
                         self.sent_since_state = 0;
+                        while self
+                            .on_mcu
+                            .front()
+                            .is_some_and(|&(end, _)| end <= state.plan_clock)
+                        {
+                            self.on_mcu.pop_front();
+                        }
                     }
                     if state.mode == Mode::Fault && self.error.is_none() {
                         self.fail(SessionError::Fault {
@@ -358,6 +443,8 @@ impl McuSession {
             let next = *next;
             self.endpoint.send(&HostMessage::QueueSegment(next))?;
             self.segments.pop_front();
+            let end = next.start_clock + next.duration_ticks as u64;
+            self.on_mcu.push_back((end, self.sigma_rate_bound(&next)));
             self.sent_since_state += 1;
             self.last_sent_tag = Some(next.tag);
             self.last_sent_start = Some(next.start_clock);

@@ -6,6 +6,15 @@ use polar_planner::{plan_program, PlannerOptions};
 
 const RATE_PPM: f64 = 80.0;
 
+/// The cell's: default steps, the planner's joint accelerations, the screw driver's pin delay.
+fn session_options() -> SessionOptions {
+    SessionOptions::new(
+        StepOptions::default().steps_per_unit,
+        std::array::from_fn(|j| PlannerOptions::default().joints[j].acceleration),
+        0.25,
+    )
+}
+
 fn finger_start(moves: usize) -> Vec<StepSegment> {
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
@@ -38,7 +47,7 @@ impl Rig {
 
     fn with(options: EmulatorOptions) -> Rig {
         Rig {
-            session: McuSession::new(SessionOptions::default(), 0xB41D),
+            session: McuSession::new(session_options(), 0xB41D),
             mcu: Emulator::new(EmulatorOptions {
                 crystal: Crystal {
                     timer_hz: 1e6,
@@ -224,4 +233,79 @@ fn a_restarted_or_silent_mcu_is_a_fault_of_the_print() {
         other => panic!("{other:?}"),
     }
     assert!(rig.now_us < 4_300_000, "noticed at {} µs", rig.now_us);
+}
+
+/// Paused mid-print and resumed: the MCU comes to rest on the path quickly and holds still,
+/// and the print makes the very same steps in the same order as without the pause.
+#[test]
+fn a_pause_holds_on_the_path_and_resume_makes_the_same_steps() {
+    let segments = finger_start(300);
+    let plain = {
+        let mut rig = printing(EmulatorOptions::default(), &segments);
+        while !rig.session.is_drained() {
+            rig.round();
+        }
+        rig.edges
+    };
+    let mut rig = printing(EmulatorOptions::default(), &segments);
+    // Into the print until the steps come fast: over 2,000 in the last 100 ms.
+    loop {
+        rig.round();
+        let recent = rig
+            .edges
+            .iter()
+            .rev()
+            .take_while(|e| e.clock + 100_000 > rig.edges.last().map_or(0, |l| l.clock));
+        if recent.count() > 2000 {
+            break;
+        }
+        assert!(!rig.session.is_drained(), "never fast");
+    }
+    // σ falls at ρ per second: at rest 1/ρ after the hold begins.
+    let rho = rig.session.sigma_rate_q32() as f64 / step_core::ONE_TICK_Q32 as f64 * 1e6;
+    rig.session.pause().unwrap();
+    let paused_at = rig.edges.len();
+    for _ in 0..2000 {
+        rig.round();
+    }
+    let held = rig.edges.len();
+    let state = *rig.session.state().unwrap();
+    assert_eq!(state.mode, Mode::Held, "{state:?}");
+    assert!(!state.pin_open);
+    for _ in 0..500 {
+        rig.round();
+    }
+    assert_eq!(rig.edges.len(), held, "held still");
+    // The last step before rest comes within 1/ρ of the pause (plus the round it took to
+    // arrive), not later.
+    let stop_ticks = rig.edges[paused_at..]
+        .last()
+        .map_or(0, |e| e.clock - rig.edges[paused_at - 1].clock);
+    assert!(
+        (stop_ticks as f64) < (1.0 / rho + 0.002) * 1e6,
+        "last step {stop_ticks} ticks after the pause, σ rate {rho}/s"
+    );
+    rig.session.resume().unwrap();
+    while !rig.session.is_drained() {
+        rig.round();
+        assert!(rig.session.error().is_none(), "{:?}", rig.session.error());
+    }
+    let shape = |e: &[cell_firmware_core::StepEdge]| {
+        e.iter().map(|e| (e.axes, e.negative)).collect::<Vec<_>>()
+    };
+    assert_eq!(shape(&rig.edges), shape(&plain));
+    assert_eq!(rig.mcu.endpoint().machine().positions(), {
+        let mut m = printing(EmulatorOptions::default(), &segments);
+        while !m.session.is_drained() {
+            m.round();
+        }
+        m.mcu.endpoint().machine().positions()
+    });
+    eprintln!(
+        "paused after {paused_at} edges at full speed; {} more on the way to rest, the last \
+         {:.3} s after the pause (σ rate {rho:.2}/s: at rest within {:.3} s)",
+        held - paused_at,
+        stop_ticks as f64 * 1e-6,
+        1.0 / rho
+    );
 }

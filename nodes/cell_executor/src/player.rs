@@ -29,8 +29,8 @@
 
 use std::collections::VecDeque;
 
-use polar_cell_msgs::StepSegment;
-use step_core::{PulseTrain, Segment, SegmentError, StepFault, StepOptions, MAX_AXES};
+use polar_cell_msgs::{StepSegment, UnplayableSegment};
+use step_core::{PulseTrain, Segment, StepFault, StepOptions, MAX_AXES};
 
 use crate::{q32_to_seconds, seconds_to_q32};
 
@@ -72,31 +72,8 @@ impl PlayerOptions {
 /// What goes wrong while queueing or playing, with the segment it concerns.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum PlayerError {
-    #[error("step segment of move {move_sequence} (line {source_line}): {source}")]
-    Segment {
-        move_sequence: u64,
-        source_line: u32,
-        source: SegmentError,
-    },
-    #[error(
-        "step segment of move {move_sequence} (line {source_line}) is timed for a \
-         {segment_hz} Hz timer; this machine's timer runs at {timer_hz} Hz"
-    )]
-    TimerMismatch {
-        move_sequence: u64,
-        source_line: u32,
-        segment_hz: f64,
-        timer_hz: f64,
-    },
-    #[error(
-        "step segment of move {move_sequence} (line {source_line}) lasts {duration_s} s: \
-         must be finite, ≥ 0 and under 2^31 timer ticks"
-    )]
-    BadDuration {
-        move_sequence: u64,
-        source_line: u32,
-        duration_s: f64,
-    },
+    #[error(transparent)]
+    Unplayable(#[from] UnplayableSegment),
     #[error("the machine is stopped (emergency stop or fault): reset it before queueing")]
     Stopped,
     #[error("the segment queue is full ({capacity} segments)")]
@@ -123,34 +100,12 @@ pub struct SegmentJob {
 impl SegmentJob {
     /// Validate and convert a planned segment for a machine with timer `timer_hz`.
     pub fn from_message(msg: &StepSegment, timer_hz: f64) -> Result<SegmentJob, PlayerError> {
-        let (move_sequence, source_line) = (msg.move_sequence, msg.source_line);
-        let segment = msg.compile().map_err(|source| PlayerError::Segment {
-            move_sequence,
-            source_line,
-            source,
-        })?;
-        // Step counts and ramps are in ticks of the segment's timer: they must be ours.
-        if segment.dominant_steps() > 0 && msg.timer_frequency_hz != timer_hz {
-            return Err(PlayerError::TimerMismatch {
-                move_sequence,
-                source_line,
-                segment_hz: msg.timer_frequency_hz,
-                timer_hz,
-            });
-        }
-        let ticks = msg.duration_s * timer_hz;
-        if !(ticks.is_finite() && ticks >= 0.0 && ticks < (1u64 << 31) as f64) {
-            return Err(PlayerError::BadDuration {
-                move_sequence,
-                source_line,
-                duration_s: msg.duration_s,
-            });
-        }
+        let (segment, _) = msg.playable(timer_hz)?;
         Ok(SegmentJob {
             segment,
             duration_q32: seconds_to_q32(msg.duration_s, timer_hz),
-            move_sequence,
-            source_line,
+            move_sequence: msg.move_sequence,
+            source_line: msg.source_line,
         })
     }
 }

@@ -8,36 +8,13 @@
 //! pulse).
 
 use cell_protocol::message::{QueuedSegment, ScrewRamp, SEGMENT_ENDS_AT_REST};
-use polar_cell_msgs::{Hold, ScrewCommand, StepSegment};
+use polar_cell_msgs::{Hold, ScrewCommand, StepSegment, UnplayableSegment};
 
 /// Why a planned message cannot go to the MCU.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum ScheduleError {
-    #[error("step segment of move {move_sequence} (line {source_line}): {source}")]
-    Segment {
-        move_sequence: u64,
-        source_line: u32,
-        source: step_core::SegmentError,
-    },
-    #[error(
-        "step segment of move {move_sequence} (line {source_line}) is timed for a \
-         {segment_hz} Hz timer; the MCU's runs at {timer_hz} Hz"
-    )]
-    TimerMismatch {
-        move_sequence: u64,
-        source_line: u32,
-        segment_hz: f64,
-        timer_hz: f64,
-    },
-    #[error(
-        "step segment of move {move_sequence} (line {source_line}) lasts {duration_s} s: \
-         must be finite, ≥ 0 and under 2^32 timer ticks"
-    )]
-    BadDuration {
-        move_sequence: u64,
-        source_line: u32,
-        duration_s: f64,
-    },
+    #[error(transparent)]
+    Unplayable(#[from] UnplayableSegment),
     #[error("screw command of line {source_line}: rpm {rpm} is not a finite number in 0..=2e6")]
     BadRpm { source_line: u32, rpm: f64 },
     #[error(
@@ -101,34 +78,13 @@ impl Schedule {
 
     /// The next segment, on the MCU's clock.
     pub fn segment(&mut self, seg: &StepSegment) -> Result<QueuedSegment, ScheduleError> {
-        let (move_sequence, source_line) = (seg.move_sequence, seg.source_line);
-        let segment = seg.compile().map_err(|source| ScheduleError::Segment {
-            move_sequence,
-            source_line,
-            source,
-        })?;
-        if segment.dominant_steps() > 0 && seg.timer_frequency_hz != self.timer_hz {
-            return Err(ScheduleError::TimerMismatch {
-                move_sequence,
-                source_line,
-                segment_hz: seg.timer_frequency_hz,
-                timer_hz: self.timer_hz,
-            });
-        }
-        let ticks = seg.duration_s * self.timer_hz;
-        if !(ticks.is_finite() && ticks >= 0.0 && ticks < u32::MAX as f64) {
-            return Err(ScheduleError::BadDuration {
-                move_sequence,
-                source_line,
-                duration_s: seg.duration_s,
-            });
-        }
+        let (segment, ticks) = seg.playable(self.timer_hz)?;
         let start = self.end_clock();
         self.plan_end_ticks += ticks;
         Ok(QueuedSegment {
             start_clock: start,
             duration_ticks: (self.end_clock() - start) as u32,
-            tag: move_sequence as u32,
+            tag: seg.move_sequence as u32,
             flags: if seg.ends_at_rest {
                 SEGMENT_ENDS_AT_REST
             } else {

@@ -406,6 +406,67 @@ impl StepSegment {
     pub fn compile(&self) -> Result<step_core::Segment, step_core::SegmentError> {
         step_core::Segment::from_fields(&self.step_fields()?)
     }
+
+    /// What a machine whose step timer runs at `timer_hz` plays: the compiled segment and its
+    /// length in (fractional) ticks. Step counts and ramps are in ticks of the segment's timer,
+    /// so it must be the machine's; the length must fit the step core (2³¹ ticks).
+    pub fn playable(&self, timer_hz: f64) -> Result<(step_core::Segment, f64), UnplayableSegment> {
+        let (move_sequence, source_line) = (self.move_sequence, self.source_line);
+        let segment = self
+            .compile()
+            .map_err(|source| UnplayableSegment::Invalid {
+                move_sequence,
+                source_line,
+                source,
+            })?;
+        if segment.dominant_steps() > 0 && self.timer_frequency_hz != timer_hz {
+            return Err(UnplayableSegment::TimerMismatch {
+                move_sequence,
+                source_line,
+                segment_hz: self.timer_frequency_hz,
+                timer_hz,
+            });
+        }
+        let ticks = self.duration_s * timer_hz;
+        if !(ticks.is_finite() && ticks >= 0.0 && ticks < (1u64 << 31) as f64) {
+            return Err(UnplayableSegment::BadDuration {
+                move_sequence,
+                source_line,
+                duration_s: self.duration_s,
+            });
+        }
+        Ok((segment, ticks))
+    }
+}
+
+/// Why a machine cannot play a `StepSegment`, with the move and line it came from.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum UnplayableSegment {
+    #[error("step segment of move {move_sequence} (line {source_line}): {source}")]
+    Invalid {
+        move_sequence: u64,
+        source_line: u32,
+        source: step_core::SegmentError,
+    },
+    #[error(
+        "step segment of move {move_sequence} (line {source_line}) is timed for a \
+         {segment_hz} Hz timer; this machine's timer runs at {timer_hz} Hz"
+    )]
+    TimerMismatch {
+        move_sequence: u64,
+        source_line: u32,
+        segment_hz: f64,
+        timer_hz: f64,
+    },
+    #[error(
+        "step segment of move {move_sequence} (line {source_line}) lasts {duration_s} s: \
+         must be finite, ≥ 0 and under 2^31 timer ticks"
+    )]
+    BadDuration {
+        move_sequence: u64,
+        source_line: u32,
+        duration_s: f64,
+    },
 }
 
 /// How rpm runs between two consecutive `ScrewCommand`s: what the screw driver publishes and

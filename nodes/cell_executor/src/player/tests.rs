@@ -315,12 +315,12 @@ fn segments_for_another_machine_are_refused_with_their_line() {
     };
     assert_eq!(
         SegmentJob::from_message(&msg, 1e6),
-        Err(PlayerError::TimerMismatch {
+        Err(PlayerError::Unplayable(UnplayableSegment::TimerMismatch {
             move_sequence: 4,
             source_line: 40,
             segment_hz: 2e6,
             timer_hz: 1e6
-        })
+        }))
     );
     let job = SegmentJob::from_message(&msg, 2e6).unwrap();
     assert_eq!(job.duration_q32, 1000 * Q32);
@@ -330,10 +330,10 @@ fn segments_for_another_machine_are_refused_with_their_line() {
     };
     assert!(matches!(
         SegmentJob::from_message(&bad, 2e6),
-        Err(PlayerError::BadDuration {
+        Err(PlayerError::Unplayable(UnplayableSegment::BadDuration {
             source_line: 40,
             ..
-        })
+        }))
     ));
     let bad = StepSegment {
         step_counts: vec![10, 0],

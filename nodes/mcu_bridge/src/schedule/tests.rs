@@ -44,14 +44,14 @@ fn a_segment_for_another_timer_or_of_no_duration_is_refused() {
     seg.timer_frequency_hz = 2e6;
     assert!(matches!(
         schedule.segment(&seg),
-        Err(ScheduleError::TimerMismatch { move_sequence: 4, segment_hz, .. }) if segment_hz == 2e6
+        Err(ScheduleError::Unplayable(UnplayableSegment::TimerMismatch { move_sequence: 4, segment_hz, .. })) if segment_hz == 2e6
     ));
     assert!(matches!(
         schedule.segment(&pause(f64::NAN, 5)),
-        Err(ScheduleError::BadDuration {
+        Err(ScheduleError::Unplayable(UnplayableSegment::BadDuration {
             move_sequence: 5,
             ..
-        })
+        }))
     ));
 }
 

@@ -3,7 +3,7 @@
 //! State follows Marlin: `G90`/`G91` set every axis including E absolute/relative, `M82`/`M83`
 //! then override E alone; `G92` redefines the logical position without motion (its offsets are
 //! kept, so published targets are always in the machine frame); `G28` homes the named axes (all
-//! when none are named) and clears their offsets. Arcs (`G2`/`G3`, XY plane, `I`/`J` or `R`) are
+//! when none are named; X or Y homes both, as a polar machine must) and clears their offsets. Arcs (`G2`/`G3`, XY plane, `I`/`J` or `R`) are
 //! split into chords whose sagitta stays within the chord tolerance.
 //!
 //! Commands with no effect on motion or material are ignored on purpose (temperatures, fans,
@@ -346,6 +346,12 @@ impl Interpreter {
                 let named: Vec<usize> = (0..3).filter(|&i| p.has(b"XYZ"[i])).collect();
                 let axes: Vec<usize> = if named.is_empty() {
                     vec![0, 1, 2]
+                } else if named.contains(&0) || named.contains(&1) {
+                    // Polar practice (Klipper's polar kinematics): X and Y are one mechanism
+                    // (bed angle and arm radius), so homing either homes both.
+                    let mut both = vec![0, 1];
+                    both.extend(named.iter().filter(|&&a| a == 2));
+                    both
                 } else {
                     named
                 };

@@ -61,14 +61,30 @@ fn m82_m83_retraction_and_g92() {
 fn home_dwell_and_tool() {
     let m = parse("G1 X5 Y5 Z5\nG92 X0\nG28 X\nG4 P250\nG4 S2\nT1\nG1 X1\n");
     assert_eq!(m[2].kind, GcodeMove::KIND_HOME);
-    assert_eq!(m[2].axes, GcodeMove::AXIS_X);
-    assert_eq!((m[2].x_m, m[2].y_m), (0.0, 0.005));
+    // Polar practice: `G28 X` homes the whole XY mechanism (bed angle and arm), Z stays.
+    assert_eq!(m[2].axes, GcodeMove::AXIS_X | GcodeMove::AXIS_Y);
+    assert_eq!((m[2].x_m, m[2].y_m, m[2].z_m), (0.0, 0.0, 0.005));
     assert_eq!(m[3].kind, GcodeMove::KIND_DWELL);
     assert_eq!(m[3].dwell_s, 0.25);
     assert_eq!(m[4].dwell_s, 2.0);
     assert_eq!(m[5].tool, 1);
     // Homing cleared the X offset of G92 X0.
     assert!(close(m[5].x_m, 0.001, 1e-15));
+}
+
+#[test]
+fn homing_follows_polar_practice() {
+    // Y alone homes X too; Z alone only Z; nothing named homes everything.
+    let m = parse("G1 X5 Y6 Z7\nG28 Y\nG1 X5 Y6 Z7\nG28 Z\nG1 X5 Y6 Z7\nG28\n");
+    assert_eq!(m[1].axes, GcodeMove::AXIS_X | GcodeMove::AXIS_Y);
+    assert_eq!((m[1].x_m, m[1].y_m, m[1].z_m), (0.0, 0.0, 0.007));
+    assert_eq!(m[3].axes, GcodeMove::AXIS_Z);
+    assert_eq!((m[3].x_m, m[3].y_m, m[3].z_m), (0.005, 0.006, 0.0));
+    assert_eq!(
+        m[5].axes,
+        GcodeMove::AXIS_X | GcodeMove::AXIS_Y | GcodeMove::AXIS_Z
+    );
+    assert_eq!((m[5].x_m, m[5].y_m, m[5].z_m), (0.0, 0.0, 0.0));
 }
 
 #[test]

@@ -351,6 +351,12 @@ pub async fn run(
                 }
             }
         }
+        // Once cancelled or stopped, what is still in flight for the dropped plan is dropped
+        // too: a stopped machine would refuse it, and that refusal is no fault of the print.
+        if cancelled || executor.state().state == PlayerState::Stopped {
+            pending_steps.clear();
+            pending_screw.clear();
+        }
         // Queue what the core has room for; the rest waits (the credit bounds how much).
         let (mut free_steps, free_screw) = executor.free_slots();
         for _ in 0..free_screw.min(pending_screw.len()) {
@@ -430,11 +436,6 @@ pub async fn run(
         let state = executor.state();
         if first_motion_s.is_none() && state.state == PlayerState::Running {
             first_motion_s = Some(state.machine_time_s);
-        }
-        // Once cancelled, what is still in flight for the dropped plan is dropped too.
-        if cancelled {
-            pending_steps.clear();
-            pending_screw.clear();
         }
         // Credit: as far as the producers may plan; repeated so a late joiner learns it.
         let credit_due = now - last_credit.0 >= Duration::from_millis(100)

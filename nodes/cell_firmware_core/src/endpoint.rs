@@ -66,12 +66,12 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
                 self.link.receive_ack_only(&frame, now);
                 continue;
             }
-            let payload = match self.link.receive(&frame, now) {
-                Received::Message(p) | Received::Unsequenced(p) => p,
+            // The link delivers the frame's own payload, decoded above.
+            match self.link.receive(&frame, now) {
+                Received::Message(_) | Received::Unsequenced(_) => {}
                 Received::Nothing | Received::PeerRestarted { .. } => continue,
-            };
-            let decoded = HostMessage::decode(payload);
-            let reply = match decoded {
+            }
+            let reply = match message {
                 Ok(HostMessage::EmergencyStop) => None,
                 Ok(HostMessage::QueryCounters) => Some(McuMessage::Counters(self.counters())),
                 Ok(m) => self.machine.handle(&m, now),

@@ -344,12 +344,18 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         self.schedule_end = Some(queued.start_clock + queued.duration_ticks as u64);
     }
 
-    fn clear_schedule(&mut self) {
+    /// Drop everything scheduled and stop the screw: what a fault and a drop have in common.
+    fn drop_schedule(&mut self) {
         self.playing = None;
         self.queue.clear();
         self.schedule_end = None;
         self.screw.stop();
         self.ramp = Ramp::Steady;
+    }
+
+    /// Drop the schedule and be ready for a new one at full feed.
+    fn clear_schedule(&mut self) {
+        self.drop_schedule();
         self.sigma_q32 = ONE;
         self.pin_held_closed = false;
     }
@@ -363,11 +369,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 tag,
             });
         }
-        self.playing = None;
-        self.queue.clear();
-        self.schedule_end = None;
-        self.screw.stop();
-        self.ramp = Ramp::Steady;
+        self.drop_schedule();
     }
 
     /// Generate everything up to MCU tick `until`, handing each step edge to `sink`.

@@ -97,6 +97,14 @@ fn transmit(from: &mut Side, to: &mut Side, now: u64, faults: Faults, rng: &mut 
     }
 }
 
+/// One round at `now`: each side sends what it has, then each takes what arrived.
+fn round(a: &mut Side, b: &mut Side, now: u64, faults: Faults, rng: &mut Rng) {
+    transmit(a, b, now, faults, rng);
+    transmit(b, a, now, faults, rng);
+    a.receive_all(now);
+    b.receive_all(now);
+}
+
 fn message(i: u32) -> Vec<u8> {
     let mut p = Vec::from(i.to_le_bytes());
     p.resize(4 + (i as usize % 40), i as u8);
@@ -120,10 +128,7 @@ fn exchange(count: u32, window: usize, faults: Faults, seed: u64) -> (Side, Side
             b.link.send(&message(1_000_000 + sent_b)).unwrap();
             sent_b += 1;
         }
-        transmit(&mut a, &mut b, now, faults, &mut rng);
-        transmit(&mut b, &mut a, now, faults, &mut rng);
-        a.receive_all(now);
-        b.receive_all(now);
+        round(&mut a, &mut b, now, faults, &mut rng);
         if a.delivered.len() == count as usize
             && b.delivered.len() == count as usize
             && a.link.unacknowledged() == 0
@@ -179,10 +184,7 @@ fn a_lost_frame_is_naked_and_resent() {
     let mut b = Side::new(2, 8);
     let mut rng = Rng(1);
     for now in 0..3 {
-        transmit(&mut a, &mut b, now, CLEAN, &mut rng);
-        transmit(&mut b, &mut a, now, CLEAN, &mut rng);
-        a.receive_all(now);
-        b.receive_all(now);
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
     }
     assert!(a.link.is_synced() && b.link.is_synced());
     for i in 0..4 {
@@ -226,10 +228,7 @@ fn a_lost_last_frame_is_resent_after_the_timeout() {
     let mut b = Side::new(2, 8);
     let mut rng = Rng(1);
     for now in 0..3 {
-        transmit(&mut a, &mut b, now, CLEAN, &mut rng);
-        transmit(&mut b, &mut a, now, CLEAN, &mut rng);
-        a.receive_all(now);
-        b.receive_all(now);
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
     }
     a.link.send(b"only").unwrap();
     let mut out = [0; MAX_WIRE_FRAME];
@@ -270,10 +269,7 @@ fn a_restarted_peer_is_reported_and_its_lost_frames_counted() {
     // b restarts: a new link with a new nonce.
     let mut b = Side::new(0xB0B2, 8);
     for now in 501..510 {
-        transmit(&mut a, &mut b, now, CLEAN, &mut rng);
-        transmit(&mut b, &mut a, now, CLEAN, &mut rng);
-        a.receive_all(now);
-        b.receive_all(now);
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
     }
     assert_eq!(a.restarts, [3]);
     assert_eq!(a.link.counters().peer_restarts, 1);
@@ -282,10 +278,7 @@ fn a_restarted_peer_is_reported_and_its_lost_frames_counted() {
     a.link.send(b"after").unwrap();
     b.link.send(b"back").unwrap();
     for now in 510..515 {
-        transmit(&mut a, &mut b, now, CLEAN, &mut rng);
-        transmit(&mut b, &mut a, now, CLEAN, &mut rng);
-        a.receive_all(now);
-        b.receive_all(now);
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
     }
     assert_eq!(b.delivered, [b"after".to_vec()]);
     assert_eq!(a.delivered.last(), Some(&b"back".to_vec()));
@@ -308,10 +301,7 @@ fn a_repeated_sync_request_does_not_reset_the_session() {
     a.link.send(b"still in step").unwrap();
     let mut rng = Rng(5);
     for now in 100..105 {
-        transmit(&mut a, &mut b, now, CLEAN, &mut rng);
-        transmit(&mut b, &mut a, now, CLEAN, &mut rng);
-        a.receive_all(now);
-        b.receive_all(now);
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
     }
     assert_eq!(b.delivered.last(), Some(&b"still in step".to_vec()));
     assert_eq!(b.delivered.len(), 6);

@@ -145,7 +145,7 @@ enum Stop {
 /// second an emergency stop) and the executor's status.
 pub struct JobIo {
     pub interrupts: tokio::sync::watch::Receiver<u32>,
-    pub status: tokio::sync::watch::Sender<cell_executor::node::Status>,
+    pub status: tokio::sync::watch::Sender<cell_machine::node::Status>,
     /// The pre-flight's machine time of the plan, once known.
     pub planned: tokio::sync::watch::Sender<Option<f64>>,
 }
@@ -185,7 +185,7 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
             count.send_modify(|n| *n += 1);
         }
     });
-    let (status, _) = tokio::sync::watch::channel(cell_executor::node::Status::default());
+    let (status, _) = tokio::sync::watch::channel(cell_machine::node::Status::default());
     let (planned, _) = tokio::sync::watch::channel(None);
     let io = JobIo {
         interrupts,
@@ -544,7 +544,7 @@ fn clock(seconds: f64) -> String {
     }
 }
 
-fn execution_message(s: &cell_executor::node::Status, machine_time_s: Option<f64>) -> String {
+fn execution_message(s: &cell_machine::node::Status, machine_time_s: Option<f64>) -> String {
     let state = s.state_label().replace('_', " ");
     let line = s
         .current
@@ -561,7 +561,7 @@ fn execution_message(s: &cell_executor::node::Status, machine_time_s: Option<f64
 
 /// Resolves when the executor stops the machine: a fault, or an emergency stop from outside.
 async fn machine_failed(
-    mut status: tokio::sync::watch::Receiver<cell_executor::node::Status>,
+    mut status: tokio::sync::watch::Receiver<cell_machine::node::Status>,
 ) -> anyhow::Error {
     loop {
         {
@@ -581,7 +581,7 @@ async fn machine_failed(
 
 /// Wait until the executor has executed the whole plan.
 async fn wait_executed(
-    mut status: tokio::sync::watch::Receiver<cell_executor::node::Status>,
+    mut status: tokio::sync::watch::Receiver<cell_machine::node::Status>,
 ) -> anyhow::Result<()> {
     match status.wait_for(|s| s.done).await {
         Ok(_) => Ok(()),
@@ -592,7 +592,7 @@ async fn wait_executed(
 /// The progress bar from the executor's status, at most ten times a second; never ends.
 async fn show_execution(
     bar: &ProgressBar,
-    mut status: tokio::sync::watch::Receiver<cell_executor::node::Status>,
+    mut status: tokio::sync::watch::Receiver<cell_machine::node::Status>,
     machine_time_s: Option<f64>,
 ) {
     while status.changed().await.is_ok() {
@@ -607,13 +607,13 @@ async fn show_execution(
 /// Ctrl-C while executing: cancel (stop on the path within the acceleration limits, pin
 /// closed, screw stopped); a second Ctrl-C during that stop: emergency stop. Says how it ended.
 async fn stop_machine(
-    commands: &tokio::sync::mpsc::UnboundedSender<cell_executor::node::Command>,
-    status: &tokio::sync::watch::Receiver<cell_executor::node::Status>,
+    commands: &tokio::sync::mpsc::UnboundedSender<cell_machine::node::Command>,
+    status: &tokio::sync::watch::Receiver<cell_machine::node::Status>,
     bar: &ProgressBar,
     interrupts: &tokio::sync::watch::Receiver<u32>,
 ) -> (bool, String) {
-    use cell_executor::node::Command;
     use cell_executor::PlayerState;
+    use cell_machine::node::Command;
     let _ = commands.send(Command::Cancel);
     bar.println("cancelling: stopping on the path (Ctrl-C again: emergency stop)");
     let mut watch = status.clone();

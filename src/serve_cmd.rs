@@ -54,7 +54,7 @@ struct Running {
     goal_id: GoalId,
     accepted: GoalInfo,
     interrupts: tokio::sync::watch::Sender<u32>,
-    status: tokio::sync::watch::Receiver<cell_executor::node::Status>,
+    status: tokio::sync::watch::Receiver<cell_machine::node::Status>,
     /// The pre-flight's machine time, once the job has run it.
     planned: tokio::sync::watch::Receiver<Option<f64>>,
     cancelling: bool,
@@ -164,7 +164,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
             };
             let (interrupts, interrupts_rx) = tokio::sync::watch::channel(0u32);
             let (status_tx, status) =
-                tokio::sync::watch::channel(cell_executor::node::Status::default());
+                tokio::sync::watch::channel(cell_machine::node::Status::default());
             let (planned_tx, planned) = tokio::sync::watch::channel(None);
             let job_options = PrintOptions {
                 bag: bag.clone(),
@@ -294,7 +294,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
     }
 }
 
-fn feedback(s: &cell_executor::node::Status, planned_s: Option<f64>) -> PrintFeedback {
+fn feedback(s: &cell_machine::node::Status, planned_s: Option<f64>) -> PrintFeedback {
     let (move_sequence, line) = s.current.unwrap_or((0, 0));
     PrintFeedback {
         line,
@@ -311,7 +311,7 @@ fn feedback(s: &cell_executor::node::Status, planned_s: Option<f64>) -> PrintFee
 /// The goal's end state and result from the job's report.
 fn outcome(
     report: anyhow::Result<JobReport>,
-    status: &cell_executor::node::Status,
+    status: &cell_machine::node::Status,
     bag: String,
 ) -> (GoalStatusEnum, PrintResult) {
     let mut result = PrintResult {

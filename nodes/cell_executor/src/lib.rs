@@ -9,7 +9,6 @@
 //! * [`player`] — the segment queue and the pulse clock: position, velocity, underrun, e-stop;
 //! * [`screw`] — screw commands on the plan timeline, executed as time passes;
 //! * [`session`] — both joined on one plan clock: messages in, the executed state out;
-//! * [`tf`] — the URDF's joints as transforms, for `/tf` and `/tf_static`.
 //!
 //! Pure: no DDS, no clock of its own — the caller says what time it is. The DDS node
 //! ([`node`], feature `node`) feeds it messages and the monotonic clock.
@@ -19,7 +18,6 @@ pub mod node;
 pub mod player;
 pub mod screw;
 pub mod session;
-pub mod tf;
 
 /// Seconds as Q32 timer ticks of a `timer_hz` timer (rounded; ≥ 0 assumed).
 pub(crate) fn seconds_to_q32(seconds: f64, timer_hz: f64) -> u64 {
@@ -31,6 +29,7 @@ pub(crate) fn q32_to_seconds(q32: u64, timer_hz: f64) -> f64 {
     q32 as f64 / step_core::ONE_TICK_Q32 as f64 / timer_hz
 }
 
+pub use cell_machine::MachineState;
 pub use player::{Edge, HoldReason, Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
 pub use screw::ScrewTrack;
-pub use session::{ExecError, Executor, ExecutorOptions, MachineState};
+pub use session::{ExecError, Executor, ExecutorOptions};

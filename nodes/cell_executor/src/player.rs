@@ -121,29 +121,7 @@ pub struct Edge {
     pub negative: u8,
 }
 
-/// Where the machine is in its life.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum PlayerState {
-    /// Nothing to play: not started, finished, or starved (see [`Player::underruns`]).
-    Idle,
-    /// Playing segments (σ may be below 1 while a hold or resume is under way).
-    Running,
-    /// Held on the path: σ = 0 with segments still to play.
-    Held,
-    /// Stopped at once (emergency stop or a step fault): nothing plays until [`Player::reset`].
-    Stopped,
-}
-
-/// Why the feed is being held.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum HoldReason {
-    /// Asked for (pause); lasts until [`Player::resume`].
-    Pause,
-    /// Asked for, and what is queued is dropped once at rest.
-    Cancel,
-    /// The queued plan ran short; resumes by itself when enough has arrived.
-    Underrun,
-}
+pub use cell_machine::{HoldReason, PlayerState};
 
 #[derive(Clone, Debug)]
 struct Active {

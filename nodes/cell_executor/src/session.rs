@@ -9,9 +9,10 @@
 //! The caller's clock is nanoseconds of a monotonic clock (`on_tick(now_ns)`); the first tick
 //! is machine time 0.
 
+use cell_machine::{Machine, MachineState};
 use polar_cell_msgs::{Hold, ScrewCommand, StepSegment};
 
-use crate::player::{HoldReason, Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
+use crate::player::{Player, PlayerError, PlayerOptions, PlayerState, SegmentJob};
 use crate::screw::{ScrewError, ScrewStep, ScrewTrack};
 
 const Q32: u128 = step_core::ONE_TICK_Q32 as u128;
@@ -49,26 +50,6 @@ pub enum ExecError {
     TooManyEarly { count: usize, capacity: usize },
     #[error("the machine clock went back: {now_ns} ns after {last_ns} ns")]
     ClockWentBack { now_ns: i64, last_ns: i64 },
-}
-
-/// The executed state at the last tick.
-#[derive(Clone, Debug, PartialEq)]
-pub struct MachineState {
-    /// `bed_theta` (rad), `arm_r` (m), `z` (m), `screw` (rad): the URDF's four joints.
-    pub positions: [f64; 4],
-    /// Their velocities (rad/s, m/s, m/s, rad/s).
-    pub velocities: [f64; 4],
-    pub screw_rpm: f64,
-    pub pin_open: bool,
-    pub state: PlayerState,
-    pub hold: Option<HoldReason>,
-    /// Feed scale σ.
-    pub feed: f64,
-    /// Machine time since the first tick (s) and plan time executed (s).
-    pub machine_time_s: f64,
-    pub plan_time_s: f64,
-    /// The move and G-code line playing now.
-    pub current: Option<(u64, u32)>,
 }
 
 /// Messages in, executed state out.
@@ -245,6 +226,61 @@ impl Executor {
             machine_time_s: (self.last_ns - self.origin_ns.unwrap_or(self.last_ns)) as f64 * 1e-9,
             plan_time_s: crate::q32_to_seconds(self.player.plan_time_q32(), self.timer_hz),
             current: self.player.current(),
+            measured_ns: None,
         }
+    }
+}
+
+/// The virtual executor as the cell's machine.
+impl Machine for Executor {
+    type Error = ExecError;
+
+    fn on_segment(&mut self, msg: &StepSegment) -> Result<(), ExecError> {
+        Executor::on_segment(self, msg)
+    }
+    fn on_screw(&mut self, msg: &ScrewCommand) -> Result<(), ExecError> {
+        Executor::on_screw(self, msg)
+    }
+    fn free_slots(&self) -> (usize, usize) {
+        Executor::free_slots(self)
+    }
+    fn finish_input(&mut self) {
+        Executor::finish_input(self)
+    }
+    fn on_tick(&mut self, now_ns: i64) -> Result<(), ExecError> {
+        Executor::on_tick(self, now_ns)
+    }
+    fn state(&self) -> MachineState {
+        Executor::state(self)
+    }
+    fn epoch_ns(&self) -> Option<i64> {
+        Executor::epoch_ns(self)
+    }
+    fn is_drained(&self) -> bool {
+        Executor::is_drained(self)
+    }
+    fn plan_ahead_s(&self) -> f64 {
+        Executor::plan_ahead_s(self)
+    }
+    fn completed(&self) -> (u64, Option<(u64, u32)>) {
+        self.player.completed()
+    }
+    fn underruns(&self) -> u64 {
+        self.player.underruns()
+    }
+    fn pause(&mut self) {
+        Executor::pause(self)
+    }
+    fn resume(&mut self) {
+        Executor::resume(self)
+    }
+    fn cancel(&mut self) {
+        Executor::cancel(self)
+    }
+    fn emergency_stop(&mut self) {
+        Executor::emergency_stop(self)
+    }
+    fn reset(&mut self) {
+        Executor::reset(self)
     }
 }

@@ -10,6 +10,11 @@
 //! clock, plus half a tick, is beyond `P` — at σ = 1 exactly the tick nearest `P`, so the
 //! edges equal the host decoder's to the tick.
 //!
+//! When the queue runs dry at the end of a segment that ends at rest (the host had nothing
+//! more yet), the plan clock stands at that end until the next segment arrives: the schedule
+//! continues there, and plan time stays the plan's time however long the gap. Only a drop,
+//! a reset or a fault ends a schedule; a new one may start at any clock not yet passed.
+//!
 //! # Running ahead
 //!
 //! [`Machine::advance`] generates everything up to an MCU clock and hands each step edge to a
@@ -382,7 +387,13 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             }
             let at_rest =
                 self.sigma_q32 == 0 && matches!(self.ramp, Ramp::Steady | Ramp::ResumeWait { .. });
-            if self.sigma_q32 == ONE && self.ramp == Ramp::Steady {
+            if self.waiting_in_schedule() {
+                // Ran dry at rest: the plan clock stands where the schedule ends, so the
+                // host's next segment starts there whenever it comes (plan time = the
+                // plan's time, as the virtual executor keeps it).
+                self.clock = until.min(self.watchdog_deadline());
+                self.step_ramp();
+            } else if self.sigma_q32 == ONE && self.ramp == Ramp::Steady {
                 let next = self.next_event_tick().min(until);
                 self.plan_q32 += ((next - self.clock) as u128) << 32;
                 self.clock = next;
@@ -407,6 +418,11 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             self.check_watchdog();
             self.emit_due(sink);
         }
+    }
+
+    /// Idle inside a schedule: the last segment ended at rest and nothing follows yet.
+    fn waiting_in_schedule(&self) -> bool {
+        self.playing.is_none() && self.queue.is_empty() && self.schedule_end.is_some()
     }
 
     /// At σ = 1: the next MCU tick at which something happens (always after `clock`).
@@ -517,8 +533,8 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                     let finished = self.playing.take().expect("playing").queued;
                     self.done_tag = finished.tag;
                     if self.queue.is_empty() {
-                        self.schedule_end = None;
                         if finished.flags & SEGMENT_ENDS_AT_REST == 0 {
+                            self.schedule_end = None;
                             self.counters.underruns += 1;
                             return self.latch(FaultCode::Underrun, finished.tag);
                         }

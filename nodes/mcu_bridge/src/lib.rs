@@ -3,14 +3,17 @@
 //! * [`host`] — the host's protocol endpoint: typed messages over the link;
 //! * [`clock`] — what the MCU clock reads at a host instant, estimated from clock queries;
 //! * [`schedule`] — the plan's step segments and screw commands on the MCU's plan clock;
-//! * [`session`] — one MCU's session: start, identify, clocks, the plan fed within the horizon.
+//! * [`session`] — one MCU's session: start, identify, clocks, the plan fed within the horizon;
+//! * [`machine`] — an MCU as the cell's machine: what the node loop drives.
 
 pub mod clock;
 pub mod host;
+pub mod machine;
 pub mod schedule;
 pub mod session;
 
 pub use clock::{ClockFit, ClockSync};
 pub use host::{FromMcu, HostEndpoint};
+pub use machine::{McuLink, McuMachine, McuMachineError};
 pub use schedule::{Schedule, ScheduleError};
 pub use session::{McuSession, SessionError, SessionOptions};

@@ -158,6 +158,10 @@ impl McuSession {
         }
     }
 
+    pub fn options(&self) -> &SessionOptions {
+        &self.options
+    }
+
     pub fn identity(&self) -> Option<&Identity> {
         self.identity.as_ref()
     }
@@ -212,14 +216,18 @@ impl McuSession {
         let (state, _) = self.state?;
         let mcu_now = self.clock.mcu_at(now_us as i64 * 1000)?;
         let lag = state.clock.saturating_sub(state.plan_clock);
-        if state.mode == Mode::Held || state.mode == Mode::Fault {
+        // Held, faulted, or idle inside the schedule (ran dry at rest, waiting for the next
+        // segment): the plan clock stands.
+        let waiting = state.mode == Mode::Idle && self.last_sent_tag.is_some();
+        if state.mode == Mode::Held || state.mode == Mode::Fault || waiting {
             return Some(state.plan_clock);
         }
         Some(mcu_now.saturating_sub(lag))
     }
 
     /// A planned segment: converted now, sent when the horizon and the MCU's queue allow.
-    pub fn on_segment(&mut self, seg: &StepSegment, now_us: u64) -> Result<(), SessionError> {
+    /// Where it ends on the MCU's plan clock.
+    pub fn on_segment(&mut self, seg: &StepSegment, now_us: u64) -> Result<u64, SessionError> {
         let hz = self.timer_hz();
         if self.schedule.is_none() {
             let anchor =
@@ -227,8 +235,51 @@ impl McuSession {
             self.schedule = Some(Schedule::new(hz, self.options.screw_hold, anchor));
         }
         let schedule = self.schedule.as_mut().expect("anchored above");
-        self.segments.push_back(schedule.segment(seg)?);
-        Ok(())
+        let queued = schedule.segment(seg)?;
+        self.segments.push_back(queued);
+        Ok(queued.start_clock + queued.duration_ticks as u64)
+    }
+
+    /// The plan's input ended: what the screw's hold still owes goes out.
+    pub fn finish_input(&mut self) {
+        if let Some(ramp) = self.schedule.as_mut().and_then(Schedule::finish_screw) {
+            self.screw.push_back(ramp);
+        }
+    }
+
+    /// MCU plan clock where the segments converted so far end.
+    pub fn schedule_end_clock(&self) -> Option<u64> {
+        self.schedule.as_ref().map(Schedule::end_clock)
+    }
+
+    /// Plan time (s) at MCU plan clock `clock`, once the schedule is anchored.
+    pub fn plan_s_at(&self, clock: u64) -> Option<f64> {
+        self.schedule.as_ref().map(|s| s.plan_s_at(clock))
+    }
+
+    /// Forget the plan here and on the MCU (at rest: a cancel after its hold). The next
+    /// segment starts a new schedule.
+    pub fn drop_plan(&mut self) -> Result<(), LinkError> {
+        self.forget_plan();
+        self.endpoint.send(&HostMessage::DropQueue)
+    }
+
+    /// Leave a fault or an emergency stop: the MCU clears it and its queues, and so does the
+    /// host; the next segment starts a new schedule.
+    pub fn reset(&mut self) -> Result<(), LinkError> {
+        self.forget_plan();
+        self.error = None;
+        self.emergency = false;
+        self.endpoint.send(&HostMessage::Reset)
+    }
+
+    fn forget_plan(&mut self) {
+        self.segments.clear();
+        self.screw.clear();
+        self.schedule = None;
+        self.on_mcu.clear();
+        self.last_sent_tag = None;
+        self.last_sent_start = None;
     }
 
     /// A screw command in force from plan time `plan_s` (needs the first segment's anchor).
@@ -280,15 +331,25 @@ impl McuSession {
             .fold(f64::INFINITY, f64::min)
     }
 
-    fn sigma_rate_q32(&self) -> u32 {
+    /// The rate (per second) at which a hold or resume changes σ now: the slowest that
+    /// every segment on the MCU allows.
+    pub fn sigma_rate_per_s(&self) -> f64 {
         let rho = self
             .on_mcu
             .iter()
             .map(|&(_, bound)| bound)
             .fold(f64::INFINITY, f64::min);
         // Nothing moving: stop (and start) within a millisecond.
-        let rho = if rho.is_finite() { rho } else { 1000.0 };
-        (rho / self.timer_hz() * step_core::ONE_TICK_Q32 as f64).clamp(1.0, u32::MAX as f64) as u32
+        if rho.is_finite() {
+            rho
+        } else {
+            1000.0
+        }
+    }
+
+    fn sigma_rate_q32(&self) -> u32 {
+        (self.sigma_rate_per_s() / self.timer_hz() * step_core::ONE_TICK_Q32 as f64)
+            .clamp(1.0, u32::MAX as f64) as u32
     }
 
     /// Feed hold: the MCU slows along the path to rest, every joint within its limits.
@@ -315,7 +376,8 @@ impl McuSession {
         self.screw.clear();
     }
 
-    fn timer_hz(&self) -> f64 {
+    /// The MCU's timer frequency (Hz; 1 MHz until it identified itself).
+    pub fn timer_hz(&self) -> f64 {
         self.identity.map_or(1e6, |i| i.timer_hz as f64)
     }
 
@@ -412,6 +474,8 @@ impl McuSession {
                 host_timeout_ticks: ticks(self.options.host_timeout_s, hz),
                 state_period_ticks: ticks(self.options.state_period_s, hz),
             })?;
+            // A clean slate: no fault and no schedule left from an earlier host session.
+            self.endpoint.send(&HostMessage::Reset)?;
             self.configured = true;
         }
         if now_us >= self.next_query_us && self.endpoint.can_send() {

@@ -143,6 +143,41 @@ fn running_dry_while_moving_is_an_underrun_but_not_at_rest() {
     assert_eq!((m.fault(), m.mode()), (FaultCode::None, Mode::Idle));
 }
 
+/// Run dry at rest, the plan clock waits at the schedule's end: the next segment, however
+/// late, starts there and plays at once, on the plan's time.
+#[test]
+fn running_dry_at_rest_stands_the_plan_clock_at_the_schedules_end() {
+    let mut m = machine();
+    queue(&mut m, cruise(100, 10, 100, SEGMENT_ENDS_AT_REST, 1));
+    run(&mut m, 50_000);
+    assert_eq!((m.mode(), m.plan_clock()), (Mode::Idle, 1100));
+    assert_eq!(m.state(m.clock()).plan_clock, 1100);
+    queue(&mut m, cruise(1100, 4, 100, SEGMENT_ENDS_AT_REST, 2));
+    let edges = run(&mut m, 60_000);
+    let ticks: Vec<u64> = edges.iter().map(|e| e.clock).collect();
+    // 48,900 ticks of waiting, then the pulses 100 ticks apart from the plan's 1100.
+    assert_eq!(ticks, [50_100, 50_200, 50_300, 50_400]);
+    assert_eq!((m.fault(), m.positions()[0]), (FaultCode::None, 14));
+    assert_eq!(m.plan_clock(), 1500);
+
+    // The schedule goes on from its end, not from anywhere.
+    queue(&mut m, cruise(70_000, 4, 100, SEGMENT_ENDS_AT_REST, 3));
+    assert_eq!(m.fault(), FaultCode::BadSegment);
+
+    // A drop ends the schedule: the plan clock runs again and a new one starts anywhere ahead.
+    let mut m = machine();
+    queue(&mut m, cruise(0, 10, 100, SEGMENT_ENDS_AT_REST, 1));
+    run(&mut m, 2000);
+    m.handle(&HostMessage::DropQueue, m.clock());
+    run(&mut m, 3000);
+    // It stood from 1000 to 2000 (waiting), then ran with the clock.
+    assert_eq!(m.plan_clock(), 2000);
+    queue(&mut m, cruise(2500, 2, 100, SEGMENT_ENDS_AT_REST, 2));
+    let edges = run(&mut m, 4000);
+    assert_eq!(edges.len(), 2);
+    assert_eq!(m.fault(), FaultCode::None);
+}
+
 #[test]
 fn a_silent_host_faults_after_its_timeout() {
     let mut m = machine();

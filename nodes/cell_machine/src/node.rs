@@ -1,0 +1,688 @@
+//! The machine node loop: one ROS face for every machine backend.
+//!
+//! In: `/polar/steps` and `/screw/command` (the plan, ahead of time), `/gcode/progress` (to
+//! learn that the plan is complete). Out, from *execution* and not from the plan:
+//! `/joint_states` (the four joints of `urdf/polar_cell.urdf`) and `/tf` at `rate_hz` of machine
+//! time, `/tf_static` and `/robot_description` (transient local) once, `/diagnostics` every
+//! second, and `/cell/plan_credit`: how far ahead of execution the producers may plan
+//! (`horizon_s`), which bounds the whole pipeline's plan-ahead in time. Services (std_srvs
+//! Trigger): `/cell/pause`, `/cell/resume`, `/cell/cancel`, `/cell/estop`, `/cell/reset`.
+//!
+//! The clock is the process's monotonic clock times `speed` (a `speed`× faster simulation of
+//! the same timeline); stamps are the wall clock at start plus machine time, so at speed 1
+//! they are the wall clock. The [`Machine`] decides everything; this loop only feeds it
+//! messages and the time, and publishes what it says.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, Context as _};
+use cell_runtime::{
+    now_ns, parse_service_mapping, reliable_qos, transient_local_qos, CellNode, LogLevel,
+    ParamSpec, ParamValue, Params, Wire,
+};
+use polar_cell_msgs::{
+    DiagnosticStatus, GcodeProgress, Header, Hold, JointState, PlanCredit, ScrewCommand,
+    StepSegment, StringMsg, TFMessage, Time, TriggerRequest, TriggerResponse,
+};
+use step_core::StepOptions;
+use tokio::sync::{mpsc, watch};
+
+use crate::tf::TfTree;
+use crate::{HoldReason, Machine, PlayerState};
+
+/// The cell's URDF (the default of `urdf_file`).
+pub const POLAR_CELL_URDF: &str = include_str!("../../../urdf/polar_cell.urdf");
+
+/// The joints of `/joint_states`, in the order of [`crate::MachineState::positions`].
+pub const JOINT_NAMES: [&str; 4] = ["bed_theta", "arm_r", "z", "screw"];
+
+/// The pin's opening delay the screw driver assumes by default (its `pin_open_delay_s`).
+pub const DEFAULT_PIN_OPEN_DELAY_S: f64 = 0.25;
+
+/// The joint acceleration limits the planner plans within by default (its
+/// `joint_accelerations`): a hold keeps to them.
+pub const DEFAULT_JOINT_ACCELERATIONS: [f64; 3] = [40.0, 3.0, 0.5];
+
+/// The parameters every machine node has (a backend adds its own).
+pub fn param_specs() -> Vec<ParamSpec> {
+    let s = StepOptions::default();
+    vec![
+        ParamSpec::new("urdf_file", ParamValue::String(String::new()), "URDF of the cell for /tf and /robot_description (empty: the shipped urdf/polar_cell.urdf)"),
+        ParamSpec::new("rate_hz", ParamValue::Double(50.0), "/joint_states and /tf per second of machine time").range(0.1, 1000.0),
+        ParamSpec::new("horizon_s", ParamValue::Double(2.0), "plan time the producers may run ahead of execution").range(0.05, 3600.0),
+        ParamSpec::new("speed", ParamValue::Double(1.0), "machine seconds per wall second (a faster simulation of the same timeline)").range(0.01, 1000.0),
+        ParamSpec::new("tick_period_s", ParamValue::Double(0.005), "wall time between the node's looks at the clock when nothing arrives").range(1e-4, 0.1),
+        ParamSpec::new("steps_per_unit", ParamValue::DoubleArray(s.steps_per_unit.to_vec()), "steps per rad (bed), per m (arm), per m (z): the planner's"),
+        ParamSpec::new("step_timer_hz", ParamValue::Double(s.timer_hz), "step timer frequency: the planner's").range(1.0, 1e9),
+        ParamSpec::new("joint_accelerations", ParamValue::DoubleArray(DEFAULT_JOINT_ACCELERATIONS.to_vec()), "bed (rad/s²), arm, z (m/s²) limits a pause or cancel keeps to: the planner's"),
+        ParamSpec::new("pin_open_delay_s", ParamValue::Double(DEFAULT_PIN_OPEN_DELAY_S), "a resume waits this long at rest with the pin open: the screw driver's").range(0.0, 60.0),
+        ParamSpec::new("screw_hold", ParamValue::String("zero_order".into()), "how rpm runs between screw commands: zero_order (compensated, smoothed or resampled commands) or first_order (raw breakpoints)"),
+        ParamSpec::new("queue_capacity", ParamValue::Integer(4096), "step segments and screw commands held ahead of execution at most").range(16.0, 1e7),
+        ParamSpec::new("exit_when_done", ParamValue::Bool(false), "end the node once a complete plan (its stream finished) has been executed (for scripts)"),
+        ParamSpec::new("service_mapping", ParamValue::String("cyclone".into()), "request/reply wire format of the services: cyclone (rmw_cyclonedds clients), enhanced (rmw_fastrtps) or basic"),
+    ]
+}
+
+/// What a caller in the same process asks of the machine (the services ask the same).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Command {
+    Pause,
+    Resume,
+    /// Stop on the path, then drop the rest of the plan.
+    Cancel,
+    EmergencyStop,
+    Reset,
+}
+
+/// The machine's state for a caller in the same process (a print's progress and its end).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Status {
+    pub state: Option<PlayerState>,
+    pub hold: Option<HoldReason>,
+    pub machine_time_s: f64,
+    pub plan_time_s: f64,
+    /// Plan queued ahead of execution (s).
+    pub plan_ahead_s: f64,
+    /// The move and G-code line executing now (or last).
+    pub current: Option<(u64, u32)>,
+    pub segments_received: u64,
+    pub segments_completed: u64,
+    pub underruns: u64,
+    /// The plan is complete (the stream finished) and all of it has been executed.
+    pub done: bool,
+    /// A cancel came to rest and the plan was dropped.
+    pub cancelled: bool,
+    pub positions: [f64; 4],
+    pub fault: Option<String>,
+    /// Machine time at which the first segment started (s).
+    pub first_motion_s: Option<f64>,
+    /// Machine time at which the whole plan had been executed (s).
+    pub done_at_s: Option<f64>,
+}
+
+impl Status {
+    /// Machine time from the first step to the end of the plan (or to now, while it runs);
+    /// 0 before anything moved (s).
+    pub fn executed_s(&self) -> f64 {
+        self.first_motion_s
+            .map_or(0.0, |t0| self.done_at_s.unwrap_or(self.machine_time_s) - t0)
+    }
+
+    /// The machine's state in one word: `printing`, `paused`, `cancelling`, `underrun`,
+    /// `emergency_stop` or `waiting` (the action's feedback, the progress bar).
+    pub fn state_label(&self) -> &'static str {
+        match (self.state, self.hold) {
+            (Some(PlayerState::Stopped), _) => "emergency_stop",
+            (_, Some(HoldReason::Pause)) => "paused",
+            (_, Some(HoldReason::Cancel)) => "cancelling",
+            (_, Some(HoldReason::Underrun)) => "underrun",
+            (Some(PlayerState::Running), None) => "printing",
+            _ => "waiting",
+        }
+    }
+}
+
+/// What every machine node is told by its parameters.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MachineParams {
+    /// The planner's step resolution and timer.
+    pub steps: StepOptions,
+    /// The planner's joint acceleration limits (a hold keeps to them).
+    pub joint_accelerations: [f64; 3],
+    /// The screw driver's pin opening delay.
+    pub pin_open_delay_s: f64,
+    /// How rpm runs between screw commands.
+    pub screw_hold: Hold,
+    pub queue_capacity: usize,
+    pub rate_hz: f64,
+    pub horizon_s: f64,
+    pub speed: f64,
+    /// The URDF's text.
+    pub urdf: String,
+}
+
+impl MachineParams {
+    pub fn from_params(p: &Params) -> anyhow::Result<MachineParams> {
+        let three = |name: &str| -> anyhow::Result<[f64; 3]> {
+            let v = p.f64s(name);
+            match *v {
+                [a, b, c] if v.iter().all(|x| x.is_finite() && *x > 0.0) => Ok([a, b, c]),
+                _ => anyhow::bail!(
+                    "parameter {name} needs 3 positive values (bed, arm, z), got {v:?}"
+                ),
+            }
+        };
+        let screw_hold = match p.string("screw_hold") {
+            "zero_order" => Hold::ZeroOrder,
+            "first_order" => Hold::FirstOrder,
+            other => {
+                anyhow::bail!("parameter screw_hold: `{other}` is not zero_order or first_order")
+            }
+        };
+        let urdf = match p.string("urdf_file") {
+            "" => POLAR_CELL_URDF.to_string(),
+            path => {
+                std::fs::read_to_string(path).with_context(|| format!("reading URDF {path}"))?
+            }
+        };
+        Ok(MachineParams {
+            steps: StepOptions {
+                steps_per_unit: three("steps_per_unit")?,
+                timer_hz: p.f64("step_timer_hz"),
+            },
+            joint_accelerations: three("joint_accelerations")?,
+            pin_open_delay_s: p.f64("pin_open_delay_s"),
+            screw_hold,
+            queue_capacity: p.i64("queue_capacity") as usize,
+            rate_hz: p.f64("rate_hz"),
+            horizon_s: p.f64("horizon_s"),
+            speed: p.f64("speed"),
+            urdf,
+        })
+    }
+}
+
+const SERVICES: [(&str, Command); 5] = [
+    ("/cell/pause", Command::Pause),
+    ("/cell/resume", Command::Resume),
+    ("/cell/cancel", Command::Cancel),
+    ("/cell/estop", Command::EmergencyStop),
+    ("/cell/reset", Command::Reset),
+];
+
+/// Whether the plan is cancelled after `command` (applied or refused): a cancel may come to
+/// rest within the same tick (from a rest in the plan), so it is known from the command, not
+/// from watching the hold.
+fn next_cancelled(cancelled: bool, command: Command, accepted: bool) -> bool {
+    match (command, accepted) {
+        (Command::Cancel, true) => true,
+        (Command::Reset, true) => false,
+        _ => cancelled,
+    }
+}
+
+/// Apply `command` to the machine; the reply a service caller gets.
+fn apply<M: Machine>(executor: &mut M, command: Command) -> (bool, String) {
+    let state = executor.state().state;
+    match command {
+        Command::Pause if state == PlayerState::Stopped => {
+            (false, "emergency stop in force: /cell/reset first".into())
+        }
+        Command::Pause => {
+            executor.pause();
+            (true, "pausing: decelerating along the path to rest".into())
+        }
+        Command::Resume if executor.state().hold == Some(HoldReason::Pause) => {
+            executor.resume();
+            (true, "resuming after the pin's opening delay".into())
+        }
+        Command::Resume => (false, "not paused".into()),
+        Command::Cancel if state == PlayerState::Stopped => {
+            (false, "emergency stop in force: /cell/reset first".into())
+        }
+        Command::Cancel => {
+            executor.cancel();
+            (
+                true,
+                "cancelling: stopping along the path, then dropping the plan".into(),
+            )
+        }
+        Command::EmergencyStop => {
+            executor.emergency_stop();
+            (
+                true,
+                "emergency stop: stepping stopped, pin closed, screw stopped".into(),
+            )
+        }
+        Command::Reset if state == PlayerState::Stopped => {
+            executor.reset();
+            (true, "reset: ready for a new plan".into())
+        }
+        Command::Reset => (false, "not stopped".into()),
+    }
+}
+
+/// Run the executor on `node` until an error. `commands` come from the same process (a
+/// print's Ctrl-C); `status` tells it how the machine is doing.
+pub async fn run<M: Machine>(
+    node: &mut CellNode,
+    executor: &mut M,
+    options: &MachineParams,
+    mut commands: mpsc::UnboundedReceiver<Command>,
+    status: watch::Sender<Status>,
+) -> anyhow::Result<()> {
+    let mapping = parse_service_mapping(node.params.string("service_mapping"))?;
+    let exit_when_done = node.params.bool("exit_when_done");
+    let tree = TfTree::from_urdf(&options.urdf).context("URDF")?;
+    let capacity = options.queue_capacity;
+
+    let steps_sub = node.subscription::<StepSegment>("/polar/steps", &reliable_qos(capacity))?;
+    let screw_sub = node.subscription::<ScrewCommand>("/screw/command", &reliable_qos(capacity))?;
+    let progress_sub =
+        node.subscription::<GcodeProgress>("/gcode/progress", &reliable_qos(1000))?;
+    let joint_states = node.publisher::<JointState>("/joint_states", &reliable_qos(100))?;
+    let tf = node.publisher::<TFMessage>("/tf", &reliable_qos(100))?;
+    let tf_static = node.publisher::<TFMessage>("/tf_static", &transient_local_qos(1))?;
+    let description = node.publisher::<StringMsg>("/robot_description", &transient_local_qos(1))?;
+    let credit_pub = node.publisher::<PlanCredit>("/cell/plan_credit", &reliable_qos(10))?;
+    let mut servers = Vec::new();
+    for (name, command) in SERVICES {
+        let server = node.service::<TriggerRequest, TriggerResponse>(
+            name,
+            ("std_srvs", "Trigger"),
+            mapping,
+        )?;
+        servers.push((server, command));
+    }
+
+    let wall_start_ns = now_ns() as i64;
+    let started = Instant::now();
+    let speed = options.speed;
+    let machine_ns = |at: Instant| ((at - started).as_nanos() as f64 * speed) as i64;
+    let stamp_at = |machine_ns: i64| Time::from_nanos(wall_start_ns + machine_ns);
+    tf_static
+        .publish(TFMessage {
+            transforms: tree.static_transforms(stamp_at(0)),
+        })
+        .map_err(|e| anyhow!("/tf_static: {e:?}"))?;
+    description
+        .publish(StringMsg {
+            data: options.urdf.clone(),
+        })
+        .map_err(|e| anyhow!("/robot_description: {e:?}"))?;
+    node.log(
+        LogLevel::Info,
+        &format!(
+            "executing /polar/steps and /screw/command at {speed}× machine pace, horizon {} s",
+            options.horizon_s
+        ),
+    );
+
+    let sample_ns = (1e9 / options.rate_hz) as i64;
+    let mut next_sample_ns = 0i64;
+    let mut last_measured_ns: Option<i64> = None;
+    let mut first_motion_s: Option<f64> = None;
+    let mut start_wait: Option<Instant> = None;
+    let mut done_at_s: Option<f64> = None;
+    let mut pending_steps: VecDeque<StepSegment> = VecDeque::new();
+    let mut pending_screw: VecDeque<ScrewCommand> = VecDeque::new();
+    let mut received = 0u64;
+    let mut input_finished = false;
+    let mut cancelled = false;
+    let mut fault: Option<String> = None;
+    let mut last_credit = (Instant::now() - Duration::from_secs(1), f64::NAN);
+    let mut last_diagnostics = Instant::now();
+    let mut last_status = Instant::now();
+    let mut reported_underruns = 0u64;
+    // The loop's own period (wall time). The core steps σ every control period whatever
+    // the loop's period (it advances period by period to "now"), samples land on their grid,
+    // and commands and messages wake the loop at once: the tick only bounds how stale the
+    // published state and credit may be. 1 ms cost a fifth of a core in timer wake-ups.
+    let period = Duration::from_secs_f64(node.params.f64("tick_period_s"));
+    let mut tick = tokio::time::interval(period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        // A command, and the service request to answer if it came from one.
+        let mut requested: Option<(Command, Option<(usize, ros2_client::RmwRequestId)>)> = None;
+        tokio::select! {
+            taken = steps_sub.async_take() => {
+                let (s, _) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
+                received += 1;
+                pending_steps.push_back(s);
+            }
+            taken = screw_sub.async_take() => {
+                let (c, _) = taken.map_err(|e| anyhow!("/screw/command: {e:?}"))?;
+                pending_screw.push_back(c);
+            }
+            taken = progress_sub.async_take() => {
+                if let Ok((p, _)) = taken {
+                    input_finished |= p.finished;
+                }
+            }
+            Some(command) = commands.recv() => requested = Some((command, None)),
+            (index, request) = next_request(&servers) => {
+                if let Some(id) = request {
+                    requested = Some((servers[index].1, Some((index, id))));
+                }
+            }
+            _ = tick.tick() => {}
+        }
+        if let Some((command, caller)) = requested {
+            let (success, message) = apply(executor, command);
+            cancelled = next_cancelled(cancelled, command, success);
+            match caller {
+                None => node.log(LogLevel::Info, &message),
+                Some((index, id)) => {
+                    let service = SERVICES[index].0;
+                    node.log(LogLevel::Info, &format!("{service}: {message}"));
+                    let reply = TriggerResponse { success, message };
+                    if let Err(e) = servers[index].0.send_response(id, Wire(reply)) {
+                        node.log(LogLevel::Warn, &format!("{service}: reply lost: {e:?}"));
+                    }
+                }
+            }
+        }
+        // Once cancelled or stopped, what is still in flight for the dropped plan is dropped
+        // too: a stopped machine would refuse it, and that refusal is no fault of the print.
+        if cancelled || executor.state().state == PlayerState::Stopped {
+            pending_steps.clear();
+            pending_screw.clear();
+        }
+        // Queue what the core has room for; the rest waits (the credit bounds how much).
+        let (mut free_steps, free_screw) = executor.free_slots();
+        for _ in 0..free_screw.min(pending_screw.len()) {
+            let c = pending_screw.pop_front().expect("counted");
+            if let Err(e) = executor.on_screw(&c) {
+                fault.get_or_insert(format!("screw command at line {}: {e}", c.source_line));
+            }
+        }
+        // From rest, start only with half a horizon of plan in hand (or the whole plan, or
+        // after half a second): a start on the first segment alone would underrun at once.
+        let starting = executor.is_drained() && !input_finished;
+        if starting && !pending_steps.is_empty() {
+            let waiting_since = *start_wait.get_or_insert_with(Instant::now);
+            let in_hand_s: f64 = pending_steps.iter().map(|s| s.duration_s).sum();
+            if in_hand_s < options.horizon_s / 2.0
+                && waiting_since.elapsed() < Duration::from_millis(500)
+            {
+                free_steps = 0;
+            }
+        }
+        if !starting {
+            start_wait = None;
+        }
+        for _ in 0..free_steps.min(pending_steps.len()) {
+            let s = pending_steps.pop_front().expect("counted");
+            if let Err(e) = executor.on_segment(&s) {
+                fault.get_or_insert(format!(
+                    "step segment of move {} (line {}): {e}",
+                    s.move_sequence, s.source_line
+                ));
+            }
+        }
+        if input_finished && pending_steps.is_empty() {
+            executor.finish_input();
+        }
+        let now = Instant::now();
+        let machine_now = machine_ns(now);
+        // Samples on a regular grid of machine time: execute to each grid instant, sample
+        // there (a late tick publishes late, but what it publishes is exact for its stamp).
+        // Catch up after a late tick; after a real stall of the process (a quarter second
+        // of wall time), skip to now rather than publish a burst.
+        if machine_now - next_sample_ns > (10 * sample_ns).max((0.25e9 * speed) as i64) {
+            next_sample_ns = machine_now - machine_now % sample_ns; // fell far behind: skip
+        }
+        while next_sample_ns <= machine_now {
+            if let Err(e) = executor.on_tick(next_sample_ns) {
+                fault.get_or_insert(e.to_string());
+            }
+            let state = executor.state();
+            let measured_ns = state.measured_ns.unwrap_or(next_sample_ns);
+            next_sample_ns += sample_ns;
+            // A measurement already published (no newer one since) is not published again.
+            if last_measured_ns.is_some_and(|last| measured_ns <= last) {
+                continue;
+            }
+            last_measured_ns = Some(measured_ns);
+            let stamp = stamp_at(measured_ns);
+            let _ = joint_states.publish(JointState {
+                header: Header {
+                    stamp,
+                    frame_id: String::new(),
+                },
+                name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+                position: state.positions.to_vec(),
+                velocity: state.velocities.to_vec(),
+                effort: vec![],
+            });
+            let _ = tf.publish(TFMessage {
+                transforms: tree.moving_transforms(stamp, |joint| {
+                    JOINT_NAMES
+                        .iter()
+                        .position(|n| *n == joint)
+                        .map(|i| state.positions[i])
+                }),
+            });
+        }
+        if let Err(e) = executor.on_tick(machine_now) {
+            fault.get_or_insert(e.to_string());
+        }
+        if fault.is_some() && executor.state().state != PlayerState::Stopped {
+            executor.emergency_stop();
+        }
+        let state = executor.state();
+        if first_motion_s.is_none() && state.state == PlayerState::Running {
+            first_motion_s = Some(state.machine_time_s);
+        }
+        // Credit: as far as the producers may plan; repeated so a late joiner learns it.
+        let credit_due = now - last_credit.0 >= Duration::from_millis(100)
+            || (state.plan_time_s - last_credit.1).abs() >= options.horizon_s / 20.0;
+        if credit_due {
+            last_credit = (now, state.plan_time_s);
+            let (executed_until, accept_until) = match executor.epoch_ns() {
+                Some(epoch) => (
+                    Time::after(epoch, state.plan_time_s),
+                    Time::after(epoch, state.plan_time_s + options.horizon_s),
+                ),
+                None => (Time::default(), Time::default()),
+            };
+            let _ = credit_pub.publish(PlanCredit {
+                header: Header {
+                    stamp: stamp_at(machine_now),
+                    frame_id: String::new(),
+                },
+                executor: node.fully_qualified_name(),
+                executed_until,
+                accept_until,
+                horizon_s: options.horizon_s,
+                closed: cancelled || state.state == PlayerState::Stopped,
+            });
+        }
+        let (completed, last_completed) = executor.completed();
+        let underruns = executor.underruns();
+        let done = input_finished && pending_steps.is_empty() && executor.is_drained();
+        if done && done_at_s.is_none() {
+            done_at_s = Some(state.machine_time_s);
+        }
+        // The status watch wakes whoever watches it (a print's progress, its end): at once
+        // when the state changes, else at most every 50 ms of wall time.
+        let next = Status {
+            state: Some(state.state),
+            hold: state.hold,
+            machine_time_s: state.machine_time_s,
+            plan_time_s: state.plan_time_s,
+            plan_ahead_s: executor.plan_ahead_s(),
+            current: state.current.or(last_completed),
+            segments_received: received,
+            segments_completed: completed,
+            underruns,
+            done,
+            cancelled,
+            positions: state.positions,
+            fault: fault.clone(),
+            first_motion_s,
+            done_at_s,
+        };
+        let changed = {
+            let last = status.borrow();
+            (
+                last.state,
+                last.hold,
+                last.done,
+                last.cancelled,
+                &last.fault,
+                last.first_motion_s,
+            ) != (
+                next.state,
+                next.hold,
+                next.done,
+                next.cancelled,
+                &next.fault,
+                next.first_motion_s,
+            )
+        };
+        let executed_s = next.executed_s();
+        if changed || last_status.elapsed() >= Duration::from_millis(50) {
+            last_status = Instant::now();
+            status.send_replace(next);
+        }
+        if done && exit_when_done {
+            node.log(
+                LogLevel::Info,
+                &format!("plan executed: {completed} segments, {executed_s:.3} s of machine time"),
+            );
+            return Ok(());
+        }
+        if last_diagnostics.elapsed() >= Duration::from_secs(1) || underruns > reported_underruns {
+            last_diagnostics = Instant::now();
+            let (level, message) = match (&fault, state.state, state.hold) {
+                (Some(f), _, _) => (DiagnosticStatus::ERROR, format!("fault: {f}")),
+                (None, PlayerState::Stopped, _) => (
+                    DiagnosticStatus::ERROR,
+                    "emergency stop: /cell/reset to leave".into(),
+                ),
+                (None, _, Some(HoldReason::Underrun)) => (
+                    DiagnosticStatus::WARN,
+                    "underrun: the plan ran short, holding at rest on the path".into(),
+                ),
+                (None, _, Some(HoldReason::Pause)) => (DiagnosticStatus::OK, "paused".into()),
+                (None, _, Some(HoldReason::Cancel)) => (DiagnosticStatus::OK, "cancelling".into()),
+                (None, PlayerState::Idle, None) => (DiagnosticStatus::OK, "idle".into()),
+                (None, _, None) => (DiagnosticStatus::OK, "executing".into()),
+            };
+            reported_underruns = underruns;
+            let mut values = vec![
+                ("machine_time_s", format!("{:.3}", state.machine_time_s)),
+                ("plan_time_s", format!("{:.3}", state.plan_time_s)),
+                ("plan_ahead_s", format!("{:.3}", executor.plan_ahead_s())),
+                ("feed", format!("{:.3}", state.feed)),
+                ("segments_received", received.to_string()),
+                ("segments_completed", completed.to_string()),
+                ("underruns", underruns.to_string()),
+                ("screw_rpm", format!("{:.2}", state.screw_rpm)),
+                ("pin_open", state.pin_open.to_string()),
+            ];
+            values.extend(executor.diagnostics());
+            node.diagnose(level, &message, &values);
+        }
+    }
+}
+
+type TriggerServer = ros2_client::Server<Wire<TriggerRequest>, Wire<TriggerResponse>>;
+
+/// The first service with a request waiting, and its request id.
+async fn next_request(
+    servers: &[(TriggerServer, Command)],
+) -> (usize, Option<ros2_client::RmwRequestId>) {
+    let futures = servers.iter().enumerate().map(|(i, (s, _))| {
+        Box::pin(async move {
+            match s.async_receive_request().await {
+                Ok((id, _)) => (i, Some(id)),
+                Err(_) => (i, None),
+            }
+        })
+    });
+    futures::future::select_all(futures).await.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A cancel that comes to rest within one tick (the plan was resting) never shows its
+    /// hold; the node knows it was cancelled from the accepted command (a print waited
+    /// forever for a Ctrl-C during a dwell before).
+    #[test]
+    fn a_cancel_is_known_from_the_command() {
+        assert!(next_cancelled(false, Command::Cancel, true));
+        assert!(
+            !next_cancelled(false, Command::Cancel, false),
+            "refused (e-stop in force)"
+        );
+        assert!(next_cancelled(true, Command::Pause, true));
+        assert!(!next_cancelled(true, Command::Reset, true));
+        let mut executor = Fake::default();
+        assert!(apply(&mut executor, Command::Reset).0);
+        assert_eq!(executor.calls, ["cancel", "emergency_stop", "reset"]);
+    }
+
+    /// A machine that only remembers what it was asked (its state follows the asks).
+    #[derive(Default)]
+    struct Fake {
+        stopped: bool,
+        hold: Option<HoldReason>,
+        calls: Vec<&'static str>,
+    }
+
+    impl Machine for Fake {
+        type Error = String;
+        fn on_segment(&mut self, _: &StepSegment) -> Result<(), String> {
+            Ok(())
+        }
+        fn on_screw(&mut self, _: &ScrewCommand) -> Result<(), String> {
+            Ok(())
+        }
+        fn free_slots(&self) -> (usize, usize) {
+            (1, 1)
+        }
+        fn finish_input(&mut self) {}
+        fn on_tick(&mut self, _: i64) -> Result<(), String> {
+            Ok(())
+        }
+        fn state(&self) -> crate::MachineState {
+            crate::MachineState {
+                positions: [0.0; 4],
+                velocities: [0.0; 4],
+                screw_rpm: 0.0,
+                pin_open: false,
+                state: if self.stopped {
+                    PlayerState::Stopped
+                } else {
+                    PlayerState::Idle
+                },
+                hold: self.hold,
+                feed: 1.0,
+                machine_time_s: 0.0,
+                plan_time_s: 0.0,
+                current: None,
+                measured_ns: None,
+            }
+        }
+        fn epoch_ns(&self) -> Option<i64> {
+            None
+        }
+        fn is_drained(&self) -> bool {
+            true
+        }
+        fn plan_ahead_s(&self) -> f64 {
+            0.0
+        }
+        fn completed(&self) -> (u64, Option<(u64, u32)>) {
+            (0, None)
+        }
+        fn underruns(&self) -> u64 {
+            0
+        }
+        fn pause(&mut self) {
+            self.calls.push("pause");
+            self.hold = Some(HoldReason::Pause);
+        }
+        fn resume(&mut self) {
+            self.calls.push("resume");
+            self.hold = None;
+        }
+        fn cancel(&mut self) {
+            self.calls.push("cancel");
+            self.hold = None; // came to rest at once: the plan was resting
+        }
+        fn emergency_stop(&mut self) {
+            self.calls.push("emergency_stop");
+            self.stopped = true;
+        }
+        fn reset(&mut self) {
+            self.calls.push("reset");
+            self.stopped = false;
+        }
+    }
+}

@@ -1,0 +1,487 @@
+//! A microcontroller as the cell's [`Machine`]: the same interface the virtual executor has,
+//! so the same node loop, services and print action drive it.
+//!
+//! [`McuMachine`] joins an [`McuSession`] (the protocol, the clocks, the schedule) with what
+//! the node loop expects of a machine: the plan's epoch (screw commands are stamped on the
+//! producers' clock), the move playing now, hold reasons, cancel as a hold followed by a drop,
+//! an emergency stop that is not reported back as a fault, and the executed state converted
+//! from the MCU's step counts to joint units. The bytes go through an [`McuLink`]: a serial
+//! device in the node, an emulator in the same process in tests.
+//!
+//! Underrun: the planner hands over plans that end at rest, so a stalled upstream lets the
+//! MCU run dry at rest, where its plan clock waits. Should the plan end while moving (a
+//! producer died), the machine holds on the path in time — before what is queued runs out —
+//! and resumes by itself when enough plan has arrived, as the virtual executor does.
+
+use std::collections::VecDeque;
+
+use cell_machine::{HoldReason, Machine, MachineState, PlayerState};
+use cell_protocol::message::Mode;
+use cell_protocol::{LinkError, MAX_WIRE_FRAME};
+use polar_cell_msgs::{ScrewCommand, StepSegment};
+
+use crate::session::{McuSession, SessionError};
+
+/// The byte line to the MCU, without blocking.
+pub trait McuLink {
+    type Error: std::fmt::Display;
+    /// Append whatever has arrived by machine time `now_ns` to `into`.
+    fn read(&mut self, now_ns: i64, into: &mut Vec<u8>) -> Result<(), Self::Error>;
+    /// Send `bytes` at machine time `now_ns`.
+    fn write(&mut self, now_ns: i64, bytes: &[u8]) -> Result<(), Self::Error>;
+}
+
+/// What goes wrong between the cell and its MCU.
+#[derive(Debug, thiserror::Error)]
+pub enum McuMachineError<E: std::fmt::Display + std::fmt::Debug> {
+    #[error(transparent)]
+    Session(#[from] SessionError),
+    #[error("the MCU's link: {0}")]
+    Link(#[from] LinkError),
+    #[error("the serial line: {0}")]
+    Line(E),
+    #[error(
+        "{count} screw commands arrived before any step segment: more than can be held ({capacity})"
+    )]
+    TooManyEarly { count: usize, capacity: usize },
+}
+
+/// A planned segment on its way: where it ends on the MCU's plan clock, and what it was.
+#[derive(Clone, Copy, Debug)]
+struct Tracked {
+    end_clock: u64,
+    move_sequence: u64,
+    source_line: u32,
+}
+
+/// The MCU behind `L` as the cell's machine.
+pub struct McuMachine<L: McuLink> {
+    session: McuSession,
+    link: L,
+    /// Segments and screw commands held here at most (waiting to go to the MCU).
+    capacity: usize,
+    steps_per_unit: [f64; 3],
+    horizon_s: f64,
+    epoch_ns: Option<i64>,
+    early_screw: Vec<ScrewCommand>,
+    tracked: VecDeque<Tracked>,
+    completed: u64,
+    last_completed: Option<(u64, u32)>,
+    last_ends_at_rest: bool,
+    hold: Option<HoldReason>,
+    underruns: u64,
+    input_finished: bool,
+    estop_requested: bool,
+    now_ns: i64,
+    origin_ns: Option<i64>,
+    /// The last two states' clocks and positions, for velocities.
+    motion: Option<(u64, [i32; 3], [f64; 3])>,
+    incoming: Vec<u8>,
+    link_error: Option<String>,
+}
+
+impl<L: McuLink> McuMachine<L>
+where
+    L::Error: std::fmt::Debug,
+{
+    /// `capacity`: segments (and screw commands) held on the host at most; `horizon_s`: the
+    /// plan-ahead the node grants (an underrun's resume waits for half of it).
+    pub fn new(session: McuSession, link: L, capacity: usize, horizon_s: f64) -> McuMachine<L> {
+        let steps_per_unit = session.options().steps_per_unit;
+        McuMachine {
+            session,
+            link,
+            capacity,
+            steps_per_unit,
+            horizon_s,
+            epoch_ns: None,
+            early_screw: Vec::new(),
+            tracked: VecDeque::new(),
+            completed: 0,
+            last_completed: None,
+            last_ends_at_rest: true,
+            hold: None,
+            underruns: 0,
+            input_finished: false,
+            estop_requested: false,
+            now_ns: 0,
+            origin_ns: None,
+            motion: None,
+            incoming: Vec::new(),
+            link_error: None,
+        }
+    }
+
+    pub fn session(&self) -> &McuSession {
+        &self.session
+    }
+
+    pub fn link(&self) -> &L {
+        &self.link
+    }
+
+    pub fn link_mut(&mut self) -> &mut L {
+        &mut self.link
+    }
+
+    fn now_us(&self) -> u64 {
+        (self.now_ns.max(0) / 1000) as u64
+    }
+
+    /// The MCU's plan clock now (estimated).
+    fn plan_clock_now(&self) -> Option<u64> {
+        self.session.mcu_plan_clock_at(self.now_us())
+    }
+
+    fn push_screw(&mut self, msg: &ScrewCommand, epoch_ns: i64) -> Result<(), SessionError> {
+        let plan_s = (msg.header.stamp.as_nanos() - epoch_ns) as f64 * 1e-9;
+        self.session.on_screw(msg, plan_s.max(0.0), self.now_us())
+    }
+
+    /// The session's error, unless it is the echo of an emergency stop asked for here.
+    fn session_error(&self) -> Option<&SessionError> {
+        match self.session.error() {
+            Some(SessionError::Fault {
+                code: cell_protocol::message::FaultCode::EmergencyStop,
+                ..
+            }) if self.estop_requested => None,
+            other => other,
+        }
+    }
+
+    fn send_all(&mut self) -> Result<(), L::Error> {
+        let mut out = [0u8; MAX_WIRE_FRAME];
+        let mut bytes = Vec::new();
+        while let Some(len) = self.session.poll_transmit(self.now_us(), &mut out) {
+            bytes.extend_from_slice(&out[..len]);
+        }
+        if bytes.is_empty() {
+            return Ok(());
+        }
+        self.link.write(self.now_ns, &bytes)
+    }
+
+    /// Count the segments the MCU has finished (by its plan clock).
+    fn track_completion(&mut self) {
+        let Some(state) = self.session.state() else {
+            return;
+        };
+        let plan = state.plan_clock;
+        while let Some(t) = self.tracked.front() {
+            if t.end_clock > plan {
+                break;
+            }
+            self.completed += 1;
+            self.last_completed = Some((t.move_sequence, t.source_line));
+            self.tracked.pop_front();
+        }
+    }
+
+    /// Hold before a plan that does not end at rest runs out; resume once enough is here.
+    fn watch_underrun(&mut self) -> Result<(), LinkError> {
+        let (Some(plan_now), Some(end)) =
+            (self.plan_clock_now(), self.session.schedule_end_clock())
+        else {
+            return Ok(());
+        };
+        let hz = self.session.timer_hz();
+        let left_s = end.saturating_sub(plan_now) as f64 / hz;
+        match self.hold {
+            None if !self.last_ends_at_rest && !self.input_finished => {
+                // A hold from full feed covers 1/(2ρ) of plan time; start it with a margin
+                // for the state's age and the loop's period.
+                let stopping_s = 0.5 / self.session.sigma_rate_per_s() + 0.25;
+                if left_s < stopping_s {
+                    self.session.pause()?;
+                    self.hold = Some(HoldReason::Underrun);
+                    self.underruns += 1;
+                }
+            }
+            Some(HoldReason::Underrun)
+                if left_s >= self.horizon_s / 2.0
+                    || self.input_finished
+                    || self.last_ends_at_rest =>
+            {
+                self.session.resume()?;
+                self.hold = None;
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// A cancel's hold has come to rest (or the MCU is idle): drop the plan.
+    fn finish_cancel(&mut self) -> Result<(), LinkError> {
+        if self.hold != Some(HoldReason::Cancel) {
+            return Ok(());
+        }
+        let at_rest = self
+            .session
+            .state()
+            .is_some_and(|s| matches!(s.mode, Mode::Held | Mode::Idle | Mode::Fault));
+        if at_rest {
+            self.session.drop_plan()?;
+            self.forget();
+        }
+        Ok(())
+    }
+
+    fn forget(&mut self) {
+        self.hold = None;
+        self.epoch_ns = None;
+        self.early_screw.clear();
+        self.tracked.clear();
+        self.last_ends_at_rest = true;
+        self.input_finished = false;
+    }
+
+    fn tick(&mut self, now_ns: i64) -> Result<(), McuMachineError<L::Error>> {
+        self.origin_ns.get_or_insert(now_ns);
+        self.now_ns = self.now_ns.max(now_ns);
+        self.incoming.clear();
+        let mut incoming = std::mem::take(&mut self.incoming);
+        let read = self.link.read(self.now_ns, &mut incoming);
+        self.session.receive(&incoming, self.now_us());
+        self.incoming = incoming;
+        read.map_err(McuMachineError::Line)?;
+        if let Some(state) = self.session.state() {
+            let clock = state.clock;
+            let steps = state.position_steps;
+            self.motion = match self.motion {
+                Some((c, s, v)) if c == clock => Some((c, s, v)),
+                Some((c, s, _)) if clock > c => {
+                    let dt = (clock - c) as f64 / self.session.timer_hz();
+                    let v = std::array::from_fn(|j| {
+                        (steps[j] - s[j]) as f64 / self.steps_per_unit[j] / dt
+                    });
+                    Some((clock, steps, v))
+                }
+                _ => Some((clock, steps, [0.0; 3])),
+            };
+        }
+        self.track_completion();
+        self.session.tick(self.now_us())?;
+        self.finish_cancel()?;
+        if self.session_error().is_none() {
+            self.watch_underrun()?;
+        }
+        self.send_all().map_err(McuMachineError::Line)?;
+        Ok(())
+    }
+}
+
+impl<L: McuLink> Machine for McuMachine<L>
+where
+    L::Error: std::fmt::Debug,
+{
+    type Error = McuMachineError<L::Error>;
+
+    fn on_segment(&mut self, msg: &StepSegment) -> Result<(), Self::Error> {
+        if self.epoch_ns.is_none() {
+            // The first segment's stamp is its move's start, plan time 0 of this schedule.
+            let epoch = msg.header.stamp.as_nanos();
+            self.epoch_ns = Some(epoch);
+            let end_clock = self.session.on_segment(msg, self.now_us())?;
+            for early in std::mem::take(&mut self.early_screw) {
+                self.push_screw(&early, epoch)?;
+            }
+            self.track(msg, end_clock);
+            return Ok(());
+        }
+        let end_clock = self.session.on_segment(msg, self.now_us())?;
+        self.track(msg, end_clock);
+        Ok(())
+    }
+
+    fn on_screw(&mut self, msg: &ScrewCommand) -> Result<(), Self::Error> {
+        match self.epoch_ns {
+            Some(epoch) => Ok(self.push_screw(msg, epoch)?),
+            None if self.early_screw.len() < self.capacity => {
+                self.early_screw.push(msg.clone());
+                Ok(())
+            }
+            None => Err(McuMachineError::TooManyEarly {
+                count: self.early_screw.len() + 1,
+                capacity: self.capacity,
+            }),
+        }
+    }
+
+    fn free_slots(&self) -> (usize, usize) {
+        // Nothing until the MCU is identified, configured and its clock known: the schedule
+        // needs its timer and its clock.
+        if !self.session.is_ready() || self.session_error().is_some() || self.estop_requested {
+            return (0, 0);
+        }
+        let (segments, screw) = self.session.waiting();
+        (
+            self.capacity.saturating_sub(segments),
+            self.capacity.saturating_sub(screw + self.early_screw.len()),
+        )
+    }
+
+    fn finish_input(&mut self) {
+        if !self.input_finished {
+            self.input_finished = true;
+            self.session.finish_input();
+        }
+    }
+
+    fn on_tick(&mut self, now_ns: i64) -> Result<(), Self::Error> {
+        let result = self.tick(now_ns);
+        if let Err(e) = result {
+            self.link_error.get_or_insert(e.to_string());
+            return Err(e);
+        }
+        match self.session_error() {
+            Some(e) => Err(McuMachineError::Session(e.clone())),
+            None => Ok(()),
+        }
+    }
+
+    fn state(&self) -> MachineState {
+        let mcu = self.session.state();
+        let positions_steps = mcu.map_or([0; 3], |s| s.position_steps);
+        let velocity = self.motion.map_or([0.0; 3], |(_, _, v)| v);
+        let screw_rpm = mcu.map_or(0.0, |s| s.screw_millirpm as f64 * 1e-3);
+        let screw_rad = mcu.map_or(0.0, |s| {
+            s.screw_angle_millirev as f64 * 1e-3 * std::f64::consts::TAU
+        });
+        let stopped = self.estop_requested
+            || self.session_error().is_some()
+            || self.link_error.is_some()
+            || mcu.is_some_and(|s| s.mode == Mode::Fault);
+        let state = match mcu.map(|s| s.mode) {
+            _ if stopped => PlayerState::Stopped,
+            Some(Mode::Running | Mode::Ramping) => PlayerState::Running,
+            Some(Mode::Held) => PlayerState::Held,
+            _ => PlayerState::Idle,
+        };
+        let plan_time_s = self
+            .plan_clock_now()
+            .and_then(|c| self.session.plan_s_at(c))
+            .unwrap_or(0.0)
+            .max(0.0);
+        let u = self.steps_per_unit;
+        MachineState {
+            positions: [
+                positions_steps[0] as f64 / u[0],
+                positions_steps[1] as f64 / u[1],
+                positions_steps[2] as f64 / u[2],
+                screw_rad,
+            ],
+            velocities: [
+                velocity[0],
+                velocity[1],
+                velocity[2],
+                screw_rpm * std::f64::consts::TAU / 60.0,
+            ],
+            screw_rpm,
+            pin_open: mcu.is_some_and(|s| s.pin_open),
+            state,
+            hold: self.hold,
+            feed: mcu.map_or(1.0, |s| s.feed_scale_q16 as f64 / 65535.0),
+            machine_time_s: (self.now_ns - self.origin_ns.unwrap_or(self.now_ns)) as f64 * 1e-9,
+            plan_time_s,
+            current: self
+                .tracked
+                .front()
+                .map(|t| (t.move_sequence, t.source_line)),
+            measured_ns: mcu.and_then(|s| self.session.clock_sync().host_at(s.clock)),
+        }
+    }
+
+    fn epoch_ns(&self) -> Option<i64> {
+        self.epoch_ns
+    }
+
+    fn is_drained(&self) -> bool {
+        self.session.is_drained() && self.hold.is_none()
+    }
+
+    fn plan_ahead_s(&self) -> f64 {
+        match (self.plan_clock_now(), self.session.schedule_end_clock()) {
+            (Some(now), Some(end)) => end.saturating_sub(now) as f64 / self.session.timer_hz(),
+            _ => 0.0,
+        }
+    }
+
+    fn completed(&self) -> (u64, Option<(u64, u32)>) {
+        (self.completed, self.last_completed)
+    }
+
+    fn underruns(&self) -> u64 {
+        self.underruns
+    }
+
+    fn pause(&mut self) {
+        if self.session.pause().is_ok() {
+            self.hold = Some(HoldReason::Pause);
+        }
+    }
+
+    fn resume(&mut self) {
+        if self.hold == Some(HoldReason::Pause) && self.session.resume().is_ok() {
+            self.hold = None;
+        }
+    }
+
+    fn cancel(&mut self) {
+        if self.session.pause().is_ok() {
+            self.hold = Some(HoldReason::Cancel);
+        }
+    }
+
+    fn emergency_stop(&mut self) {
+        self.estop_requested = true;
+        self.session.emergency_stop();
+        self.forget();
+        // Out now, not at the next tick.
+        let _ = self.send_all();
+    }
+
+    fn reset(&mut self) {
+        if self.session.reset().is_ok() {
+            self.estop_requested = false;
+            self.link_error = None;
+            self.forget();
+        }
+    }
+
+    fn diagnostics(&self) -> Vec<(&'static str, String)> {
+        let mut values = Vec::new();
+        if let Some(identity) = self.session.identity() {
+            values.push(("mcu_timer_hz", identity.timer_hz.to_string()));
+            values.push(("mcu_queue_capacity", identity.queue_capacity.to_string()));
+        }
+        let sync = self.session.clock_sync();
+        if let (Some(fit), Some(ppm)) = (sync.fit(), sync.rate_error_ppm()) {
+            values.push(("mcu_rate_error_ppm", format!("{ppm:.2}")));
+            values.push((
+                "mcu_clock_residual_ticks",
+                format!("{:.1}", fit.residual_ticks),
+            ));
+        }
+        let counters = self.session.endpoint().link().counters();
+        values.push(("link_retransmits", counters.retransmits.to_string()));
+        values.push(("link_naks", counters.naks_sent.to_string()));
+        if let Some(e) = self.session.error() {
+            values.push(("mcu_error", e.to_string()));
+        }
+        values
+    }
+}
+
+impl<L: McuLink> McuMachine<L>
+where
+    L::Error: std::fmt::Debug,
+{
+    fn track(&mut self, msg: &StepSegment, end_clock: u64) {
+        self.last_ends_at_rest = msg.ends_at_rest;
+        self.tracked.push_back(Tracked {
+            end_clock,
+            move_sequence: msg.move_sequence,
+            source_line: msg.source_line,
+        });
+    }
+}

@@ -1,0 +1,382 @@
+//! The MCU as the cell's machine, driven as the node loop drives any machine: segments in as
+//! room allows, a tick every millisecond of simulated time, the emulated MCU in the same
+//! process behind the link (80 ppm crystal, its own clock offset).
+
+use std::convert::Infallible;
+
+use cell_firmware_core::StepEdge;
+use cell_machine::{HoldReason, Machine, PlayerState};
+use gcode_streamer::{parse_all, InterpreterOptions};
+use mcu_bridge::{McuLink, McuMachine, McuSession, SessionError, SessionOptions};
+use mcu_emulator::{Crystal, Emulator, EmulatorOptions};
+use polar_cell_msgs::{StepSegment, Time};
+use polar_planner::steps::StepOptions;
+use polar_planner::{plan_program, PlannerOptions};
+
+/// The emulator as the line: what the host writes arrives at once; reading runs the MCU to
+/// the host's time.
+struct InProcess {
+    mcu: Emulator,
+    edges: Vec<StepEdge>,
+}
+
+impl McuLink for InProcess {
+    type Error = Infallible;
+    fn read(&mut self, now_ns: i64, into: &mut Vec<u8>) -> Result<(), Infallible> {
+        let edges = &mut self.edges;
+        self.mcu
+            .run_until(now_ns as f64 * 1e-9, &mut |e| edges.push(e), into);
+        Ok(())
+    }
+    fn write(&mut self, now_ns: i64, bytes: &[u8]) -> Result<(), Infallible> {
+        self.mcu.receive(bytes, now_ns as f64 * 1e-9);
+        Ok(())
+    }
+}
+
+const EPOCH_NS: i64 = 1_700_000_000_000_000_000;
+
+fn finger_start(moves: usize) -> Vec<StepSegment> {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../../shared/fixtures/gcode/finger.gcode"
+    );
+    let src = std::fs::read(path).unwrap();
+    let mut all = parse_all(&src, "finger.gcode", InterpreterOptions::default())
+        .unwrap()
+        .0;
+    all.truncate(moves);
+    let mut segments = plan_program(&all, PlannerOptions::default(), StepOptions::default())
+        .unwrap()
+        .segments;
+    stamp(&mut segments, EPOCH_NS);
+    segments
+}
+
+/// Stamp each segment with its start on the producers' clock, as the planner does.
+fn stamp(segments: &mut [StepSegment], epoch_ns: i64) {
+    let mut start_s = 0.0;
+    for s in segments {
+        s.header.stamp = Time::after(epoch_ns, start_s);
+        start_s += s.duration_s;
+    }
+}
+
+/// Where the plan ends, in steps.
+fn end_steps(segments: &[StepSegment]) -> [i64; 3] {
+    let mut steps = [0i64; 3];
+    for s in segments {
+        for (k, step) in steps.iter_mut().enumerate() {
+            *step += s.step_counts[k] as i64 * s.directions[k] as i64;
+        }
+    }
+    steps
+}
+
+struct Rig {
+    machine: McuMachine<InProcess>,
+    now_ns: i64,
+    fed: usize,
+}
+
+impl Rig {
+    fn new(emulator: EmulatorOptions) -> Rig {
+        let options = SessionOptions::new(
+            StepOptions::default().steps_per_unit,
+            std::array::from_fn(|j| PlannerOptions::default().joints[j].acceleration),
+            0.25,
+        );
+        let link = InProcess {
+            mcu: Emulator::new(EmulatorOptions {
+                crystal: Crystal {
+                    timer_hz: 1e6,
+                    offset_ticks: 123_456_789,
+                    rate_ppm: 80.0,
+                    drift_ppm_per_s: 0.0,
+                },
+                ..emulator
+            }),
+            edges: Vec::new(),
+        };
+        Rig {
+            machine: McuMachine::new(McuSession::new(options, 0x5EED), link, 64, 2.0),
+            now_ns: 0,
+            fed: 0,
+        }
+    }
+
+    /// One millisecond: feed what there is room for, then tick.
+    fn ms(&mut self, segments: &[StepSegment]) -> Result<(), String> {
+        let (room, _) = self.machine.free_slots();
+        for s in segments[self.fed..].iter().take(room) {
+            self.machine.on_segment(s).map_err(|e| e.to_string())?;
+            self.fed += 1;
+        }
+        self.now_ns += 1_000_000;
+        self.machine.on_tick(self.now_ns).map_err(|e| e.to_string())
+    }
+
+    fn run_for(&mut self, segments: &[StepSegment], seconds: f64) {
+        for _ in 0..(seconds * 1000.0) as usize {
+            self.ms(segments).unwrap();
+        }
+    }
+
+    /// Run until the machine has played everything fed (and all of `segments` was fed).
+    fn run_to_end(&mut self, segments: &[StepSegment], limit_s: f64) {
+        let until = self.now_ns + (limit_s * 1e9) as i64;
+        while !(self.fed == segments.len() && self.machine.is_drained()) {
+            if self.fed == segments.len() {
+                self.machine.finish_input();
+            }
+            self.ms(segments).unwrap();
+            assert!(self.now_ns < until, "not done after {limit_s} s");
+        }
+    }
+
+    fn edges(&self) -> &[StepEdge] {
+        &self.machine.link().edges
+    }
+
+    /// Net steps of each axis over all edges.
+    fn executed_steps(&self) -> [i64; 3] {
+        let mut steps = [0i64; 3];
+        for e in self.edges() {
+            for (k, step) in steps.iter_mut().enumerate() {
+                if e.axes >> k & 1 == 1 {
+                    *step += if e.negative >> k & 1 == 1 { -1 } else { 1 };
+                }
+            }
+        }
+        steps
+    }
+
+    fn steps_now(&self) -> [i64; 3] {
+        let p = self.machine.state().positions;
+        let u = StepOptions::default().steps_per_unit;
+        std::array::from_fn(|k| (p[k] * u[k]).round() as i64)
+    }
+}
+
+/// Through the machine interface the plan plays to its end: every segment completed, the
+/// last reported position the plan's end, every reported position the count of the steps
+/// made by its MCU clock, and its measurement instant placed on the host's clock to within
+/// the simulation's half round (clock sync at 80 ppm).
+#[test]
+fn a_plan_plays_through_the_machine_interface_and_reports_what_was_executed() {
+    let segments = finger_start(300);
+    let mut rig = Rig::new(EmulatorOptions::default());
+    let mut checked = 0;
+    let mut worst_stamp_ns = 0i64;
+    let mut counted = [0i64; 3];
+    let mut counted_edges = 0;
+    let until = 60e9 as i64;
+    while !(rig.fed == segments.len() && rig.machine.is_drained()) {
+        if rig.fed == segments.len() {
+            rig.machine.finish_input();
+        }
+        rig.ms(&segments).unwrap();
+        assert!(rig.now_ns < until, "not done after 60 s");
+        let state = rig.machine.state();
+        let Some(mcu) = rig.machine.session().state().copied() else {
+            continue;
+        };
+        // The positions are the MCU's counts as of its state's clock...
+        while let Some(e) = rig.edges().get(counted_edges) {
+            if e.clock > mcu.clock {
+                break;
+            }
+            for (k, step) in counted.iter_mut().enumerate() {
+                if e.axes >> k & 1 == 1 {
+                    *step += if e.negative >> k & 1 == 1 { -1 } else { 1 };
+                }
+            }
+            counted_edges += 1;
+        }
+        assert_eq!(rig.steps_now(), counted, "at {} ns", rig.now_ns);
+        // ...measured at the host instant that clock reading happened.
+        if let Some(measured) = state.measured_ns {
+            // The MCU clock at the stamp, from the emulator's own crystal (1 tick = 1 µs).
+            let at_stamp = rig.machine.link().mcu.clock_at(measured as f64 * 1e-9) as i64;
+            worst_stamp_ns = worst_stamp_ns.max((at_stamp - mcu.clock as i64).abs() * 1000);
+            checked += 1;
+        }
+    }
+    assert!(checked > 1000, "only {checked} states checked");
+    // The simulated line answers a query in the next 1 ms round, so the round trip's
+    // midpoint puts the MCU's reading half a round late: 0.5 ms is the simulation's, the
+    // rest is the fit's.
+    assert!(
+        worst_stamp_ns <= 520_000,
+        "a state's measurement instant off by {worst_stamp_ns} ns"
+    );
+    assert_eq!(rig.executed_steps(), end_steps(&segments));
+    assert_eq!(rig.steps_now(), end_steps(&segments));
+    let (completed, last) = rig.machine.completed();
+    assert_eq!(completed, segments.len() as u64);
+    let tail = segments.last().unwrap();
+    assert_eq!(last, Some((tail.move_sequence, tail.source_line)));
+    assert_eq!(rig.machine.state().state, PlayerState::Idle);
+    assert_eq!(rig.machine.underruns(), 0);
+}
+
+/// Pause holds on the path and resume goes on to the same end; cancel comes to rest, drops
+/// the plan, and a new plan (its own epoch) starts from where the machine stands.
+#[test]
+fn pause_resume_and_cancel_work_through_the_machine_interface() {
+    let segments = finger_start(300);
+    let mut rig = Rig::new(EmulatorOptions::default());
+    rig.run_for(&segments, 5.0);
+    rig.machine.pause();
+    assert_eq!(rig.machine.state().hold, Some(HoldReason::Pause));
+    rig.run_for(&segments, 1.5);
+    let held = rig.steps_now();
+    assert_eq!(rig.machine.state().state, PlayerState::Held);
+    rig.run_for(&segments, 1.0);
+    assert_eq!(rig.steps_now(), held, "a paused machine does not move");
+    rig.machine.resume();
+    assert_eq!(rig.machine.state().hold, None);
+    rig.run_to_end(&segments, 60.0);
+    assert_eq!(rig.executed_steps(), end_steps(&segments));
+
+    // Cancel: to rest on the path, then the plan is gone.
+    let mut rig = Rig::new(EmulatorOptions::default());
+    rig.run_for(&segments, 5.0);
+    rig.machine.cancel();
+    assert_eq!(rig.machine.state().hold, Some(HoldReason::Cancel));
+    let mut waited_ms = 0;
+    while !rig.machine.is_drained() {
+        rig.machine.on_tick(rig.now_ns + 1_000_000).unwrap();
+        rig.now_ns += 1_000_000;
+        waited_ms += 1;
+        assert!(waited_ms < 3000, "the cancel never came to rest");
+    }
+    let stopped = rig.steps_now();
+    assert_eq!(rig.machine.state().hold, None);
+    assert_eq!(rig.machine.epoch_ns(), None, "the plan is forgotten");
+    rig.machine.on_tick(rig.now_ns + 500_000_000).unwrap();
+    rig.now_ns += 500_000_000;
+    assert_eq!(
+        rig.executed_steps(),
+        stopped,
+        "nothing moves after the cancel"
+    );
+
+    // A new plan, stamped on a new epoch, plays in full from there.
+    let mut again = finger_start(40);
+    stamp(&mut again, EPOCH_NS + 3_600_000_000_000);
+    rig.fed = 0;
+    rig.run_to_end(&again, 30.0);
+    let expected: [i64; 3] = std::array::from_fn(|k| stopped[k] + end_steps(&again)[k]);
+    assert_eq!(rig.executed_steps(), expected);
+    assert!(rig.machine.session().error().is_none());
+}
+
+/// An emergency stop stops the steps within a millisecond, is not reported back as a
+/// fault, holds until reset, and after the reset a new plan plays.
+#[test]
+fn an_emergency_stop_stops_at_once_and_a_reset_lets_a_new_plan_play() {
+    let segments = finger_start(300);
+    let mut rig = Rig::new(EmulatorOptions::default());
+    rig.run_for(&segments, 5.0);
+    let at_stop = rig.now_ns;
+    rig.machine.emergency_stop();
+    rig.run_for(&segments, 0.5);
+    let stop_tick = rig.machine.link().mcu.clock_at(at_stop as f64 * 1e-9);
+    let late: Vec<_> = rig
+        .edges()
+        .iter()
+        .filter(|e| e.clock > stop_tick + 1000)
+        .collect();
+    assert!(late.is_empty(), "{} edges after the stop", late.len());
+    assert_eq!(rig.machine.state().state, PlayerState::Stopped);
+    assert_eq!(
+        rig.machine.free_slots(),
+        (0, 0),
+        "nothing queued while stopped"
+    );
+    let stood = rig.executed_steps();
+
+    rig.machine.reset();
+    rig.fed = 0;
+    rig.run_for(&[], 0.2);
+    assert_eq!(rig.machine.state().state, PlayerState::Idle);
+    let mut again = finger_start(40);
+    stamp(&mut again, EPOCH_NS + 3_600_000_000_000);
+    rig.fed = 0;
+    rig.run_to_end(&again, 30.0);
+    let expected: [i64; 3] = std::array::from_fn(|k| stood[k] + end_steps(&again)[k]);
+    assert_eq!(rig.executed_steps(), expected);
+}
+
+/// Upstream stalls. Where the plan so far ends at rest, the MCU waits there with its plan
+/// clock standing and goes on when the rest comes, on the plan's time; where it ends moving
+/// (a producer died), the machine holds on the path before it runs out, counts an
+/// underrun, and resumes by itself once enough has arrived. No fault either way.
+#[test]
+fn a_stalled_upstream_waits_at_rest_or_holds_on_the_path() {
+    let segments = finger_start(300);
+    let rest = segments
+        .iter()
+        .position(|s| s.ends_at_rest && s.duration_s > 0.0)
+        .expect("a segment ending at rest")
+        + 1;
+    let moving = (rest + 5..segments.len())
+        .find(|&i| !segments[i - 1].ends_at_rest && segments[i - 1].duration_s > 0.05)
+        .expect("a segment ending in motion");
+    for (cut, at_rest) in [(rest, true), (moving, false)] {
+        let mut rig = Rig::new(EmulatorOptions::default());
+        rig.run_for(
+            &segments[..cut],
+            8.0 + segments[..cut].iter().map(|s| s.duration_s).sum::<f64>(),
+        );
+        let state = rig.machine.state();
+        if at_rest {
+            assert_eq!((state.state, state.hold), (PlayerState::Idle, None));
+            assert_eq!(rig.machine.underruns(), 0);
+        } else {
+            assert_eq!(state.hold, Some(HoldReason::Underrun));
+            assert_eq!(state.state, PlayerState::Held);
+            assert_eq!(rig.machine.underruns(), 1);
+        }
+        rig.run_to_end(&segments, 60.0);
+        assert_eq!(rig.executed_steps(), end_steps(&segments), "cut at {cut}");
+        assert!(rig.machine.session().error().is_none());
+        if at_rest {
+            // The plan clock stood through the wait: the edges after it are the plan's,
+            // shifted by the wait as a whole.
+            let plan_end = rig.machine.session().schedule_end_clock().unwrap();
+            let anchor = rig.machine.session().anchor_clock().unwrap();
+            let plan_s: f64 = segments.iter().map(|s| s.duration_s).sum();
+            assert!(((plan_end - anchor) as f64 * 1e-6 - plan_s).abs() < 1e-5);
+        }
+    }
+}
+
+/// A power cycle of the MCU mid-print is noticed within 100 ms and ends the print as a fault
+/// with the reason; the machine reports itself stopped.
+#[test]
+fn a_restarted_mcu_is_a_fault_noticed_within_100_ms() {
+    let segments = finger_start(300);
+    let mut rig = Rig::new(EmulatorOptions {
+        reset_at_s: Some(6.0),
+        ..EmulatorOptions::default()
+    });
+    let error = loop {
+        if let Err(e) = rig.ms(&segments) {
+            break e;
+        }
+        assert!(rig.now_ns < 20_000_000_000, "no fault");
+    };
+    let noticed_after_ms = (rig.now_ns - 6_000_000_000) as f64 * 1e-6;
+    assert!(
+        noticed_after_ms <= 100.0,
+        "noticed after {noticed_after_ms} ms"
+    );
+    assert!(error.contains("restarted"), "{error}");
+    assert_eq!(rig.machine.state().state, PlayerState::Stopped);
+    assert!(matches!(
+        rig.machine.session().error(),
+        Some(SessionError::Restarted { .. })
+    ));
+}

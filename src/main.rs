@@ -60,6 +60,11 @@ enum Command {
         /// the plan, not its execution.
         #[arg(long, conflicts_with = "speed")]
         dry_run: bool,
+        /// Print on a microcontroller instead of the virtual executor: its serial line (a
+        /// tty such as /dev/ttyACM0, a pseudo-terminal's path, unix:/path), or `emulator` to
+        /// start mcu_emulator on a pseudo-terminal at the same --speed.
+        #[arg(long, conflicts_with = "dry_run")]
+        device: Option<String>,
     },
     /// Serve the ROS 2 action /print (polar_cell_msgs/action/Print): each goal prints its file
     /// through the node graph at machine pace, recorded to a bag.
@@ -74,6 +79,9 @@ enum Command {
         /// enhanced (rmw_fastrtps) or basic.
         #[arg(long, default_value = "cyclone")]
         service_mapping: String,
+        /// Print on a microcontroller (as for print).
+        #[arg(long)]
+        device: Option<String>,
     },
     /// Check a G-code file without DDS: parse it (counts, warnings, the first error), then
     /// plan it whole as a print would (pre-flight: reach, limits, steps).
@@ -186,6 +194,7 @@ async fn main() -> anyhow::Result<()> {
             no_preflight,
             speed,
             dry_run,
+            device,
         } => {
             let options = print_cmd::PrintOptions {
                 bag,
@@ -193,6 +202,7 @@ async fn main() -> anyhow::Result<()> {
                 show_progress: !no_progress,
                 run_preflight: !no_preflight,
                 execution: (!dry_run).then_some(speed),
+                device,
             };
             match file {
                 Some(file) => print_cmd::print(&file, &options, &ros_args).await,
@@ -213,8 +223,10 @@ async fn main() -> anyhow::Result<()> {
             speed,
             bag_dir,
             service_mapping,
+            device,
         } => {
             let options = serve_cmd::ServeOptions {
+                device,
                 speed,
                 bag_dir,
                 mapping: cell_runtime::parse_service_mapping(&service_mapping)?,

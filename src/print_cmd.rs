@@ -133,6 +133,60 @@ pub struct PrintOptions {
     /// Execute at this speed factor (machine seconds per wall second); `None`: dry run, the
     /// plan as fast as the CPU allows and no executor.
     pub execution: Option<f64>,
+    /// Execute on the MCU on this serial line (`emulator`: one started for the job) instead
+    /// of the virtual executor.
+    pub device: Option<String>,
+}
+
+/// `mcu_emulator` started for one job on a pseudo-terminal, stopped when the job ends.
+struct Emulator {
+    child: std::process::Child,
+    /// The pseudo-terminal it serves.
+    device: String,
+}
+
+impl Emulator {
+    /// Start it at `speed`: the binary beside this one (a workspace build puts them
+    /// together), else the one on PATH.
+    fn start(speed: f64) -> anyhow::Result<Emulator> {
+        use std::io::BufRead as _;
+        let beside = std::env::current_exe()
+            .ok()
+            .and_then(|exe| exe.parent().map(|dir| dir.join("mcu_emulator")))
+            .filter(|path| path.exists());
+        let program = beside.unwrap_or_else(|| "mcu_emulator".into());
+        let mut child = std::process::Command::new(&program)
+            .args(["--speed", &speed.to_string()])
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .with_context(|| {
+                format!(
+                    "starting {} (build it with `cargo build --release --workspace`)",
+                    program.display()
+                )
+            })?;
+        let stdout = child.stdout.take().expect("piped");
+        let mut line = String::new();
+        std::io::BufReader::new(stdout)
+            .read_line(&mut line)
+            .context("reading where mcu_emulator listens")?;
+        let Some(device) = line.trim().strip_prefix("pty ") else {
+            let _ = child.kill();
+            bail!("mcu_emulator said {line:?} instead of `pty PATH`");
+        };
+        eprintln!("MCU emulator on {device} at {speed}×");
+        Ok(Emulator {
+            device: device.to_string(),
+            child,
+        })
+    }
+}
+
+impl Drop for Emulator {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
 }
 
 /// How a print ended, when it did not end by itself.
@@ -215,7 +269,10 @@ pub async fn run_job(
     let streamer_specs = gcode_streamer::node::param_specs();
     let planner_specs = polar_planner::node::param_specs();
     let screw_specs = screw_driver::node::param_specs();
-    let executor_specs = cell_executor::node::param_specs();
+    let executor_specs = match options.device {
+        Some(_) => mcu_bridge::node::param_specs(),
+        None => cell_executor::node::param_specs(),
+    };
     check_global_params(
         ros_args,
         &[
@@ -293,8 +350,33 @@ pub async fn run_job(
     let (commands, command_rx) = tokio::sync::mpsc::unbounded_channel();
     let status_tx = io.status;
     let status = status_tx.subscribe();
-    let mut executor = match options.execution {
-        Some(_) => {
+    // The MCU emulator of `--device emulator` lives as long as the job.
+    let mut _emulator = None;
+    let mut executor = match (options.execution, options.device.as_deref()) {
+        (Some(speed), Some(device)) => {
+            let device = match device {
+                "emulator" => {
+                    let emulator = Emulator::start(speed)?;
+                    let path = emulator.device.clone();
+                    _emulator = Some(emulator);
+                    path
+                }
+                path => path.to_string(),
+            };
+            let mut overrides = executor_overrides;
+            overrides.push(param("device", format!("{device:?}")));
+            let mut node = start_node(
+                mcu_bridge::node::NODE_NAME,
+                &executor_specs,
+                ros_args,
+                overrides,
+            )?;
+            Some(tokio::spawn(async move {
+                let result = mcu_bridge::node::run(&mut node, command_rx, status_tx).await;
+                (node, result)
+            }))
+        }
+        (Some(_), None) => {
             let mut node = start_node(
                 cell_executor::node::NODE_NAME,
                 &executor_specs,
@@ -306,7 +388,11 @@ pub async fn run_job(
                 (node, result)
             }))
         }
-        None => None,
+        (None, _) => None,
+    };
+    let machine_name = match options.device {
+        Some(_) => mcu_bridge::node::NODE_NAME,
+        None => cell_executor::node::NODE_NAME,
     };
     let consumers = format!(
         "[{:?}, {:?}, {:?}]",
@@ -333,7 +419,7 @@ pub async fn run_job(
     let executing = options.execution.is_some();
     let executor_failed = async {
         match executor.as_mut() {
-            Some(task) => stopped(cell_executor::node::NODE_NAME, task.await),
+            Some(task) => stopped(machine_name, task.await),
             None => std::future::pending().await,
         }
     };

@@ -37,6 +37,8 @@ pub struct ServeOptions {
     /// Where each goal's bag goes (`print-<n>.mcap`).
     pub bag_dir: PathBuf,
     pub mapping: cell_runtime::ServiceMapping,
+    /// The MCU to print on (None: the virtual executor).
+    pub device: Option<String>,
 }
 
 /// A cancel request's goal, read from its wire form (ros2-client keeps the field private).
@@ -172,6 +174,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 show_progress: false,
                 run_preflight: true,
                 execution: Some(speed),
+                device: options.device.clone(),
             };
             let file = goal.gcode_file.clone();
             let args = ros_args.clone();

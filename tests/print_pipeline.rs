@@ -371,3 +371,57 @@ fn print_without_a_file_prints_the_built_in_demo() {
     assert!(stderr.contains("executed 3795 step segments"), "{stderr}");
     std::fs::remove_file(&bag).ok();
 }
+
+/// The same print on the MCU: `--device emulator` starts mcu_emulator on a pseudo-terminal
+/// at the print's speed and the bridge plays the plan on it. Every segment executes, on the
+/// plan's time, with no underrun; the bag's `/joint_states` are the MCU's reported counts on
+/// increasing stamps (when the MCU measured them), within the URDF's velocity limits, ending
+/// exactly where the step segments sum to.
+#[test]
+fn a_print_on_the_mcu_emulator_executes_every_step() {
+    use polar_cell_msgs::{JointState, StepSegment};
+    let fixture =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
+    let bag = std::env::temp_dir().join(format!("polar-cell-mcu-{}.mcap", std::process::id()));
+    let stderr = print(
+        61,
+        &fixture,
+        &bag,
+        &["--speed", "10", "--device", "emulator"],
+    );
+    assert!(stderr.contains("MCU emulator on /dev/pts/"), "{stderr}");
+    let executed_line = stderr
+        .lines()
+        .find(|l| l.contains("executed 4074 step segments"))
+        .unwrap_or_else(|| panic!("{stderr}"));
+    assert!(executed_line.contains(", 0 underruns"), "{executed_line}");
+    let states: Vec<JointState> = topic_messages(&bag, "/joint_states");
+    // 168 s at the MCU's 100 Hz state reports, sampled at 50 Hz of machine time.
+    assert!(states.len() > 8000, "{} states", states.len());
+    for w in states.windows(2) {
+        assert!(w[1].header.stamp.as_nanos() > w[0].header.stamp.as_nanos());
+    }
+    let limits = [6.0, 0.2, 0.02, std::f64::consts::PI * 10.0];
+    for s in &states {
+        for (v, limit) in s.velocity.iter().zip(limits) {
+            // Velocities from two reports 10 ms apart: a step's rounding on top.
+            assert!(v.abs() <= limit * 1.02, "{v} beyond {limit}");
+        }
+    }
+    let segments: Vec<StepSegment> = topic_messages(&bag, "/polar/steps");
+    assert_eq!(segments.len(), 4074);
+    let per_unit = [32000.0 / std::f64::consts::TAU, 80_000.0, 400_000.0];
+    let last = states.last().unwrap();
+    for (k, per_unit) in per_unit.iter().enumerate() {
+        let steps: i64 = segments
+            .iter()
+            .map(|s| s.step_counts[k] as i64 * s.directions[k] as i64)
+            .sum();
+        assert_eq!(
+            (last.position[k] * per_unit).round() as i64,
+            steps,
+            "joint {k}"
+        );
+    }
+    std::fs::remove_file(&bag).ok();
+}

@@ -243,6 +243,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                     timer_hz: self.config.timer_hz,
                     queue_capacity: Q.min(u16::MAX as usize) as u16,
                     axis_count: self.config.axis_count,
+                    screw_queue_capacity: S.min(u16::MAX as usize) as u16,
                 }))
             }
             HostMessage::ClockQuery { token } => {
@@ -532,12 +533,12 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 None if self.plan_q32 >= playing.end_q32() => {
                     let finished = self.playing.take().expect("playing").queued;
                     self.done_tag = finished.tag;
-                    if self.queue.is_empty() {
-                        if finished.flags & SEGMENT_ENDS_AT_REST == 0 {
-                            self.schedule_end = None;
-                            self.counters.underruns += 1;
-                            return self.latch(FaultCode::Underrun, finished.tag);
-                        }
+                    // Dry at rest the schedule waits (see `waiting_in_schedule`); dry while
+                    // moving is an underrun.
+                    let moving = finished.flags & SEGMENT_ENDS_AT_REST == 0;
+                    if self.queue.is_empty() && moving {
+                        self.counters.underruns += 1;
+                        return self.latch(FaultCode::Underrun, finished.tag);
                     }
                 }
                 None => return,

@@ -603,6 +603,12 @@ mod tests {
         assert!(next_cancelled(true, Command::Pause, true));
         assert!(!next_cancelled(true, Command::Reset, true));
         let mut executor = Fake::default();
+        let (accepted, _) = apply(&mut executor, Command::Cancel);
+        assert!(accepted);
+        let (accepted, message) = apply(&mut executor, Command::Resume);
+        assert_eq!((accepted, message.as_str()), (false, "not paused"));
+        apply(&mut executor, Command::EmergencyStop);
+        assert!(!apply(&mut executor, Command::Cancel).0);
         assert!(apply(&mut executor, Command::Reset).0);
         assert_eq!(executor.calls, ["cancel", "emergency_stop", "reset"]);
     }

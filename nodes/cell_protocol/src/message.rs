@@ -91,6 +91,8 @@ pub struct Identity {
     pub queue_capacity: u16,
     /// Steppers driven (at most [`MAX_AXES`]).
     pub axis_count: u8,
+    /// Screw commands the MCU can hold queued.
+    pub screw_queue_capacity: u16,
 }
 
 /// What the MCU is doing.
@@ -549,7 +551,8 @@ impl McuMessage {
                 w.u16(i.protocol_version)
                     .u32(i.timer_hz)
                     .u16(i.queue_capacity)
-                    .u8(i.axis_count);
+                    .u8(i.axis_count)
+                    .u16(i.screw_queue_capacity);
                 w
             }
             McuMessage::Clock { token, clock } => {
@@ -598,12 +601,13 @@ impl McuMessage {
         let reader = |len| Reader::new(payload, len);
         Ok(match kind {
             kind::IDENTITY => {
-                let mut r = reader(10)?;
+                let mut r = reader(12)?;
                 McuMessage::Identity(Identity {
                     protocol_version: r.u16(),
                     timer_hz: r.u32(),
                     queue_capacity: r.u16(),
                     axis_count: r.u8(),
+                    screw_queue_capacity: r.u16(),
                 })
             }
             kind::CLOCK => {

@@ -4,11 +4,14 @@
 //! * [`clock`] — what the MCU clock reads at a host instant, estimated from clock queries;
 //! * [`schedule`] — the plan's step segments and screw commands on the MCU's plan clock;
 //! * [`session`] — one MCU's session: start, identify, clocks, the plan fed within the horizon;
-//! * [`machine`] — an MCU as the cell's machine: what the node loop drives.
+//! * [`machine`] — an MCU as the cell's machine: what the node loop drives;
+//! * [`node`] (feature `node`) — the `mcu_bridge` node: the serial line and the ROS face.
 
 pub mod clock;
 pub mod host;
 pub mod machine;
+#[cfg(feature = "node")]
+pub mod node;
 pub mod schedule;
 pub mod session;
 

@@ -24,7 +24,7 @@ use crate::session::{McuSession, SessionError};
 
 /// The byte line to the MCU, without blocking.
 pub trait McuLink {
-    type Error: std::fmt::Display;
+    type Error: std::fmt::Display + std::fmt::Debug;
     /// Append whatever has arrived by machine time `now_ns` to `into`.
     fn read(&mut self, now_ns: i64, into: &mut Vec<u8>) -> Result<(), Self::Error>;
     /// Send `bytes` at machine time `now_ns`.
@@ -44,6 +44,18 @@ pub enum McuMachineError<E: std::fmt::Display + std::fmt::Debug> {
         "{count} screw commands arrived before any step segment: more than can be held ({capacity})"
     )]
     TooManyEarly { count: usize, capacity: usize },
+}
+
+/// Reports kept: a second of them at the default 10 ms period.
+const REPORTS_KEPT: usize = 100;
+
+/// One state report of the MCU.
+#[derive(Clone, Copy, Debug)]
+struct Report {
+    state: cell_protocol::message::McuState,
+    /// Machine time it was measured (once the clocks are synchronised).
+    measured_ns: Option<i64>,
+    velocity: [f64; 3],
 }
 
 /// A planned segment on its way: where it ends on the MCU's plan clock, and what it was.
@@ -74,16 +86,14 @@ pub struct McuMachine<L: McuLink> {
     estop_requested: bool,
     now_ns: i64,
     origin_ns: Option<i64>,
-    /// The last two states' clocks and positions, for velocities.
-    motion: Option<(u64, [i32; 3], [f64; 3])>,
+    /// The MCU's latest reports, with when they were measured and the velocities since the
+    /// report before.
+    reports: VecDeque<Report>,
     incoming: Vec<u8>,
     link_error: Option<String>,
 }
 
-impl<L: McuLink> McuMachine<L>
-where
-    L::Error: std::fmt::Debug,
-{
+impl<L: McuLink> McuMachine<L> {
     /// `capacity`: segments (and screw commands) held on the host at most; `horizon_s`: the
     /// plan-ahead the node grants (an underrun's resume waits for half of it).
     pub fn new(session: McuSession, link: L, capacity: usize, horizon_s: f64) -> McuMachine<L> {
@@ -106,10 +116,25 @@ where
             estop_requested: false,
             now_ns: 0,
             origin_ns: None,
-            motion: None,
+            reports: VecDeque::new(),
             incoming: Vec::new(),
             link_error: None,
         }
+    }
+
+    /// The report [`Machine::state`] gives the positions of: the newest measured by the
+    /// last tick's time.
+    fn report_now(&self) -> Option<&Report> {
+        self.reports
+            .iter()
+            .rev()
+            .find(|r| r.measured_ns.is_none_or(|at| at <= self.now_ns))
+            .or(self.reports.front())
+    }
+
+    /// The MCU clock at which the positions [`Machine::state`] gives were measured.
+    pub fn reported_clock(&self) -> Option<u64> {
+        self.report_now().map(|r| r.state.clock)
     }
 
     pub fn session(&self) -> &McuSession {
@@ -190,7 +215,7 @@ where
             None if !self.last_ends_at_rest && !self.input_finished => {
                 // A hold from full feed covers 1/(2ρ) of plan time; start it with a margin
                 // for the state's age and the loop's period.
-                let stopping_s = 0.5 / self.session.sigma_rate_per_s() + 0.25;
+                let stopping_s = self.stopping_s();
                 if left_s < stopping_s {
                     self.session.pause()?;
                     self.hold = Some(HoldReason::Underrun);
@@ -198,7 +223,7 @@ where
                 }
             }
             Some(HoldReason::Underrun)
-                if left_s >= self.horizon_s / 2.0
+                if left_s >= (self.horizon_s / 2.0).max(2.0 * self.stopping_s())
                     || self.input_finished
                     || self.last_ends_at_rest =>
             {
@@ -208,6 +233,12 @@ where
             _ => {}
         }
         Ok(())
+    }
+
+    /// Plan time a hold from full feed needs to come to rest (1/(2ρ)), with a margin for
+    /// the age of the MCU's state and the loop's period.
+    fn stopping_s(&self) -> f64 {
+        0.5 / self.session.sigma_rate_per_s() + 0.1
     }
 
     /// A cancel's hold has come to rest (or the MCU is idle): drop the plan.
@@ -244,20 +275,27 @@ where
         self.session.receive(&incoming, self.now_us());
         self.incoming = incoming;
         read.map_err(McuMachineError::Line)?;
-        if let Some(state) = self.session.state() {
-            let clock = state.clock;
-            let steps = state.position_steps;
-            self.motion = match self.motion {
-                Some((c, s, v)) if c == clock => Some((c, s, v)),
-                Some((c, s, _)) if clock > c => {
-                    let dt = (clock - c) as f64 / self.session.timer_hz();
-                    let v = std::array::from_fn(|j| {
-                        (steps[j] - s[j]) as f64 / self.steps_per_unit[j] / dt
-                    });
-                    Some((clock, steps, v))
+        for state in self.session.take_reports() {
+            let measured_ns = self.session.clock_sync().host_at(state.clock);
+            let velocity = match self.reports.back() {
+                Some(previous) if state.clock > previous.state.clock => {
+                    let dt = (state.clock - previous.state.clock) as f64 / self.session.timer_hz();
+                    std::array::from_fn(|j| {
+                        (state.position_steps[j] - previous.state.position_steps[j]) as f64
+                            / self.steps_per_unit[j]
+                            / dt
+                    })
                 }
-                _ => Some((clock, steps, [0.0; 3])),
+                _ => [0.0; 3],
             };
+            if self.reports.len() == REPORTS_KEPT {
+                self.reports.pop_front();
+            }
+            self.reports.push_back(Report {
+                state,
+                measured_ns,
+                velocity,
+            });
         }
         self.track_completion();
         self.session.tick(self.now_us())?;
@@ -270,10 +308,7 @@ where
     }
 }
 
-impl<L: McuLink> Machine for McuMachine<L>
-where
-    L::Error: std::fmt::Debug,
-{
+impl<L: McuLink> Machine for McuMachine<L> {
     type Error = McuMachineError<L::Error>;
 
     fn on_segment(&mut self, msg: &StepSegment) -> Result<(), Self::Error> {
@@ -341,19 +376,28 @@ where
 
     fn state(&self) -> MachineState {
         let mcu = self.session.state();
-        let positions_steps = mcu.map_or([0; 3], |s| s.position_steps);
-        let velocity = self.motion.map_or([0.0; 3], |(_, _, v)| v);
-        let screw_rpm = mcu.map_or(0.0, |s| s.screw_millirpm as f64 * 1e-3);
-        let screw_rad = mcu.map_or(0.0, |s| {
+        // What was measured by the time asked about: the newest report not after it (the
+        // node asks for each instant of its sample grid, some behind the newest report).
+        let report = self.report_now();
+        let measured = report.map(|r| r.state);
+        let positions_steps = measured.map_or([0; 3], |s| s.position_steps);
+        let velocity = report.map_or([0.0; 3], |r| r.velocity);
+        let screw_rpm = measured.map_or(0.0, |s| s.screw_millirpm as f64 * 1e-3);
+        let screw_rad = measured.map_or(0.0, |s| {
             s.screw_angle_millirev as f64 * 1e-3 * std::f64::consts::TAU
         });
         let stopped = self.estop_requested
             || self.session_error().is_some()
             || self.link_error.is_some()
             || mcu.is_some_and(|s| s.mode == Mode::Fault);
+        // Waiting for the plan's first segment to start (the lead) is not running yet.
+        let started = match (self.plan_clock_now(), self.session.anchor_clock()) {
+            (Some(now), Some(anchor)) => now >= anchor,
+            _ => false,
+        };
         let state = match mcu.map(|s| s.mode) {
             _ if stopped => PlayerState::Stopped,
-            Some(Mode::Running | Mode::Ramping) => PlayerState::Running,
+            Some(Mode::Running | Mode::Ramping) if started => PlayerState::Running,
             Some(Mode::Held) => PlayerState::Held,
             _ => PlayerState::Idle,
         };
@@ -377,7 +421,7 @@ where
                 screw_rpm * std::f64::consts::TAU / 60.0,
             ],
             screw_rpm,
-            pin_open: mcu.is_some_and(|s| s.pin_open),
+            pin_open: measured.is_some_and(|s| s.pin_open),
             state,
             hold: self.hold,
             feed: mcu.map_or(1.0, |s| s.feed_scale_q16 as f64 / 65535.0),
@@ -387,7 +431,7 @@ where
                 .tracked
                 .front()
                 .map(|t| (t.move_sequence, t.source_line)),
-            measured_ns: mcu.and_then(|s| self.session.clock_sync().host_at(s.clock)),
+            measured_ns: report.and_then(|r| r.measured_ns),
         }
     }
 
@@ -472,10 +516,27 @@ where
     }
 }
 
-impl<L: McuLink> McuMachine<L>
-where
-    L::Error: std::fmt::Debug,
-{
+/// A bridge that goes away (its node stopped, its process ended) leaves no MCU moving: an
+/// MCU not at rest is stopped at once rather than left to its watchdog.
+impl<L: McuLink> Drop for McuMachine<L> {
+    fn drop(&mut self) {
+        let moving = self
+            .session
+            .state()
+            .is_some_and(|s| !matches!(s.mode, Mode::Idle | Mode::Fault));
+        if moving {
+            self.session.emergency_stop();
+            let mut out = [0u8; MAX_WIRE_FRAME];
+            while let Some(len) = self.session.poll_transmit(self.now_us(), &mut out) {
+                if self.link.write(self.now_ns, &out[..len]).is_err() {
+                    break;
+                }
+            }
+        }
+    }
+}
+
+impl<L: McuLink> McuMachine<L> {
     fn track(&mut self, msg: &StepSegment, end_clock: u64) {
         self.last_ends_at_rest = msg.ends_at_rest;
         self.tracked.push_back(Tracked {

@@ -114,6 +114,13 @@ impl Schedule {
                 rpm: cmd.rpm,
             });
         }
+        // Stamps are whole nanoseconds: two commands at one instant may differ by a rounding.
+        let plan_s = match self.last_screw {
+            Some(previous) if plan_s < previous.plan_s && previous.plan_s - plan_s < 1e-6 => {
+                previous.plan_s
+            }
+            _ => plan_s,
+        };
         if let Some(previous) = self.last_screw {
             if plan_s < previous.plan_s {
                 return Err(ScheduleError::ScrewOutOfOrder {
@@ -137,6 +144,13 @@ impl Schedule {
         };
         let previous = self.last_screw.replace(now);
         Ok(match (self.hold, previous) {
+            // Held, a command that changes nothing needs no frame (a resampling screw driver
+            // repeats itself between moves).
+            (Hold::ZeroOrder, Some(p))
+                if (p.millirpm, p.pin_open) == (now.millirpm, now.pin_open) =>
+            {
+                None
+            }
             (Hold::ZeroOrder, _) | (Hold::FirstOrder, None) => Some(step_to_now),
             // From the previous command's rpm at its time to this one's at this time.
             (Hold::FirstOrder, Some(p)) => {

@@ -45,6 +45,8 @@ pub struct SessionOptions {
     pub host_timeout_s: f64,
     /// How often the MCU reports its state (s).
     pub state_period_s: f64,
+    /// The host gives up on an MCU silent this long (and at least ten state periods) (s).
+    pub silence_s: f64,
     pub retransmit_timeout_s: f64,
     /// How rpm runs between screw commands (the screw driver's hold).
     pub screw_hold: Hold,
@@ -70,6 +72,7 @@ impl SessionOptions {
             clock_query_period_s: 0.1,
             host_timeout_s: 1.0,
             state_period_s: 0.02,
+            silence_s: 0.25,
             retransmit_timeout_s: 0.05,
             screw_hold: Hold::ZeroOrder,
             steps_per_unit,
@@ -118,6 +121,13 @@ pub struct McuSession {
     sent_since_state: usize,
     /// Segments on the MCU not yet played: where each ends and how fast σ may change in it.
     on_mcu: VecDeque<(u64, f64)>,
+    /// Start clocks of the screw commands sent that the MCU may still hold queued.
+    screw_on_mcu: VecDeque<u64>,
+    /// States received since [`McuSession::take_reports`] was last called.
+    reports: Vec<McuState>,
+    /// Holds, resumes, drops and resets waiting for room in the link's window: they go
+    /// ahead of any segment or screw command.
+    controls: VecDeque<HostMessage>,
     /// Tag and start clock of the last segment sent.
     last_sent_tag: Option<u32>,
     last_sent_start: Option<u64>,
@@ -150,6 +160,9 @@ impl McuSession {
             state: None,
             sent_since_state: 0,
             on_mcu: VecDeque::new(),
+            screw_on_mcu: VecDeque::new(),
+            controls: VecDeque::new(),
+            reports: Vec::new(),
             last_sent_tag: None,
             last_sent_start: None,
             error: None,
@@ -173,6 +186,12 @@ impl McuSession {
     /// The MCU's last state.
     pub fn state(&self) -> Option<&McuState> {
         self.state.as_ref().map(|(s, _)| s)
+    }
+
+    /// Every state the MCU reported since the last call, oldest first (the positions at
+    /// each report, for a caller that publishes them all).
+    pub fn take_reports(&mut self) -> Vec<McuState> {
+        std::mem::take(&mut self.reports)
     }
 
     pub fn error(&self) -> Option<&SessionError> {
@@ -261,7 +280,7 @@ impl McuSession {
     /// segment starts a new schedule.
     pub fn drop_plan(&mut self) -> Result<(), LinkError> {
         self.forget_plan();
-        self.endpoint.send(&HostMessage::DropQueue)
+        self.control(HostMessage::DropQueue)
     }
 
     /// Leave a fault or an emergency stop: the MCU clears it and its queues, and so does the
@@ -270,7 +289,8 @@ impl McuSession {
         self.forget_plan();
         self.error = None;
         self.emergency = false;
-        self.endpoint.send(&HostMessage::Reset)
+        self.controls.clear(); // a hold or drop still waiting is moot after a reset
+        self.control(HostMessage::Reset)
     }
 
     fn forget_plan(&mut self) {
@@ -278,6 +298,7 @@ impl McuSession {
         self.screw.clear();
         self.schedule = None;
         self.on_mcu.clear();
+        self.screw_on_mcu.clear();
         self.last_sent_tag = None;
         self.last_sent_start = None;
     }
@@ -326,7 +347,10 @@ impl McuSession {
             .map(|j| {
                 let share = seg.step_counts[j] as f64 / n;
                 let limit = self.options.joint_accelerations[j] * self.options.steps_per_unit[j];
-                ((limit / share - a) / rate).max(1e-3)
+                // The planner plans within 90 % of each limit (its acceleration_safety); a
+                // ramp that says more is a one- or two-step ramp whose nominal rate never
+                // lasts, and the hold keeps that margin there.
+                ((limit / share - a).max(0.1 * limit / share)) / rate
             })
             .fold(f64::INFINITY, f64::min)
     }
@@ -355,14 +379,14 @@ impl McuSession {
     /// Feed hold: the MCU slows along the path to rest, every joint within its limits.
     pub fn pause(&mut self) -> Result<(), LinkError> {
         let rate_q32 = self.sigma_rate_q32();
-        self.endpoint.send(&HostMessage::FeedHold { rate_q32 })
+        self.control(HostMessage::FeedHold { rate_q32 })
     }
 
     /// Leave a hold: the pin reopens, after its delay the MCU speeds back up along the path.
     pub fn resume(&mut self) -> Result<(), LinkError> {
         let rate_q32 = self.sigma_rate_q32();
         let delay_ticks = ticks(self.options.pin_open_delay_s, self.timer_hz());
-        self.endpoint.send(&HostMessage::FeedResume {
+        self.control(HostMessage::FeedResume {
             rate_q32,
             delay_ticks,
         })
@@ -372,6 +396,7 @@ impl McuSession {
     /// each tick until the MCU reports the fault.
     pub fn emergency_stop(&mut self) {
         self.emergency = true;
+        self.controls.clear(); // nothing held back may follow the stop (a resume least)
         self.segments.clear();
         self.screw.clear();
     }
@@ -413,6 +438,9 @@ impl McuSession {
                     let newer = self.state.is_none_or(|(s, _)| state.clock >= s.clock);
                     if newer {
                         self.state = Some((state, now_us));
+                        if self.reports.len() < 1024 {
+                            self.reports.push(state);
+                        }
                         self.sent_since_state = 0;
                         while self
                             .on_mcu
@@ -420,6 +448,14 @@ impl McuSession {
                             .is_some_and(|&(end, _)| end <= state.plan_clock)
                         {
                             self.on_mcu.pop_front();
+                        }
+                        // Taken up by the plan clock: out of the MCU's screw queue.
+                        while self
+                            .screw_on_mcu
+                            .front()
+                            .is_some_and(|&start| start <= state.plan_clock)
+                        {
+                            self.screw_on_mcu.pop_front();
                         }
                     }
                     if state.mode == Mode::Fault && self.error.is_none() {
@@ -451,10 +487,11 @@ impl McuSession {
     /// Periodic work at `now_us`: identify and configure, clock queries, feed the plan.
     pub fn tick(&mut self, now_us: u64) -> Result<(), LinkError> {
         // An MCU that stops reporting (hung, unplugged) cannot be trusted to be moving as
-        // planned: after ten state periods (at least a quarter second), it is a fault.
+        // planned: after ten state periods (at least `silence_s`), it is a fault.
         if let Some((_, at)) = self.state {
             let silent_s = now_us.saturating_sub(at) as f64 * 1e-6;
-            if self.configured && silent_s > (10.0 * self.options.state_period_s).max(0.25) {
+            let bound_s = (10.0 * self.options.state_period_s).max(self.options.silence_s);
+            if self.configured && silent_s > bound_s {
                 self.fail(SessionError::Silent { silent_s });
             }
         }
@@ -491,7 +528,28 @@ impl McuSession {
         self.feed(now_us)
     }
 
+    /// Send `message` now, or as soon as the window has room (before anything else).
+    fn control(&mut self, message: HostMessage) -> Result<(), LinkError> {
+        self.controls.push_back(message);
+        self.send_controls()
+    }
+
+    fn send_controls(&mut self) -> Result<(), LinkError> {
+        while let Some(message) = self.controls.front() {
+            if !self.endpoint.can_send() {
+                break;
+            }
+            self.endpoint.send(message)?;
+            self.controls.pop_front();
+        }
+        Ok(())
+    }
+
     fn feed(&mut self, now_us: u64) -> Result<(), LinkError> {
+        self.send_controls()?;
+        if !self.controls.is_empty() {
+            return Ok(()); // the window is full: controls first
+        }
         let Some(plan_now) = self.mcu_plan_clock_at(now_us) else {
             return Ok(());
         };
@@ -514,13 +572,18 @@ impl McuSession {
             self.last_sent_start = Some(next.start_clock);
             room -= 1;
         }
+        let screw_capacity = self.identity.map_or(0, |i| i.screw_queue_capacity as usize);
         while let Some(ramp) = self.screw.front() {
-            if ramp.start_clock > plan_now + horizon || !self.endpoint.can_send() {
+            // One place kept free: a command due exactly at the state's plan clock may not
+            // have been taken up yet.
+            let full = self.screw_on_mcu.len() + 1 >= screw_capacity;
+            if full || ramp.start_clock > plan_now + horizon || !self.endpoint.can_send() {
                 break;
             }
             let ramp = *ramp;
             self.endpoint.send(&HostMessage::Screw(ramp))?;
             self.screw.pop_front();
+            self.screw_on_mcu.push_back(ramp.start_clock);
         }
         Ok(())
     }

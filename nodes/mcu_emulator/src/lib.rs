@@ -26,7 +26,7 @@ pub const LINK_WINDOW: usize = 16;
 /// Segments the emulated MCU queues (as the RP2040 firmware).
 pub const SEGMENT_QUEUE: usize = 256;
 /// Screw commands the emulated MCU queues.
-pub const SCREW_QUEUE: usize = 64;
+pub const SCREW_QUEUE: usize = 512;
 
 /// The firmware endpoint at the emulator's sizes.
 pub type McuEndpoint = Endpoint<LINK_WINDOW, SEGMENT_QUEUE, SCREW_QUEUE>;

@@ -339,7 +339,8 @@ fn identify_and_clock_answer() {
             protocol_version: PROTOCOL_VERSION,
             timer_hz: 1_000_000,
             queue_capacity: 8,
-            axis_count: 3
+            axis_count: 3,
+            screw_queue_capacity: 8,
         }))
     );
     assert_eq!(

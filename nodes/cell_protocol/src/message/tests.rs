@@ -220,14 +220,22 @@ fn any_fault() -> impl Strategy<Value = FaultCode> {
 
 fn any_mcu_message() -> impl Strategy<Value = McuMessage> {
     prop_oneof![
-        (any::<u16>(), any::<u32>(), any::<u16>(), any::<u8>()).prop_map(|(v, hz, q, a)| {
-            McuMessage::Identity(Identity {
-                protocol_version: v,
-                timer_hz: hz,
-                queue_capacity: q,
-                axis_count: a,
-            })
-        }),
+        (
+            any::<u16>(),
+            any::<u32>(),
+            any::<u16>(),
+            any::<u8>(),
+            any::<u16>()
+        )
+            .prop_map(|(v, hz, q, a, sq)| {
+                McuMessage::Identity(Identity {
+                    protocol_version: v,
+                    timer_hz: hz,
+                    queue_capacity: q,
+                    axis_count: a,
+                    screw_queue_capacity: sq,
+                })
+            }),
         (any::<u32>(), any::<u64>()).prop_map(|(token, clock)| McuMessage::Clock { token, clock }),
         (
             any::<(u64, u64)>(),

@@ -100,6 +100,12 @@ fn screw_commands_out_of_order_or_without_a_number_are_refused() {
             previous_s: 2.0
         })
     );
+    // A nanosecond's rounding between two stamps of one instant is no disorder.
+    let same = schedule
+        .screw(&command(6.0, true, 13), 2.0 - 1e-9, 0)
+        .unwrap()
+        .unwrap();
+    assert_eq!(same.start_clock, 2_000_000);
     assert!(matches!(
         schedule.screw(&command(f64::INFINITY, true, 12), 3.0, 0),
         Err(ScheduleError::BadRpm {
@@ -128,4 +134,44 @@ fn a_late_first_order_ramp_starts_where_the_mcu_is() {
             pin_open: true
         }
     );
+}
+
+/// Held (zero order), a command that repeats the rpm and pin in force costs no frame; a
+/// change of either does. First order, every command moves the ramp and goes out.
+#[test]
+fn a_held_command_that_changes_nothing_is_not_sent() {
+    let mut schedule = Schedule::new(1e6, Hold::ZeroOrder, 0);
+    assert!(schedule
+        .screw(&command(40.0, true, 1), 0.0, 0)
+        .unwrap()
+        .is_some());
+    assert_eq!(
+        schedule.screw(&command(40.0, true, 2), 0.1, 0).unwrap(),
+        None
+    );
+    assert_eq!(
+        schedule.screw(&command(40.0004, true, 3), 0.2, 0).unwrap(),
+        None,
+        "same millirpm"
+    );
+    let changed = schedule
+        .screw(&command(41.0, true, 4), 0.3, 0)
+        .unwrap()
+        .unwrap();
+    assert_eq!(
+        (changed.start_clock, changed.target_millirpm),
+        (300_000, 41_000)
+    );
+    let closed = schedule
+        .screw(&command(41.0, false, 5), 0.4, 0)
+        .unwrap()
+        .unwrap();
+    assert!(!closed.pin_open);
+
+    let mut first_order = Schedule::new(1e6, Hold::FirstOrder, 0);
+    first_order.screw(&command(40.0, true, 1), 0.0, 0).unwrap();
+    assert!(first_order
+        .screw(&command(40.0, true, 2), 0.1, 0)
+        .unwrap()
+        .is_some());
 }

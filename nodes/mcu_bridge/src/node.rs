@@ -1,0 +1,296 @@
+//! The `mcu_bridge` node: a microcontroller as the cell's machine on the ROS graph.
+//!
+//! It opens the MCU's serial line (parameter `device`: a tty such as `/dev/ttyACM0`, a
+//! pseudo-terminal's path, or `unix:/path` for a Unix socket), and serves exactly what the
+//! virtual executor serves — `/joint_states`, `/tf`, plan credit, `/diagnostics`, the `/cell/*`
+//! services — through the same loop ([`cell_machine::node`]), with an [`McuMachine`] as the
+//! machine. The positions it publishes are the MCU's reported step counts, stamped with the
+//! instant the MCU measured them (its clock mapped to ours by the clock synchronisation).
+//!
+//! Times: the node's machine clock is the monotonic clock times `speed`, as for the executor;
+//! an emulated MCU run `speed`× faster keeps in step with it. The host's timeouts (the MCU's
+//! watchdog, the host's silence bound, retransmits) are parameters in wall seconds, scaled to
+//! machine time by `speed`, so that a loaded test machine at `--speed 10` is not mistaken for
+//! a dead link.
+
+use std::fs::{File, OpenOptions};
+use std::io::{ErrorKind, Read, Write};
+use std::os::fd::AsFd;
+use std::os::unix::fs::OpenOptionsExt;
+use std::os::unix::net::UnixStream;
+
+use anyhow::Context as _;
+use cell_machine::node::{Command, MachineParams, Status};
+use cell_runtime::{CellNode, LogLevel, ParamSpec, ParamValue};
+use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+use nix::sys::termios::{cfmakeraw, cfsetspeed, tcgetattr, tcsetattr, BaudRate, SetArg};
+use tokio::sync::{mpsc, watch};
+
+use crate::machine::{McuLink, McuMachine};
+use crate::session::{McuSession, SessionOptions};
+
+/// Default node name.
+pub const NODE_NAME: &str = "mcu_bridge";
+
+/// The machine node's parameters and the bridge's own.
+pub fn param_specs() -> Vec<ParamSpec> {
+    let mut specs = cell_machine::node::param_specs();
+    specs.extend([
+        ParamSpec::new(
+            "device",
+            ParamValue::String(String::new()),
+            "the MCU's serial line: a tty (/dev/ttyACM0), a pseudo-terminal's path, or unix:/path",
+        ),
+        ParamSpec::new(
+            "baud",
+            ParamValue::Integer(115_200),
+            "line speed of a tty (ignored by USB CDC and pseudo-terminals)",
+        )
+        .range(1200.0, 4e6),
+        ParamSpec::new(
+            "lead_s",
+            ParamValue::Double(0.25),
+            "machine time between a plan's first segment and its start on the MCU",
+        )
+        .range(0.01, 10.0),
+        ParamSpec::new(
+            "state_period_s",
+            ParamValue::Double(0.01),
+            "machine time between the MCU's state reports (the positions published)",
+        )
+        .range(0.001, 1.0),
+        ParamSpec::new(
+            "clock_query_period_s",
+            ParamValue::Double(0.1),
+            "machine time between clock queries (also the MCU watchdog's keep-alive)",
+        )
+        .range(0.001, 10.0),
+        ParamSpec::new(
+            "host_timeout_s",
+            ParamValue::Double(1.0),
+            "the MCU faults when the host is silent this long (wall seconds)",
+        )
+        .range(0.05, 60.0),
+        ParamSpec::new(
+            "silence_s",
+            ParamValue::Double(0.25),
+            "the host faults when the MCU is silent this long (wall seconds)",
+        )
+        .range(0.01, 60.0),
+        ParamSpec::new(
+            "retransmit_timeout_s",
+            ParamValue::Double(0.05),
+            "an unacknowledged frame is sent again after this long (wall seconds)",
+        )
+        .range(0.001, 10.0),
+    ]);
+    specs
+}
+
+/// The MCU's serial line: a tty or pseudo-terminal, or a Unix socket.
+pub enum Device {
+    Tty(File),
+    Socket(UnixStream),
+}
+
+/// What the serial line did wrong.
+#[derive(Debug, thiserror::Error)]
+pub enum DeviceError {
+    #[error("{device}: {source}")]
+    Io {
+        device: String,
+        source: std::io::Error,
+    },
+    #[error("{device}: the other end closed the line")]
+    Closed { device: String },
+    #[error("{device}: the MCU does not take what is written (blocked for 100 ms)")]
+    Blocked { device: String },
+}
+
+impl Device {
+    /// Open `spec`: `unix:/path` or the path of a tty, raw, at `baud`.
+    pub fn open(spec: &str, baud: u32) -> anyhow::Result<(Device, String)> {
+        if let Some(path) = spec.strip_prefix("unix:") {
+            let stream = UnixStream::connect(path)
+                .with_context(|| format!("connecting to the MCU's socket {path}"))?;
+            stream.set_nonblocking(true)?;
+            return Ok((Device::Socket(stream), spec.to_string()));
+        }
+        let file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(nix::libc::O_NOCTTY | nix::libc::O_NONBLOCK)
+            .open(spec)
+            .with_context(|| format!("opening the MCU's serial line {spec}"))?;
+        // Raw: binary frames, no echo, no line discipline.
+        let mut termios = tcgetattr(file.as_fd()).with_context(|| format!("{spec}: not a tty"))?;
+        cfmakeraw(&mut termios);
+        cfsetspeed(&mut termios, baud_rate(baud)?)?;
+        tcsetattr(file.as_fd(), SetArg::TCSANOW, &termios)?;
+        Ok((Device::Tty(file), spec.to_string()))
+    }
+}
+
+fn baud_rate(baud: u32) -> anyhow::Result<BaudRate> {
+    Ok(match baud {
+        9600 => BaudRate::B9600,
+        19200 => BaudRate::B19200,
+        38400 => BaudRate::B38400,
+        57600 => BaudRate::B57600,
+        115_200 => BaudRate::B115200,
+        230_400 => BaudRate::B230400,
+        460_800 => BaudRate::B460800,
+        921_600 => BaudRate::B921600,
+        1_000_000 => BaudRate::B1000000,
+        2_000_000 => BaudRate::B2000000,
+        other => anyhow::bail!(
+            "parameter baud: {other} is not one of 9600, 19200, 38400, 57600, 115200, 230400, \
+             460800, 921600, 1000000, 2000000"
+        ),
+    })
+}
+
+/// The device with its name, for messages.
+pub struct SerialLink {
+    device: Device,
+    name: String,
+}
+
+impl SerialLink {
+    pub fn new(device: Device, name: String) -> SerialLink {
+        SerialLink { device, name }
+    }
+
+    fn io(&self, source: std::io::Error) -> DeviceError {
+        DeviceError::Io {
+            device: self.name.clone(),
+            source,
+        }
+    }
+
+    fn stream(&mut self) -> &mut dyn ReadWrite {
+        match &mut self.device {
+            Device::Tty(f) => f,
+            Device::Socket(s) => s,
+        }
+    }
+
+    fn wait_writable(&self) -> bool {
+        let fd = match &self.device {
+            Device::Tty(f) => f.as_fd(),
+            Device::Socket(s) => s.as_fd(),
+        };
+        let mut fds = [PollFd::new(fd, PollFlags::POLLOUT)];
+        matches!(poll(&mut fds, PollTimeout::from(100u8)), Ok(n) if n > 0)
+    }
+}
+
+trait ReadWrite: Read + Write {}
+impl<T: Read + Write> ReadWrite for T {}
+
+impl McuLink for SerialLink {
+    type Error = DeviceError;
+
+    fn read(&mut self, _now_ns: i64, into: &mut Vec<u8>) -> Result<(), DeviceError> {
+        let mut buf = [0u8; 4096];
+        loop {
+            match self.stream().read(&mut buf) {
+                Ok(0) => {
+                    return Err(DeviceError::Closed {
+                        device: self.name.clone(),
+                    })
+                }
+                Ok(n) => into.extend_from_slice(&buf[..n]),
+                Err(e) if e.kind() == ErrorKind::WouldBlock => return Ok(()),
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                // A pseudo-terminal whose other side has gone.
+                Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => {
+                    return Err(DeviceError::Closed {
+                        device: self.name.clone(),
+                    })
+                }
+                Err(e) => return Err(self.io(e)),
+            }
+        }
+    }
+
+    fn write(&mut self, _now_ns: i64, mut bytes: &[u8]) -> Result<(), DeviceError> {
+        while !bytes.is_empty() {
+            match self.stream().write(bytes) {
+                Ok(n) => bytes = &bytes[n..],
+                Err(e) if e.kind() == ErrorKind::WouldBlock => {
+                    if !self.wait_writable() {
+                        return Err(DeviceError::Blocked {
+                            device: self.name.clone(),
+                        });
+                    }
+                }
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                Err(e) => return Err(self.io(e)),
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The session the parameters describe, its timeouts in machine time at `params.speed`.
+pub fn session_options(node: &CellNode, params: &MachineParams) -> SessionOptions {
+    let p = &node.params;
+    let wall = params.speed.max(1.0);
+    let mut options = SessionOptions::new(
+        params.steps.steps_per_unit,
+        params.joint_accelerations,
+        params.pin_open_delay_s,
+    );
+    options.horizon_s = params.horizon_s;
+    options.lead_s = p.f64("lead_s");
+    options.state_period_s = p.f64("state_period_s");
+    options.clock_query_period_s = p.f64("clock_query_period_s");
+    options.host_timeout_s = p.f64("host_timeout_s") * wall;
+    options.silence_s = p.f64("silence_s") * wall;
+    options.retransmit_timeout_s = p.f64("retransmit_timeout_s") * wall;
+    options.screw_hold = params.screw_hold;
+    options
+}
+
+/// A nonce for this host session (the MCU learns from it that the host restarted).
+fn session_nonce() -> u32 {
+    let t = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap_or_default();
+    (t.subsec_nanos() ^ (t.as_secs() as u32).rotate_left(16) ^ std::process::id()) | 1
+}
+
+/// Run the bridge on `node` until an error: the MCU on `device` is the machine.
+pub async fn run(
+    node: &mut CellNode,
+    commands: mpsc::UnboundedReceiver<Command>,
+    status: watch::Sender<Status>,
+) -> anyhow::Result<()> {
+    let params = MachineParams::from_params(&node.params)?;
+    let spec = node.params.string("device").to_string();
+    if spec.is_empty() {
+        anyhow::bail!(
+            "parameter device is empty: say where the MCU is (-p device:=/dev/ttyACM0, a \
+             pseudo-terminal's path, or unix:/path)"
+        );
+    }
+    let baud = node.params.i64("baud") as u32;
+    let (device, name) = Device::open(&spec, baud)?;
+    node.log(LogLevel::Info, &format!("MCU on {name}"));
+    let session = McuSession::new(session_options(node, &params), session_nonce());
+    let link = SerialLink::new(device, name);
+    let mut machine = McuMachine::new(session, link, params.queue_capacity, params.horizon_s);
+    cell_machine::node::run(node, &mut machine, &params, commands, status).await
+}
+
+/// Run the node from its own command line until SIGINT/SIGTERM.
+pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
+    let mut node = CellNode::start_from_argv(NODE_NAME, &param_specs(), &argv)?;
+    let (_commands, receiver) = mpsc::unbounded_channel();
+    let (status, _) = watch::channel(Status::default());
+    tokio::select! {
+        result = run(&mut node, receiver, status) => result,
+        _ = cell_runtime::shutdown_signal() => Ok(()),
+    }
+}

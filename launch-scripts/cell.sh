@@ -3,6 +3,9 @@
 #   launch-scripts/cell.sh FILE.gcode [BAG.mcap]
 # The executor plays the plan at machine pace ($POLAR_CELL_SPEED times faster, default 1) and
 # the script ends once it has executed all of it.
+# With POLAR_CELL_DEVICE set the machine is a microcontroller behind mcu_bridge instead of the
+# virtual executor: a serial line (/dev/ttyACM0, unix:/path), or `emulator` to start
+# mcu_emulator on a Unix socket at the same speed.
 # Binaries come from target/release (build with `cargo build --release --workspace`) or from
 # $POLAR_CELL_BIN_DIR. Extra ROS arguments for every node can go in $POLAR_CELL_ROS_ARGS.
 set -euo pipefail
@@ -16,7 +19,10 @@ fi
 gcode=$1
 bag=${2:-cell.mcap}
 speed=${POLAR_CELL_SPEED:-1.0}
-for b in bag_recorder polar_planner screw_driver cell_executor gcode_streamer; do
+device=${POLAR_CELL_DEVICE:-}
+machine=cell_executor
+[[ -n $device ]] && machine=mcu_bridge
+for b in bag_recorder polar_planner screw_driver $machine gcode_streamer; do
   [[ -x $bin/$b ]] || { echo "$bin/$b missing: cargo build --release --workspace" >&2; exit 1; }
 done
 # shellcheck disable=SC2086
@@ -28,14 +34,28 @@ planner=$!
 # shellcheck disable=SC2086
 "$bin/screw_driver" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &
 screw=$!
+emulator=
+if [[ $device == emulator ]]; then
+  [[ -x $bin/mcu_emulator ]] || { echo "$bin/mcu_emulator missing: cargo build --release --workspace" >&2; exit 1; }
+  socket=$(mktemp -u "${TMPDIR:-/tmp}/polar-cell-mcu.XXXXXX.sock")
+  "$bin/mcu_emulator" --socket "$socket" --speed "$speed" >/dev/null &
+  emulator=$!
+  device=unix:$socket
+fi
+machine_args=(-p "speed:=$speed" -p exit_when_done:=true)
+[[ -n $device ]] && machine_args+=(-p "device:=$device")
 # shellcheck disable=SC2086
-"$bin/cell_executor" --ros-args --params-file "$params" -p "speed:=$speed" -p exit_when_done:=true ${POLAR_CELL_ROS_ARGS:-} &
+"$bin/$machine" --ros-args --params-file "$params" "${machine_args[@]}" ${POLAR_CELL_ROS_ARGS:-} &
 executor=$!
 stop_nodes() {
   kill -INT "$executor" "$screw" "$planner" 2>/dev/null || true
   wait "$executor" "$screw" "$planner" || true
   kill -INT "$recorder" 2>/dev/null || true
   wait "$recorder"
+  if [[ -n $emulator ]]; then
+    kill "$emulator" 2>/dev/null || true
+    wait "$emulator" 2>/dev/null || true
+  fi
 }
 trap stop_nodes EXIT
 # shellcheck disable=SC2086

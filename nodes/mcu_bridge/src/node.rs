@@ -42,6 +42,12 @@ pub fn param_specs() -> Vec<ParamSpec> {
             "the MCU's serial line: a tty (/dev/ttyACM0), a pseudo-terminal's path, or unix:/path",
         ),
         ParamSpec::new(
+            "open_timeout_s",
+            ParamValue::Double(5.0),
+            "wait this long for the device to appear (wall seconds)",
+        )
+        .range(0.0, 600.0),
+        ParamSpec::new(
             "baud",
             ParamValue::Integer(115_200),
             "line speed of a tty (ignored by USB CDC and pseudo-terminals)",
@@ -253,6 +259,18 @@ pub fn session_options(node: &CellNode, params: &MachineParams) -> SessionOption
     options
 }
 
+/// The device is not there (yet), as opposed to there and unusable.
+fn absent(e: &anyhow::Error) -> bool {
+    e.chain()
+        .filter_map(|c| c.downcast_ref::<std::io::Error>())
+        .any(|io| {
+            matches!(
+                io.kind(),
+                ErrorKind::NotFound | ErrorKind::ConnectionRefused
+            )
+        })
+}
+
 /// A nonce for this host session (the MCU learns from it that the host restarted).
 fn session_nonce() -> u32 {
     let t = std::time::SystemTime::now()
@@ -276,7 +294,19 @@ pub async fn run(
         );
     }
     let baud = node.params.i64("baud") as u32;
-    let (device, name) = Device::open(&spec, baud)?;
+    // A device may appear a moment after the bridge starts (a USB MCU enumerating, an
+    // emulator binding its socket): look for it for up to `open_timeout_s`.
+    let give_up = std::time::Instant::now()
+        + std::time::Duration::from_secs_f64(node.params.f64("open_timeout_s"));
+    let (device, name) = loop {
+        match Device::open(&spec, baud) {
+            Ok(opened) => break opened,
+            Err(e) if std::time::Instant::now() < give_up && absent(&e) => {
+                tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+            }
+            Err(e) => return Err(e),
+        }
+    };
     node.log(LogLevel::Info, &format!("MCU on {name}"));
     let session = McuSession::new(session_options(node, &params), session_nonce());
     let link = SerialLink::new(device, name);

@@ -214,6 +214,19 @@ fn topic_messages<T: polar_cell_msgs::RosMessage>(bag: &Path, topic: &str) -> Ve
         .collect()
 }
 
+/// The cell's steps per rad of `bed_theta`, per m of `arm_r` and `z` (the defaults).
+const STEPS_PER_UNIT: [f64; 3] = [32000.0 / std::f64::consts::TAU, 80_000.0, 400_000.0];
+
+/// Where the plan's steps end: each axis's signed steps summed over `segments`.
+fn end_steps(segments: &[polar_cell_msgs::StepSegment]) -> [i64; 3] {
+    std::array::from_fn(|k| {
+        segments
+            .iter()
+            .map(|s| s.step_counts[k] as i64 * s.directions[k] as i64)
+            .sum()
+    })
+}
+
 /// The executed print: finger.gcode at 40× machine pace. Its bag's `/joint_states` are the
 /// executor's: all four URDF joints on a regular 50 Hz grid of machine time, within every
 /// URDF velocity limit, ending exactly where the step segments sum to; `/tf`, `/tf_static`
@@ -274,14 +287,13 @@ fn an_executed_print_records_the_executed_joints_at_50_hz() {
     }
     let segments: Vec<StepSegment> = topic_messages(&bag, "/polar/steps");
     assert_eq!(segments.len(), 4074);
-    let per_unit = [32000.0 / std::f64::consts::TAU, 80_000.0, 400_000.0];
     let last = states.last().unwrap();
-    for (k, per_unit) in per_unit.iter().enumerate() {
-        let steps: i64 = segments
-            .iter()
-            .map(|s| s.step_counts[k] as i64 * s.directions[k] as i64)
-            .sum();
-        assert_eq!(last.position[k], steps as f64 / per_unit, "joint {k}");
+    for (k, steps) in end_steps(&segments).into_iter().enumerate() {
+        assert_eq!(
+            last.position[k],
+            steps as f64 / STEPS_PER_UNIT[k],
+            "joint {k}"
+        );
         assert_eq!(last.velocity[k], 0.0);
     }
     let tf: Vec<TFMessage> = topic_messages(&bag, "/tf");
@@ -411,18 +423,10 @@ fn a_print_on_the_mcu_emulator_executes_every_step() {
     }
     let segments: Vec<StepSegment> = topic_messages(&bag, "/polar/steps");
     assert_eq!(segments.len(), 4074);
-    let per_unit = [32000.0 / std::f64::consts::TAU, 80_000.0, 400_000.0];
     let last = states.last().unwrap();
-    for (k, per_unit) in per_unit.iter().enumerate() {
-        let steps: i64 = segments
-            .iter()
-            .map(|s| s.step_counts[k] as i64 * s.directions[k] as i64)
-            .sum();
-        assert_eq!(
-            (last.position[k] * per_unit).round() as i64,
-            steps,
-            "joint {k}"
-        );
+    for (k, steps) in end_steps(&segments).into_iter().enumerate() {
+        let reported = (last.position[k] * STEPS_PER_UNIT[k]).round() as i64;
+        assert_eq!(reported, steps, "joint {k}");
     }
     std::fs::remove_file(&bag).ok();
 }

@@ -11,17 +11,22 @@ from conftest import BIN_DIR, FIXTURES, ROOT, assert_readable_by_independent_rea
 LAUNCH = ROOT / "launch-scripts"
 
 
+def printed_counts(bag):
+    """Messages per topic of a print's bag, which the independent readers must read."""
+    assert_readable_by_independent_readers(bag)
+    with open(bag, "rb") as f:
+        summary = make_reader(f).get_summary()
+    return {
+        summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()
+    }
+
+
 def test_cell_sh_prints_a_fixture_with_one_process_per_node(tmp_path):
     bag = tmp_path / "cell.mcap"
     run([LAUNCH / "cell.sh", FIXTURES / "polartest.gcode", bag], env={
         "POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin", "POLAR_CELL_SPEED": "25",
     })
-    assert_readable_by_independent_readers(bag)
-    with open(bag, "rb") as f:
-        summary = make_reader(f).get_summary()
-    counts = {
-        summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()
-    }
+    counts = printed_counts(bag)
     expected = len(gcode_motion_lines(FIXTURES / "polartest.gcode"))
     assert counts["/gcode/moves"] == expected
     assert counts["/polar/trajectory"] == expected, "the planner ran as its own process"
@@ -57,12 +62,7 @@ def test_cell_sh_prints_on_the_mcu_emulator(tmp_path):
         "POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin", "POLAR_CELL_SPEED": "10",
         "POLAR_CELL_DEVICE": "emulator",
     })
-    assert_readable_by_independent_readers(bag)
-    with open(bag, "rb") as f:
-        summary = make_reader(f).get_summary()
-    counts = {
-        summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()
-    }
+    counts = printed_counts(bag)
     expected = len(gcode_motion_lines(FIXTURES / "polartest.gcode"))
     assert counts["/gcode/moves"] == expected
     # The MCU's reports over the whole plan (125 s), sampled at 50 Hz. At 10x the emulator

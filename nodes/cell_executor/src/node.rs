@@ -55,11 +55,8 @@ pub async fn run(
 
 /// Run the node from its own command line until SIGINT/SIGTERM.
 pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
-    let mut node = CellNode::start_from_argv(NODE_NAME, &param_specs(), &argv)?;
-    let (_commands, receiver) = mpsc::unbounded_channel();
-    let (status, _) = watch::channel(Status::default());
-    tokio::select! {
-        result = run(&mut node, receiver, status) => result,
-        _ = cell_runtime::shutdown_signal() => Ok(()),
-    }
+    cell_machine::node::main_with_args(NODE_NAME, &param_specs(), argv, |node, rx, tx| {
+        Box::pin(run(node, rx, tx))
+    })
+    .await
 }

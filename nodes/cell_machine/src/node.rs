@@ -569,6 +569,32 @@ pub async fn run<M: Machine>(
     }
 }
 
+/// How a machine node runs: the node, commands from its own process, its status out.
+pub type RunFn = for<'a> fn(
+    &'a mut CellNode,
+    mpsc::UnboundedReceiver<Command>,
+    watch::Sender<Status>,
+) -> std::pin::Pin<
+    Box<dyn std::future::Future<Output = anyhow::Result<()>> + 'a>,
+>;
+
+/// A machine node as its own process: started from its command line, run until an error or
+/// SIGINT/SIGTERM (nobody else in the process sends commands or watches the status).
+pub async fn main_with_args(
+    name: &str,
+    specs: &[ParamSpec],
+    argv: Vec<String>,
+    run: RunFn,
+) -> anyhow::Result<()> {
+    let mut node = CellNode::start_from_argv(name, specs, &argv)?;
+    let (_commands, receiver) = mpsc::unbounded_channel();
+    let (status, _) = watch::channel(Status::default());
+    tokio::select! {
+        result = run(&mut node, receiver, status) => result,
+        _ = cell_runtime::shutdown_signal() => Ok(()),
+    }
+}
+
 type TriggerServer = ros2_client::Server<Wire<TriggerRequest>, Wire<TriggerResponse>>;
 
 /// The first service with a request waiting, and its request id.

@@ -4,7 +4,8 @@
 //! the reply carries. The MCU read its clock somewhere inside the round trip; taking the
 //! midpoint errs by at most half the round trip, so samples with short round trips are worth
 //! more. The estimate is a least-squares line `mcu = base + rate·(host − host_base)` through
-//! the recent samples whose round trip is within twice the shortest one seen among them: the
+//! the recent samples whose round trip is within twice the shortest one seen among them (or
+//! among their shortest quarter, where one round trip was exceptionally short): the
 //! slope is the crystal's real frequency (offset, rate error and, through the moving window,
 //! drift), the RMS of the residuals its uncertainty.
 
@@ -76,11 +77,17 @@ impl ClockSync {
     }
 
     fn compute(&self) -> Option<ClockFit> {
-        let best = self.samples.iter().map(|s| s.round_trip_ns).min()?;
+        let mut round_trips: Vec<i64> = self.samples.iter().map(|s| s.round_trip_ns).collect();
+        round_trips.sort_unstable();
+        let best = *round_trips.first()?;
+        // The shortest quarter at least: one lucky round trip must not leave a single sample
+        // (and the nominal rate) to a long window.
+        let quarter = round_trips[(round_trips.len() / 4).saturating_sub(1)];
+        let threshold = (2 * best.max(1)).max(quarter);
         let used: Vec<&Sample> = self
             .samples
             .iter()
-            .filter(|s| s.round_trip_ns <= 2 * best.max(1))
+            .filter(|s| s.round_trip_ns <= threshold)
             .collect();
         let last = used.last()?;
         // Relative to the newest sample, so that f64 keeps every digit that matters.
@@ -189,6 +196,23 @@ mod tests {
         assert_eq!(sync.rate_error_ppm(), Some(0.0));
         sync.reset();
         assert_eq!(sync.fit(), None);
+    }
+
+    /// A long window with one exceptionally short round trip (30 µs among 200–380 µs) still
+    /// fits a line through its shortest quarter, not the nominal rate through one sample.
+    #[test]
+    fn one_lucky_round_trip_does_not_empty_a_long_window() {
+        let mut sync = ClockSync::new(1e6, 512);
+        feed(&mut sync, 100.0, 5_000.0, 512);
+        let sent = 512 * 100_000_000;
+        sync.add(
+            sent,
+            sent + 30_000,
+            (5_000.0 + (sent + 15_000) as f64 * 1e-3 * 1.0001) as u64,
+        );
+        assert!(sync.fit().unwrap().samples >= 128);
+        let ppm = sync.rate_error_ppm().unwrap();
+        assert!((ppm - 100.0).abs() < 1.0, "{ppm} ppm");
     }
 
     #[test]

@@ -91,6 +91,8 @@ pub struct McuMachine<L: McuLink> {
     reports: VecDeque<Report>,
     incoming: Vec<u8>,
     link_error: Option<String>,
+    /// Bytes written to the MCU so far (frames and their retransmissions).
+    bytes_sent: u64,
 }
 
 impl<L: McuLink> McuMachine<L> {
@@ -119,6 +121,7 @@ impl<L: McuLink> McuMachine<L> {
             reports: VecDeque::new(),
             incoming: Vec::new(),
             link_error: None,
+            bytes_sent: 0,
         }
     }
 
@@ -135,6 +138,11 @@ impl<L: McuLink> McuMachine<L> {
     /// The MCU clock at which the positions [`Machine::state`] gives were measured.
     pub fn reported_clock(&self) -> Option<u64> {
         self.report_now().map(|r| r.state.clock)
+    }
+
+    /// Bytes written to the MCU so far (frames and their retransmissions).
+    pub fn bytes_sent(&self) -> u64 {
+        self.bytes_sent
     }
 
     pub fn session(&self) -> &McuSession {
@@ -183,6 +191,7 @@ impl<L: McuLink> McuMachine<L> {
         if bytes.is_empty() {
             return Ok(());
         }
+        self.bytes_sent += bytes.len() as u64;
         self.link.write(self.now_ns, &bytes)
     }
 
@@ -506,6 +515,7 @@ impl<L: McuLink> Machine for McuMachine<L> {
                 format!("{:.1}", fit.residual_ticks),
             ));
         }
+        values.push(("link_bytes_sent", self.bytes_sent.to_string()));
         let counters = self.session.endpoint().link().counters();
         values.push(("link_retransmits", counters.retransmits.to_string()));
         values.push(("link_naks", counters.naks_sent.to_string()));

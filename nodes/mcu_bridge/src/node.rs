@@ -9,7 +9,8 @@
 //!
 //! Times: the node's machine clock is the monotonic clock times `speed`, as for the executor;
 //! an emulated MCU run `speed`× faster keeps in step with it. The host's timeouts (the MCU's
-//! watchdog, the host's silence bound, retransmits) are parameters in wall seconds, scaled to
+//! watchdog, the host's silence bound, retransmits, the lead before a plan's first segment)
+//! are parameters in wall seconds, scaled to
 //! machine time by `speed`, so that a loaded test machine at `--speed 10` is not mistaken for
 //! a dead link.
 
@@ -56,7 +57,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new(
             "lead_s",
             ParamValue::Double(0.25),
-            "machine time between a plan's first segment and its start on the MCU",
+            "time between a plan's first segment and its start on the MCU, for the first frames to arrive (wall seconds)",
         )
         .range(0.01, 10.0),
         ParamSpec::new(
@@ -249,7 +250,7 @@ pub fn session_options(node: &CellNode, params: &MachineParams) -> SessionOption
         params.pin_open_delay_s,
     );
     options.horizon_s = params.horizon_s;
-    options.lead_s = p.f64("lead_s");
+    options.lead_s = p.f64("lead_s") * wall;
     options.state_period_s = p.f64("state_period_s");
     options.clock_query_period_s = p.f64("clock_query_period_s");
     options.host_timeout_s = p.f64("host_timeout_s") * wall;

@@ -137,6 +137,11 @@ pub struct McuSession {
     emergency_sent_us: Option<u64>,
 }
 
+/// Clock samples the fit keeps: 51 s of them at the default query period. A long window
+/// averages the round trips' jitter out of the rate (over 3 s, ±120 ppm on a pty at 1×; the
+/// crystal's drift is far slower than the window).
+const CLOCK_SAMPLES: usize = 512;
+
 fn ticks(seconds: f64, hz: f64) -> u32 {
     (seconds * hz).round().clamp(0.0, u32::MAX as f64) as u32
 }
@@ -148,7 +153,7 @@ impl McuSession {
         McuSession {
             options,
             endpoint,
-            clock: ClockSync::new(1e6, 32),
+            clock: ClockSync::new(1e6, CLOCK_SAMPLES),
             identity: None,
             configured: false,
             queries: VecDeque::new(),
@@ -419,7 +424,7 @@ impl McuSession {
                             mcu: identity.protocol_version,
                         });
                     }
-                    self.clock = ClockSync::new(identity.timer_hz as f64, 32);
+                    self.clock = ClockSync::new(identity.timer_hz as f64, CLOCK_SAMPLES);
                     self.identity = Some(identity);
                 }
                 FromMcu::Message(McuMessage::Clock { token, clock }) => {

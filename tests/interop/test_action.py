@@ -20,6 +20,7 @@ from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
+import pytest
 
 from conftest import binary
 from rmw_cyclone import ServiceClient
@@ -160,13 +161,17 @@ def circle(path, turns):
     return len(lines)
 
 
-def test_print_action_feedback_cancel_and_success_from_a_cyclone_client(tmp_path):
+@pytest.mark.parametrize("device", [None, "emulator"], ids=["executor", "mcu"])
+def test_print_action_feedback_cancel_and_success_from_a_cyclone_client(tmp_path, device):
+    """The action whatever the machine: the virtual executor, or per goal the MCU emulator
+    behind the bridge (`serve --device emulator`)."""
     long_file, short_file = tmp_path / "long.gcode", tmp_path / "short.gcode"
     circle(long_file, 3)
     short_moves = circle(short_file, 1)
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN))
+    on_device = ["--device", device] if device else []
     server = subprocess.Popen(
-        [str(binary("polar-cell")), "serve", "--bag-dir", str(tmp_path / "bags")],
+        [str(binary("polar-cell")), "serve", "--bag-dir", str(tmp_path / "bags"), *on_device],
         env=env, stderr=subprocess.PIPE, text=True,
     )
     try:

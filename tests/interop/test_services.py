@@ -19,6 +19,7 @@ from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
+import pytest
 
 from conftest import binary
 from rmw_cyclone import ServiceClient
@@ -69,13 +70,17 @@ def recent_states(reader, seconds):
     return out
 
 
-def test_pause_resume_estop_from_a_cyclone_client(tmp_path):
+@pytest.mark.parametrize("device", [None, "emulator"], ids=["executor", "mcu"])
+def test_pause_resume_estop_from_a_cyclone_client(tmp_path, device):
+    """The same services whatever the machine: the virtual executor, or the MCU emulator
+    behind the bridge (`--device emulator`)."""
     gcode = tmp_path / "circle.gcode"
     circle_gcode(gcode)
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN))
+    on_device = ["--device", device] if device else []
     proc = subprocess.Popen(
         [str(binary("polar-cell")), "print", str(gcode), "--bag", str(tmp_path / "s.mcap"),
-         "--no-progress"],
+         "--no-progress", *on_device],
         env=env, stderr=subprocess.PIPE, text=True,
     )
     try:

@@ -155,16 +155,28 @@ impl Emulator {
             .and_then(|exe| exe.parent().map(|dir| dir.join("mcu_emulator")))
             .filter(|path| path.exists());
         let program = beside.unwrap_or_else(|| "mcu_emulator".into());
-        let mut child = std::process::Command::new(&program)
+        let mut command = std::process::Command::new(&program);
+        command
             .args(["--speed", &speed.to_string()])
-            .stdout(std::process::Stdio::piped())
-            .spawn()
-            .with_context(|| {
-                format!(
-                    "starting {} (build it with `cargo build --release --workspace`)",
-                    program.display()
-                )
-            })?;
+            .stdout(std::process::Stdio::piped());
+        // SAFETY: prctl is async-signal-safe; between fork and exec it only asks the kernel
+        // to kill the child when its parent thread dies (here a runtime thread, which lives
+        // as long as the process), so no emulator outlives a killed print.
+        unsafe {
+            use std::os::unix::process::CommandExt as _;
+            command.pre_exec(|| {
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) == -1 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let mut child = command.spawn().with_context(|| {
+            format!(
+                "starting {} (build it with `cargo build --release --workspace`)",
+                program.display()
+            )
+        })?;
         let stdout = child.stdout.take().expect("piped");
         let mut line = String::new();
         std::io::BufReader::new(stdout)

@@ -396,3 +396,67 @@ fn a_restarted_mcu_is_a_fault_noticed_within_100_ms() {
         Some(SessionError::Restarted { .. })
     ));
 }
+
+/// The MCU executes what the virtual executor executes: at the plan instant of every state
+/// the MCU reported, its step counts equal the executor's at that plan instant, to the step
+/// (an edge goes out on the tick nearest its time, so one pulse within half a tick after the
+/// instant may already be counted on the MCU).
+#[test]
+fn the_mcu_matches_the_virtual_executor_within_one_step_at_every_report() {
+    use cell_executor::{Player, PlayerOptions, SegmentJob};
+    let segments = finger_start(300);
+    let mut rig = Rig::new(EmulatorOptions::default());
+    let mut reports: Vec<(u64, [i32; 3])> = Vec::new();
+    while !(rig.fed == segments.len() && rig.machine.is_drained()) {
+        if rig.fed == segments.len() {
+            rig.machine.finish_input();
+        }
+        rig.ms(&segments).unwrap();
+        assert!(rig.now_ns < 60_000_000_000, "not done after 60 s");
+        if let Some(s) = rig.machine.session().state() {
+            if reports.last().is_none_or(|&(p, _)| s.plan_clock > p) {
+                reports.push((s.plan_clock, s.position_steps));
+            }
+        }
+    }
+    let anchor = rig.machine.session().anchor_clock().unwrap();
+
+    let mut player = Player::new(PlayerOptions {
+        queue_capacity: segments.len(),
+        ..PlayerOptions::new(
+            StepOptions::default(),
+            std::array::from_fn(|j| PlannerOptions::default().joints[j].acceleration),
+            0.25,
+        )
+    });
+    for s in &segments {
+        player
+            .push(SegmentJob::from_message(s, 1e6).unwrap())
+            .unwrap();
+    }
+    player.finish_input();
+    // Plan time 0 is the anchor: the executor starts there too.
+    player.advance_to(0, |_| {}).unwrap();
+    let mut compared = 0;
+    let mut worst = 0i64;
+    for &(plan_clock, mcu_steps) in reports.iter().filter(|(p, _)| *p >= anchor) {
+        let plan_q32 = (plan_clock - anchor) << 32;
+        player.advance_to(plan_q32, |_| {}).unwrap();
+        let executor_steps = player.position_steps();
+        for k in 0..3 {
+            let diff = (mcu_steps[k] as i64 - executor_steps[k]).abs();
+            worst = worst.max(diff);
+            assert!(
+                diff <= 1,
+                "axis {k} at plan tick {}: MCU {} executor {}",
+                plan_clock - anchor,
+                mcu_steps[k],
+                executor_steps[k]
+            );
+        }
+        compared += 1;
+    }
+    println!("{compared} reports compared, worst {worst} step");
+    assert!(compared > 1800, "{compared} reports"); // 38.5 s at 50 Hz
+    assert_eq!(player.position_steps(), end_steps(&segments));
+}

@@ -399,7 +399,17 @@ fn a_print_on_the_mcu_emulator_executes_every_step() {
         61,
         &fixture,
         &bag,
-        &["--speed", "10", "--device", "emulator"],
+        &[
+            "--speed",
+            "10",
+            "--device",
+            "emulator",
+            // 0.6 s of the test's time in hand (the default 2 s is 0.2 s at 10×): in CI,
+            // beside the other pipeline tests, a starved bridge ran the MCU dry at 2 s.
+            "--ros-args",
+            "-p",
+            "mcu_bridge:horizon_s:=6.0",
+        ],
     );
     assert!(stderr.contains("MCU emulator on /dev/pts/"), "{stderr}");
     let executed_line = stderr

@@ -79,7 +79,6 @@ pub struct McuMachine<L: McuLink> {
     tracked: VecDeque<Tracked>,
     completed: u64,
     last_completed: Option<(u64, u32)>,
-    last_ends_at_rest: bool,
     hold: Option<HoldReason>,
     underruns: u64,
     input_finished: bool,
@@ -111,7 +110,6 @@ impl<L: McuLink> McuMachine<L> {
             tracked: VecDeque::new(),
             completed: 0,
             last_completed: None,
-            last_ends_at_rest: true,
             hold: None,
             underruns: 0,
             input_finished: false,
@@ -211,17 +209,20 @@ impl<L: McuLink> McuMachine<L> {
         }
     }
 
-    /// Hold before a plan that does not end at rest runs out; resume once enough is here.
+    /// Hold before what the MCU has been sent runs out while moving — the plan ran short, or
+    /// the line is behind; resume once enough is on its way.
     fn watch_underrun(&mut self) -> Result<(), LinkError> {
-        let (Some(plan_now), Some(end)) =
-            (self.plan_clock_now(), self.session.schedule_end_clock())
+        let (Some(plan_now), Some((end, at_rest))) =
+            (self.plan_clock_now(), self.session.sent_end())
         else {
             return Ok(());
         };
         let hz = self.session.timer_hz();
         let left_s = end.saturating_sub(plan_now) as f64 / hz;
+        let all_sent = self.session.waiting().0 == 0;
         match self.hold {
-            None if !self.last_ends_at_rest && !self.input_finished => {
+            // Dry at a rest the MCU waits, its plan clock standing: nothing to do.
+            None if !at_rest => {
                 // A hold from full feed covers 1/(2ρ) of plan time; start it with a margin
                 // for the state's age and the loop's period.
                 let stopping_s = self.stopping_s();
@@ -233,8 +234,8 @@ impl<L: McuLink> McuMachine<L> {
             }
             Some(HoldReason::Underrun)
                 if left_s >= (self.horizon_s / 2.0).max(2.0 * self.stopping_s())
-                    || self.input_finished
-                    || self.last_ends_at_rest =>
+                    || at_rest
+                    || (self.input_finished && all_sent) =>
             {
                 self.session.resume()?;
                 self.hold = None;
@@ -271,7 +272,6 @@ impl<L: McuLink> McuMachine<L> {
         self.epoch_ns = None;
         self.early_screw.clear();
         self.tracked.clear();
-        self.last_ends_at_rest = true;
         self.input_finished = false;
     }
 
@@ -548,7 +548,6 @@ impl<L: McuLink> Drop for McuMachine<L> {
 
 impl<L: McuLink> McuMachine<L> {
     fn track(&mut self, msg: &StepSegment, end_clock: u64) {
-        self.last_ends_at_rest = msg.ends_at_rest;
         self.tracked.push_back(Tracked {
             end_clock,
             move_sequence: msg.move_sequence,

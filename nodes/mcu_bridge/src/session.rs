@@ -25,6 +25,7 @@ use std::collections::VecDeque;
 
 use cell_protocol::message::{
     FaultCode, HostMessage, Identity, McuMessage, McuState, Mode, QueuedSegment, ScrewRamp,
+    SEGMENT_ENDS_AT_REST,
 };
 use cell_protocol::{LinkError, MAX_WIRE_FRAME, PROTOCOL_VERSION};
 use polar_cell_msgs::{Hold, ScrewCommand, StepSegment};
@@ -128,6 +129,8 @@ pub struct McuSession {
     /// Holds, resumes, drops and resets waiting for room in the link's window: they go
     /// ahead of any segment or screw command.
     controls: VecDeque<HostMessage>,
+    /// Where the last segment sent ends on the plan clock, and whether it ends at rest.
+    sent_end: Option<(u64, bool)>,
     /// Tag and start clock of the last segment sent.
     last_sent_tag: Option<u32>,
     last_sent_start: Option<u64>,
@@ -168,6 +171,7 @@ impl McuSession {
             screw_on_mcu: VecDeque::new(),
             controls: VecDeque::new(),
             reports: Vec::new(),
+            sent_end: None,
             last_sent_tag: None,
             last_sent_start: None,
             error: None,
@@ -271,6 +275,12 @@ impl McuSession {
         }
     }
 
+    /// Where the last segment sent to the MCU ends on its plan clock, and whether it ends at
+    /// rest: what the MCU can play before it runs dry (lost frames are sent again).
+    pub fn sent_end(&self) -> Option<(u64, bool)> {
+        self.sent_end
+    }
+
     /// MCU plan clock where the segments converted so far end.
     pub fn schedule_end_clock(&self) -> Option<u64> {
         self.schedule.as_ref().map(Schedule::end_clock)
@@ -304,6 +314,7 @@ impl McuSession {
         self.schedule = None;
         self.on_mcu.clear();
         self.screw_on_mcu.clear();
+        self.sent_end = None;
         self.last_sent_tag = None;
         self.last_sent_start = None;
     }
@@ -575,6 +586,7 @@ impl McuSession {
             self.sent_since_state += 1;
             self.last_sent_tag = Some(next.tag);
             self.last_sent_start = Some(next.start_clock);
+            self.sent_end = Some((end, next.flags & SEGMENT_ENDS_AT_REST != 0));
             room -= 1;
         }
         let screw_capacity = self.identity.map_or(0, |i| i.screw_queue_capacity as usize);

@@ -839,13 +839,15 @@ fn preflight(
 }
 
 fn describe(report: &polar_planner::PreflightReport, took: Duration) -> String {
-    let t = report.plan_time_s;
+    // Whole milliseconds first, so that 59.9996 s reads 0:01:00.000, not 0:00:60.000.
+    let ms = (report.plan_time_s * 1e3).round() as u64;
     format!(
-        "{} moves, {:.0}:{:02.0}:{:04.1} of machine time, {} step segments; checked in {:.2} s",
+        "{} moves, {}:{:02}:{:02}.{:03} of machine time, {} step segments; checked in {:.2} s",
         report.moves,
-        (t / 3600.0).floor(),
-        (t % 3600.0 / 60.0).floor(),
-        t % 60.0,
+        ms / 3_600_000,
+        ms / 60_000 % 60,
+        ms / 1000 % 60,
+        ms % 1000,
         report.segments,
         took.as_secs_f64()
     )

@@ -169,7 +169,7 @@ fn check_plans_with_the_prints_parameters() {
         );
         stdout
     };
-    assert!(check(&["-p", "window:=3"]).contains("1778 moves, 0:02:48.1 of machine time"));
+    assert!(check(&["-p", "window:=3"]).contains("1778 moves, 0:02:48.055 of machine time"));
     assert!(check(&["-p", "screw_driver:max_rpm:=100"])
-        .contains("1778 moves, 0:05:25.2 of machine time"));
+        .contains("1778 moves, 0:05:25.201 of machine time"));
 }

@@ -196,7 +196,7 @@ fn the_preflight_reports_the_machine_time_of_a_good_file() {
     // finger's plan with the screw's limits: 168.1 s (the planner's own tests: 165.8 s
     // without them).
     assert!(
-        stdout.contains("pre-flight passed: 1778 moves, 0:02:48.1 of machine time"),
+        stdout.contains("pre-flight passed: 1778 moves, 0:02:48.055 of machine time"),
         "{stdout}"
     );
 }
@@ -265,9 +265,10 @@ fn an_executed_print_records_the_executed_joints_at_50_hz() {
             .unwrap()
     };
     let (executed_s, planned_s) = (number_after("step ("), number_after("planned "));
-    // A tick of the executor is 0.1 ms of wall time, 4 ms of machine time at 40×.
+    // Start and end are placed by the plan clock, not at the tick that noticed them (a tick
+    // is 0.1 ms of wall time, 4 ms of machine time at 40×, or much longer on a loaded CI).
     assert!(
-        (executed_s - planned_s).abs() < 0.25,
+        (executed_s - planned_s).abs() < 0.01,
         "executed {executed_s} s, planned {planned_s} s"
     );
     assert!(executed_line.contains(", 0 underruns"), "{executed_line}");

@@ -236,7 +236,9 @@ def test_print_action_feedback_cancel_and_success_from_a_cyclone_client(tmp_path
         check = subprocess.run([str(binary("polar-cell")), "check", str(short_file)],
                                capture_output=True, text=True, check=True).stdout
         m, s = check.split("of machine time")[0].split()[-1].split(":")[-2:]
-        assert abs(result.result.machine_time_s - (60 * int(m) + float(s))) < 0.1, check
+        # Start and end placed by the plan clock (the MCU's through clock sync), not by when
+        # the server noticed them.
+        assert abs(result.result.machine_time_s - (60 * int(m) + float(s))) < 0.05, check
         bed, arm, z, _ = result.result.stop_position
         assert abs(bed - 2 * math.pi) < 1e-3 and abs(arm - 0.05) < 2e-5 and z == 0.0
         assert os.path.exists(result.result.bag)

@@ -305,6 +305,9 @@ pub async fn run<M: Machine>(
     let mut first_motion_s: Option<f64> = None;
     let mut start_wait: Option<Instant> = None;
     let mut done_at_s: Option<f64> = None;
+    // The last two ticks at which plan time advanced, (machine s, plan s): the plan's end is
+    // placed between them rather than at the tick that noticed it.
+    let mut advancing: [Option<(f64, f64)>; 2] = [None, None];
     let mut pending_steps: VecDeque<StepSegment> = VecDeque::new();
     let mut pending_screw: VecDeque<ScrewCommand> = VecDeque::new();
     let mut received = 0u64;
@@ -452,8 +455,17 @@ pub async fn run<M: Machine>(
             executor.emergency_stop();
         }
         let state = executor.state();
+        // Start and end of the motion as the plan clock places them, not when this loop saw
+        // them: a microcontroller's report reaches us a line latency and a loop period late
+        // (0.1 s of machine time at 20x). Plan time runs at machine pace outside holds.
         if first_motion_s.is_none() && state.state == PlayerState::Running {
-            first_motion_s = Some(state.machine_time_s);
+            first_motion_s = Some((state.machine_time_s - state.plan_time_s).max(0.0));
+        }
+        if advancing[1].is_none_or(|(_, plan_s)| state.plan_time_s > plan_s) {
+            advancing = [
+                advancing[1],
+                Some((state.machine_time_s, state.plan_time_s)),
+            ];
         }
         // Credit: as far as the producers may plan; repeated so a late joiner learns it.
         let credit_due = now - last_credit.0 >= Duration::from_millis(100)
@@ -483,7 +495,13 @@ pub async fn run<M: Machine>(
         let underruns = executor.underruns();
         let done = input_finished && pending_steps.is_empty() && executor.is_drained();
         if done && done_at_s.is_none() {
-            done_at_s = Some(state.machine_time_s);
+            let end_s = state.plan_time_s;
+            done_at_s = Some(match advancing {
+                [Some((machine_s, plan_s)), Some((_, last_plan_s))] if last_plan_s >= end_s => {
+                    machine_s + (end_s - plan_s)
+                }
+                _ => state.machine_time_s,
+            });
         }
         // The status watch wakes whoever watches it (a print's progress, its end): at once
         // when the state changes, else at most every 50 ms of wall time.

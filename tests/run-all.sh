@@ -16,6 +16,7 @@ if [[ "${POLAR_CELL_NETNS:-}" != "1" ]]; then
   fi
   .venv/bin/pip install --quiet --disable-pip-version-check -r tests/interop/requirements.txt
   cargo test --workspace --release --locked --no-run --quiet
+  (cd firmware && cargo fetch --locked --quiet)
   if cargo fuzz --version >/dev/null 2>&1; then
     RUSTC_BOOTSTRAP=1 cargo fuzz build --fuzz-dir tests/fuzz -O
   fi
@@ -38,6 +39,13 @@ cargo clippy --workspace --all-targets --locked --quiet -- -D warnings
 echo "== the MCU crates for the RP2040 (thumbv6m-none-eabi: no_std, no alloc, no FPU)"
 cargo build --release --locked --quiet -p step_core -p cell_protocol -p cell_firmware_core \
   --target thumbv6m-none-eabi
+echo "== the RP2040 firmware (firmware/: its own workspace, thumbv6m-none-eabi), both profiles"
+(cd firmware && cargo fmt -- --check \
+  && cargo clippy --release --locked --quiet -- -D warnings \
+  && cargo clippy --release --locked --quiet --features bench-rig -- -D warnings \
+  && cargo build --release --locked --quiet --features bench-rig \
+  && mv target/thumbv6m-none-eabi/release/polar_cell_firmware target/polar_cell_firmware-bench-rig \
+  && cargo build --release --locked --quiet)
 echo "== cargo test"
 cargo test --workspace --release --locked --no-fail-fast 2>&1 | tee /tmp/polar-cell-cargo-test.log | grep -E "^(test result|running|error|failures)|FAILED|panicked" || true
 if grep -qE "FAILED|error(\[|:)" /tmp/polar-cell-cargo-test.log || ! grep -q "test result" /tmp/polar-cell-cargo-test.log; then

@@ -90,6 +90,11 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
         }
     }
 
+    /// See [`Machine::discard_edges`].
+    pub fn discard_edges(&mut self, edges: impl IntoIterator<Item = StepEdge>) {
+        self.machine.discard_edges(edges);
+    }
+
     /// Generate step edges up to MCU tick `until` (see [`Machine::advance`]).
     pub fn advance(&mut self, until: u64, sink: &mut impl FnMut(StepEdge)) {
         self.machine.advance(until, sink);

@@ -9,6 +9,8 @@
 //!   resume along the path, step positions, the screw and pin ([`screw`]), and faults: a late
 //!   or discontinuous segment, an underrun, a silent host, an emergency stop. A fault stops
 //!   every output at once and is latched until the host resets it.
+//! * [`outputs`] — step edges to pin writes: step/dir drivers or a unipolar motor's four
+//!   coils (seed 001's bench rig).
 //! * [`endpoint`] — the MCU's end of [`cell_protocol`]: bytes in, replies and state out.
 //!
 //! The hardware layer only moves bytes between its UART/USB and [`Endpoint`], and step edges
@@ -19,6 +21,7 @@
 
 pub mod endpoint;
 pub mod machine;
+pub mod outputs;
 pub mod screw;
 
 pub use endpoint::Endpoint;

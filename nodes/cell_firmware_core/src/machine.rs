@@ -326,6 +326,23 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         self.latch(FaultCode::EmergencyStop, 0);
     }
 
+    /// Take back edges that were generated but never reached the pins: an output stage that
+    /// generates ahead of its pins (the RP2040's, by its lead) drops what it still held when
+    /// a fault stopped it, and the positions must say where the motors are, not where they
+    /// were going. Only while stopped by a fault: in motion the edges are owed to the plan.
+    pub fn discard_edges(&mut self, edges: impl IntoIterator<Item = StepEdge>) {
+        if self.fault == FaultCode::None {
+            return;
+        }
+        for edge in edges {
+            for (axis, position) in self.positions.iter_mut().enumerate() {
+                if edge.axes & (1 << axis) != 0 {
+                    *position -= if edge.negative & (1 << axis) != 0 { -1 } else { 1 };
+                }
+            }
+        }
+    }
+
     fn queue_segment(&mut self, queued: QueuedSegment) {
         if self.fault != FaultCode::None {
             return; // refused silently: the host already has the fault report

@@ -237,6 +237,31 @@ fn an_emergency_stop_stops_at_once_and_holds_until_reset() {
 }
 
 #[test]
+fn edges_an_output_stage_dropped_at_a_stop_are_taken_back_from_the_positions() {
+    let mut m = machine();
+    queue(&mut m, cruise(0, 100, 100, 0, 1));
+    let edges = run(&mut m, 2050);
+    assert_eq!(m.positions(), [20, -10, 0]);
+    // While moving, generated edges belong to the plan: nothing is taken back.
+    m.discard_edges(edges[15..].iter().copied());
+    assert_eq!(m.positions(), [20, -10, 0]);
+    // Stopped with the last 5 edges (5 forward on axis 0, 2 or 3 backward on axis 1) still
+    // in the output queue: the positions are those of the 15 edges that were output.
+    m.handle(&HostMessage::EmergencyStop, 2050);
+    m.discard_edges(edges[15..].iter().copied());
+    let output = &edges[..15];
+    let count = |axis: u8| {
+        output
+            .iter()
+            .filter(|e| e.axes & (1 << axis) != 0)
+            .map(|e| if e.negative & (1 << axis) != 0 { -1 } else { 1 })
+            .sum::<i32>()
+    };
+    assert_eq!(m.positions(), [count(0), count(1), 0]);
+    assert_eq!(m.positions(), [15, -7, 0]);
+}
+
+#[test]
 fn a_feed_hold_stops_on_the_path_and_resume_plays_the_same_steps() {
     let plain = {
         let mut m = machine();

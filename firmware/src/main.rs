@@ -56,10 +56,11 @@ const TIMER_HZ: u32 = 1_000_000;
 pub const LEAD_TICKS: u64 = 2_000;
 /// The main loop's wake-up period when no byte arrives (ticks).
 const LOOP_PERIOD_TICKS: u32 = 250;
-/// Step pulse width, in system clock cycles (2 µs at 125 MHz; step/dir drivers need ≥ 1 µs).
-const PULSE_CYCLES: u32 = 250;
-/// Direction set-up time before a step, in cycles (A4988/DRV8825/TMC need 20–650 ns).
-const DIR_SETUP_CYCLES: u32 = 100;
+/// Step pulse width (ticks): step/dir drivers need 1–2 µs high; it ends 2–3 µs after the edge.
+const PULSE_TICKS: u64 = 3;
+/// Direction set-up before a step that changes it, in cycles: 200 ns at 125 MHz (A4988's
+/// minimum; a DRV8825 wants 650 ns, a TMC2209 20 ns).
+const DIR_SETUP_CYCLES: u32 = 25;
 /// PWM top of the screw's speed output: 125 MHz / 10,000 = 12.5 kHz.
 const PWM_TOP: u16 = 9_999;
 
@@ -95,6 +96,8 @@ impl Output {
 struct OutputStage {
     queue: Consumer<'static, Output>,
     outputs: Outputs,
+    /// Step pins high and the tick from which they go low.
+    pulse: Option<(u32, u64)>,
 }
 
 static OUTPUT_STAGE: Mutex<RefCell<Option<OutputStage>>> = Mutex::new(RefCell::new(None));
@@ -155,7 +158,9 @@ fn set_screw_outputs(millirpm: i32, pin_open: bool) {
     }
 }
 
-/// Write every output that is due, then arm ALARM0 for the next one.
+/// Write every output that is due, end step pulses whose width has passed, then arm ALARM0
+/// for whichever comes next. Pulses end by the alarm too, not by waiting in here, so an edge
+/// of another axis one tick later is still written on its tick.
 #[interrupt]
 fn TIMER_IRQ_0() {
     let entered = cortex_m::peripheral::SYST::get_current();
@@ -163,17 +168,40 @@ fn TIMER_IRQ_0() {
     critical_section::with(|cs| {
         let mut stage = OUTPUT_STAGE.borrow_ref_mut(cs);
         let Some(stage) = stage.as_mut() else { return };
-        while let Some(&next) = stage.queue.peek() {
-            let due = next.clock().saturating_sub(LEAD_TICKS);
-            if due > timer_now() {
-                timer().alarm0().write(|w| unsafe { w.bits(due as u32) });
-                // Armed for a time that has not passed yet: done. Passed meanwhile: disarm
-                // and write it now (an alarm only fires on an exact match).
-                if due > timer_now() {
-                    break;
+        loop {
+            let now = timer_now();
+            if let Some((mask, high_until)) = stage.pulse {
+                if now >= high_until {
+                    sio().gpio_out_clr().write(|r| unsafe { r.bits(mask) });
+                    stage.pulse = None;
                 }
-                timer().armed().write(|w| unsafe { w.bits(1) });
             }
+            let next_due = stage
+                .queue
+                .peek()
+                .map(|next| next.clock().saturating_sub(LEAD_TICKS));
+            match next_due {
+                Some(due) if due <= now => {}
+                _ => {
+                    let wake = match (next_due, stage.pulse) {
+                        (Some(due), Some((_, end))) => due.min(end),
+                        (Some(due), None) => due,
+                        (None, Some((_, end))) => end,
+                        (None, None) => break,
+                    };
+                    timer().alarm0().write(|w| unsafe { w.bits(wake as u32) });
+                    // Armed for a time still ahead: done. Passed meanwhile: disarm and go
+                    // round again (an alarm only fires on an exact match).
+                    if wake > timer_now() {
+                        break;
+                    }
+                    timer().armed().write(|w| unsafe { w.bits(1) });
+                    continue;
+                }
+            }
+            let Some(next) = stage.queue.dequeue() else {
+                break;
+            };
             match next {
                 Output::Step(edge) => {
                     let w = stage.outputs.edge(edge);
@@ -186,10 +214,8 @@ fn TIMER_IRQ_0() {
                     }
                     sio().gpio_out_xor().write(|r| unsafe { r.bits(w.toggle) });
                     if w.pulse_end != 0 {
-                        cortex_m::asm::delay(PULSE_CYCLES);
-                        sio()
-                            .gpio_out_clr()
-                            .write(|r| unsafe { r.bits(w.pulse_end) });
+                        let mask = stage.pulse.map_or(0, |(m, _)| m) | w.pulse_end;
+                        stage.pulse = Some((mask, now + PULSE_TICKS));
                     }
                     EDGES_OUTPUT.store(EDGES_OUTPUT.load(Ordering::Relaxed) + 1, Ordering::Relaxed);
                 }
@@ -197,7 +223,6 @@ fn TIMER_IRQ_0() {
                     millirpm, pin_open, ..
                 } => set_screw_outputs(millirpm, pin_open),
             }
-            stage.queue.dequeue();
         }
     });
     // SysTick counts down from its reload value (24 bits, wraps every 134 ms at 125 MHz).
@@ -260,9 +285,10 @@ fn stop_outputs(endpoint: &mut McuEndpoint) {
                     Output::Screw { .. } => continue,
                 }
             }));
+            let step_pins = stage.pulse.take().map_or(0, |(mask, _)| mask);
             sio()
                 .gpio_out_clr()
-                .write(|w| unsafe { w.bits(stage.outputs.coil_mask()) });
+                .write(|w| unsafe { w.bits(stage.outputs.coil_mask() | step_pins) });
         }
         timer().armed().write(|w| unsafe { w.bits(1) });
     });
@@ -335,6 +361,7 @@ fn main() -> ! {
         OUTPUT_STAGE.borrow_ref_mut(cs).replace(OutputStage {
             queue: from_generator,
             outputs,
+            pulse: None,
         });
         RX.borrow_ref_mut(cs).replace(rx_producer);
     });

@@ -337,7 +337,11 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         for edge in edges {
             for (axis, position) in self.positions.iter_mut().enumerate() {
                 if edge.axes & (1 << axis) != 0 {
-                    *position -= if edge.negative & (1 << axis) != 0 { -1 } else { 1 };
+                    *position -= if edge.negative & (1 << axis) != 0 {
+                        -1
+                    } else {
+                        1
+                    };
                 }
             }
         }

@@ -174,7 +174,9 @@ mod tests {
     const BENCH: [OutputStage; 3] = [
         OutputStage::FourCoil { pins: [0, 1, 2, 3] },
         OutputStage::FourCoil { pins: [4, 5, 6, 7] },
-        OutputStage::FourCoil { pins: [8, 9, 10, 11] },
+        OutputStage::FourCoil {
+            pins: [8, 9, 10, 11],
+        },
     ];
 
     fn edge(axes: u8, negative: u8) -> StepEdge {
@@ -195,12 +197,10 @@ mod tests {
             }
         }
         // Two coils on at every step, one changing per step: full-step two-phase drive.
-        for step in 0..4 {
-            let next = (step + 1) % 4;
-            assert_eq!(TWO_PHASE_SEQUENCE[step].iter().filter(|&&on| on).count(), 2);
-            let changed = (0..4)
-                .filter(|&i| TWO_PHASE_SEQUENCE[step][i] != TWO_PHASE_SEQUENCE[next][i])
-                .count();
+        for (step, row) in TWO_PHASE_SEQUENCE.iter().enumerate() {
+            let next = &TWO_PHASE_SEQUENCE[(step + 1) % 4];
+            assert_eq!(row.iter().filter(|&&on| on).count(), 2);
+            let changed = row.iter().zip(next).filter(|(a, b)| a != b).count();
             assert_eq!(changed, 2, "one coil off, the next on");
         }
     }
@@ -256,7 +256,11 @@ mod tests {
         assert_eq!(outputs.mask(), 0b11_0011);
         assert_eq!(outputs.initial_levels(), 0);
         let w = outputs.edge(edge(0b011, 0b000));
-        assert_eq!((w.dir_set, w.dir_clear), (1 << 1, 0), "axis 1 inverted: stays low");
+        assert_eq!(
+            (w.dir_set, w.dir_clear),
+            (1 << 1, 0),
+            "axis 1 inverted: stays low"
+        );
         assert_eq!((w.toggle, w.pulse_end), (0b1_0001, 0b1_0001));
         let w = outputs.edge(edge(0b001, 0));
         assert_eq!((w.dir_set, w.dir_clear), (0, 0), "unchanged");

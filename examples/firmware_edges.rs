@@ -5,8 +5,14 @@
 //!
 //! * step counts and directions exact, per joint;
 //! * every step's time within `--tolerance-us` (default 1 µs, one timer tick) of the decoded
-//!   time, after one constant offset (the MCU clock's origin and its output lead) fitted on
-//!   the first step.
+//!   time, after one constant offset (the MCU clock's origin and the output's latency): the
+//!   middle of the extreme differences, so the figure is the worst distance from the best
+//!   constant.
+//!
+//! The decoded time of a step is its segment's start on the MCU clock, as `mcu_bridge`'s
+//! [`Schedule`] sends it (a whole tick: the plan's time rounded), plus the time the
+//! planner's decoder gives it inside the segment; the MCU rounds that to its tick, so an
+//! exact firmware is within ½ tick plus its output jitter.
 //!
 //! Pins are the firmware's profiles (`firmware/src/profile.rs`): step/dir on GP0/1, GP4/5,
 //! GP8/9 for the cell; with `--bench-rig`, four coils per axis on GP0–3, GP4–7, GP8–11,
@@ -21,7 +27,8 @@ use std::collections::BTreeMap;
 use anyhow::{bail, Context, Result};
 use cell_bag::read_bag;
 use cell_firmware_core::outputs::coil_phase;
-use polar_cell_msgs::{cdr, StepSegment};
+use mcu_bridge::Schedule;
+use polar_cell_msgs::{cdr, Hold, StepSegment};
 use polar_planner::steps::{decode, Pulse};
 
 const STEP_DIR: [(u8, u8); 3] = [(0, 1), (4, 5), (8, 9)];
@@ -36,9 +43,11 @@ struct Step {
 
 fn planned_steps(segments: &[StepSegment]) -> Result<[Vec<Step>; 3]> {
     let mut steps: [Vec<Step>; 3] = Default::default();
-    let mut start_s = 0.0;
     let mut pulses: Vec<Pulse> = Vec::new();
+    let timer_hz = segments.first().map_or(1e6, |s| s.timer_frequency_hz);
+    let mut schedule = Schedule::new(timer_hz, Hold::ZeroOrder, 0);
     for seg in segments {
+        let start_s = schedule.segment(seg)?.start_clock as f64 / timer_hz;
         pulses.clear();
         decode(seg, &mut pulses)?;
         for p in &pulses {
@@ -47,7 +56,6 @@ fn planned_steps(segments: &[StepSegment]) -> Result<[Vec<Step>; 3]> {
                 sign: seg.directions[p.axis].signum(),
             });
         }
-        start_s += seg.duration_s;
     }
     Ok(steps)
 }
@@ -153,11 +161,17 @@ fn main() -> Result<()> {
     let text = std::fs::read_to_string(edges).with_context(|| format!("reading {edges}"))?;
     let executed = executed_steps(&read_edges(&text)?, bench_rig)?;
 
-    let first_axis = (0..3)
-        .filter(|&k| !planned[k].is_empty() && !executed[k].is_empty())
-        .min_by(|&a, &b| planned[a][0].t_ns.total_cmp(&planned[b][0].t_ns))
-        .context("no steps planned or none executed")?;
-    let offset_ns = executed[first_axis][0].t_ns - planned[first_axis][0].t_ns;
+    // The constant: the middle of the extreme differences over the steps that pair up.
+    let (lowest, highest) = (0..3)
+        .flat_map(|k| planned[k].iter().zip(&executed[k]))
+        .map(|(p, e)| e.t_ns - p.t_ns)
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), d| {
+            (lo.min(d), hi.max(d))
+        });
+    if !lowest.is_finite() {
+        bail!("no steps planned or none executed");
+    }
+    let offset_ns = (lowest + highest) / 2.0;
     let mut ok = true;
     let mut worst_ns = 0.0f64;
     for k in 0..3 {
@@ -170,6 +184,24 @@ fn main() -> Result<()> {
             wrong_way += (p.sign != e.sign) as usize;
         }
         worst_ns = worst_ns.max(axis_worst);
+        // Where the pins first leave the plan, with the steps around it.
+        if let Some(i) = p.iter().zip(e).position(|(p, e)| {
+            p.sign != e.sign || (e.t_ns - offset_ns - p.t_ns).abs() > tolerance_us * 1e3
+        }) {
+            println!("joint {k}: first divergence at step {i}:");
+            for j in i.saturating_sub(3)..(i + 4).min(p.len().max(e.len())) {
+                let show = |s: Option<&Step>, shift: f64| {
+                    s.map_or("-".to_string(), |s| {
+                        format!("{:+} at {:.3} µs", s.sign, (s.t_ns - shift) * 1e-3)
+                    })
+                };
+                println!(
+                    "  step {j}: plan {}  pins {}",
+                    show(p.get(j), 0.0),
+                    show(e.get(j), offset_ns)
+                );
+            }
+        }
         let good = p.len() == e.len()
             && net(p) == net(e)
             && wrong_way == 0
@@ -186,6 +218,33 @@ fn main() -> Result<()> {
             if good { "" } else { "  <-- FAILED" }
         );
     }
+    // To the tick: each step's tick (its recorded time, floored) against the decoder's time
+    // rounded to a tick, the difference constant but for the MCU's own rounding.
+    let mut tick_differences: BTreeMap<i64, usize> = BTreeMap::new();
+    for k in 0..3 {
+        for (p, e) in planned[k].iter().zip(&executed[k]) {
+            let d = (e.t_ns / 1e3).floor() as i64 - (p.t_ns / 1e3).round() as i64;
+            *tick_differences.entry(d).or_default() += 1;
+        }
+    }
+    let usual = tick_differences
+        .iter()
+        .max_by_key(|(_, &n)| n)
+        .map_or(0, |(&d, _)| d);
+    let off_tick: Vec<String> = tick_differences
+        .iter()
+        .filter(|(&d, _)| d != usual)
+        .map(|(&d, n)| format!("{n} at {:+} tick", d - usual))
+        .collect();
+    println!(
+        "ticks: {} steps on the decoder's tick{}",
+        tick_differences.get(&usual).copied().unwrap_or(0),
+        if off_tick.is_empty() {
+            String::new()
+        } else {
+            format!(", {}", off_tick.join(", "))
+        }
+    );
     println!(
         "{} segments; pins {:.3} ms after the plan's clock; worst edge {:.3} µs (tolerance {tolerance_us} µs)",
         segments.len(),

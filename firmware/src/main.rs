@@ -7,11 +7,15 @@
 //!   (`nodes/cell_protocol/PROTOCOL.md`). Received bytes are moved to a ring by the UART's
 //!   interrupt, so a frame being decoded never overruns the 32-byte FIFO.
 //! * **Step timing** comes from the 1 MHz hardware timer, which is the MCU clock of the
-//!   protocol plus a fixed lead: the main loop generates edges [`LEAD_TICKS`] ahead into an
-//!   output queue, and the timer's ALARM0 interrupt (highest priority) writes each edge to
-//!   the pins when the timer reaches it. The clock the firmware reports is the generator's,
-//!   so the host schedules in it and the pins follow exactly `LEAD_TICKS` later; what the
-//!   queue still holds at an emergency stop is dropped and taken back from the positions.
+//!   protocol: an edge at clock `c` reaches its pins when the timer reads `c`. The main loop
+//!   runs the generator [`LEAD_TICKS`] ahead of the timer into an output queue, and the
+//!   timer's ALARM0 interrupt (highest priority) writes each edge when its tick comes. The
+//!   link (clock replies, timeouts) runs on the timer itself; the state reports carry the
+//!   generator's clock with the positions it has reached, so both are exact. The register
+//!   writes of each edge are computed by the generator too, and the alarm fires
+//!   [`ALARM_EARLY_TICKS`] before the edge's tick: the interrupt then only waits for the
+//!   tick and writes, so every edge leaves the same few cycles after its tick. What the queue
+//!   still holds at an emergency stop is dropped and taken back from the positions.
 //! * **Outputs** per axis from the build profile (`profile.rs`): step/dir drivers with a
 //!   shared enable for the cell, or four coil inputs per 28BYJ-48 for seed 001's bench rig;
 //!   the screw's pin on GP12 and its speed as PWM duty on GP13.
@@ -28,10 +32,10 @@
 
 mod profile;
 
-use core::cell::RefCell;
+use core::cell::{RefCell, UnsafeCell};
 use core::sync::atomic::{AtomicU32, Ordering};
 
-use cell_firmware_core::outputs::Outputs;
+use cell_firmware_core::outputs::{EdgeWrites, Outputs};
 use cell_firmware_core::{Endpoint, MachineConfig, StepEdge};
 use cell_protocol::message::FaultCode;
 use cell_protocol::{LinkOptions, MAX_WIRE_FRAME};
@@ -51,16 +55,22 @@ const XTAL_HZ: u32 = 12_000_000;
 /// The MCU clock: the hardware timer's 1 µs tick.
 const TIMER_HZ: u32 = 1_000_000;
 /// How far ahead of the pins the edges are generated (ticks): longer than the main loop's
-/// worst pass (a frame decoded and a segment queued, some 100 µs at 125 MHz), short enough
-/// that a stop drops little.
+/// period plus its worst pass (see `MAIN_MAX_CYCLES`), short enough that a hold reacts
+/// promptly and a stop drops little.
 pub const LEAD_TICKS: u64 = 2_000;
 /// The main loop's wake-up period when no byte arrives (ticks).
 const LOOP_PERIOD_TICKS: u32 = 250;
+/// How early the output alarm fires (ticks): the interrupt's entry and bookkeeping happen
+/// before the tick, the write itself right at it. An output due sooner than this after the
+/// one just written is waited for without leaving the interrupt.
+const ALARM_EARLY_TICKS: u64 = 2;
 /// Step pulse width (ticks): step/dir drivers need 1–2 µs high; it ends 2–3 µs after the edge.
 const PULSE_TICKS: u64 = 3;
-/// Direction set-up before a step that changes it, in cycles: 200 ns at 125 MHz (A4988's
-/// minimum; a DRV8825 wants 650 ns, a TMC2209 20 ns).
-const DIR_SETUP_CYCLES: u32 = 25;
+/// Direction set-up before a step that changes it, in cycles: 650 ns at 125 MHz (a DRV8825's
+/// minimum; an A4988 wants 200 ns, a TMC2209 20 ns). Direction pins are written when the
+/// interrupt begins to wait for the step's tick, normally most of [`ALARM_EARLY_TICKS`]
+/// before it; the step waits for the rest only when less is left.
+const DIR_SETUP_CYCLES: u32 = 82;
 /// PWM top of the screw's speed output: 125 MHz / 10,000 = 12.5 kHz.
 const PWM_TOP: u16 = 9_999;
 
@@ -72,13 +82,15 @@ const RX_RING: usize = 2048;
 
 type McuEndpoint = Endpoint<LINK_WINDOW, SEGMENT_QUEUE, SCREW_QUEUE>;
 
-/// What the ALARM0 interrupt writes to the pins, at `clock` (MCU clock; pins at clock − lead).
+/// What the ALARM0 interrupt writes to the pins when the timer reaches `clock`.
 #[derive(Clone, Copy, Debug)]
 enum Output {
-    Step(StepEdge),
+    /// An edge and its register writes (computed by the generator).
+    Step { edge: StepEdge, writes: EdgeWrites },
     Screw {
         clock: u64,
-        millirpm: i32,
+        /// PWM compare value (the division done by the generator, not in the interrupt).
+        duty: u16,
         pin_open: bool,
     },
 }
@@ -86,36 +98,49 @@ enum Output {
 impl Output {
     fn clock(&self) -> u64 {
         match *self {
-            Output::Step(edge) => edge.clock,
+            Output::Step { edge, .. } => edge.clock,
             Output::Screw { clock, .. } => clock,
         }
     }
 }
 
-/// The output stage, owned by the ALARM0 interrupt; the main loop takes it only to stop.
-struct OutputStage {
+/// The pin writer, owned by the ALARM0 interrupt; the main loop takes it only to stop.
+struct PinWriter {
     queue: Consumer<'static, Output>,
-    outputs: Outputs,
     /// Step pins high and the tick from which they go low.
     pulse: Option<(u32, u64)>,
 }
 
-static OUTPUT_STAGE: Mutex<RefCell<Option<OutputStage>>> = Mutex::new(RefCell::new(None));
-static RX: Mutex<RefCell<Option<Producer<'static, u8>>>> = Mutex::new(RefCell::new(None));
+static PIN_WRITER: Mutex<RefCell<Option<PinWriter>>> = Mutex::new(RefCell::new(None));
+
+/// A value `main` hands to one interrupt before unmasking it, touched by that interrupt
+/// alone from then on. No critical section: the UART's interrupt must never mask the step
+/// timer's, or edges would wait for it.
+struct InterruptOwned<T>(UnsafeCell<Option<T>>);
+
+// SAFETY: written once by `main` while the owning interrupt is masked, then used only by
+// that interrupt (which does not preempt itself).
+unsafe impl<T: Send> Sync for InterruptOwned<T> {}
+
+static RX: InterruptOwned<Producer<'static, u8>> = InterruptOwned(UnsafeCell::new(None));
 
 /// Worst cycles spent in one ALARM0 interrupt (SysTick counts them), read by the
 /// firmware-in-the-loop harness from RAM.
 #[no_mangle]
 pub static ISR_MAX_CYCLES: AtomicU32 = AtomicU32::new(0);
+/// Worst cycles of one main-loop pass (bytes decoded, edges generated, frames sent): it
+/// must stay well inside [`LEAD_TICKS`].
+#[no_mangle]
+pub static MAIN_MAX_CYCLES: AtomicU32 = AtomicU32::new(0);
 /// Edges written to the pins.
 #[no_mangle]
 pub static EDGES_OUTPUT: AtomicU32 = AtomicU32::new(0);
 /// Bytes lost because the receive ring was full.
 #[no_mangle]
 pub static RX_OVERRUNS: AtomicU32 = AtomicU32::new(0);
-/// Edges the generator made that found the output queue full (a fault follows).
+/// Outputs written more than one tick after their own (the generator fell behind the pins).
 #[no_mangle]
-pub static OUTPUT_OVERFLOWS: AtomicU32 = AtomicU32::new(0);
+pub static LATE_OUTPUTS: AtomicU32 = AtomicU32::new(0);
 
 fn timer() -> &'static pac::timer::RegisterBlock {
     // SAFETY: read-only counters and the alarm registers, which only this firmware uses.
@@ -139,9 +164,13 @@ fn timer_now() -> u64 {
     }
 }
 
-fn set_screw_outputs(millirpm: i32, pin_open: bool) {
-    let duty = (millirpm.clamp(0, profile::SCREW_FULL_SCALE_MILLIRPM) as u64 * (PWM_TOP as u64 + 1)
-        / profile::SCREW_FULL_SCALE_MILLIRPM as u64) as u16;
+/// The screw's speed as the PWM compare value (full scale: always high).
+fn screw_duty(millirpm: i32) -> u16 {
+    (millirpm.clamp(0, profile::SCREW_FULL_SCALE_MILLIRPM) as u64 * (PWM_TOP as u64 + 1)
+        / profile::SCREW_FULL_SCALE_MILLIRPM as u64) as u16
+}
+
+fn set_screw_outputs(duty: u16, pin_open: bool) {
     // SAFETY: the PWM slice's compare register; the slice was set up in `main`.
     let pwm = unsafe { &*pac::PWM::ptr() };
     pwm.ch(profile::SCREW_PWM_SLICE)
@@ -158,71 +187,112 @@ fn set_screw_outputs(millirpm: i32, pin_open: bool) {
     }
 }
 
+/// The low 32 bits of the timer: enough to wait for a tick less than 71 minutes away.
+fn timer_low() -> u32 {
+    timer().timerawl().read().bits()
+}
+
+/// Busy-wait until the timer reaches `tick` (at once if it has).
+fn wait_for_tick(tick: u64) {
+    let tick = tick as u32;
+    while (tick.wrapping_sub(timer_low()) as i32) > 0 {}
+}
+
+fn count_if_late(tick: u64) {
+    if timer_low().wrapping_sub(tick as u32) as i32 > 1 {
+        LATE_OUTPUTS.store(LATE_OUTPUTS.load(Ordering::Relaxed) + 1, Ordering::Relaxed);
+    }
+}
+
+/// Write one output at its tick.
+fn write_output(writer: &mut PinWriter, output: Output) {
+    match output {
+        Output::Step { edge, writes } => {
+            let direction_changed = writes.dir_set | writes.dir_clear != 0;
+            let mut dir_written = 0;
+            if direction_changed {
+                sio()
+                    .gpio_out_set()
+                    .write(|r| unsafe { r.bits(writes.dir_set) });
+                sio()
+                    .gpio_out_clr()
+                    .write(|r| unsafe { r.bits(writes.dir_clear) });
+                dir_written = cortex_m::peripheral::SYST::get_current();
+            }
+            wait_for_tick(edge.clock);
+            // Set-up counted in core cycles (SysTick counts down), normally long over by now.
+            while direction_changed
+                && dir_written.wrapping_sub(cortex_m::peripheral::SYST::get_current()) & 0x00FF_FFFF
+                    < DIR_SETUP_CYCLES
+            {}
+            sio()
+                .gpio_out_set()
+                .write(|r| unsafe { r.bits(writes.step_set) });
+            sio()
+                .gpio_out_xor()
+                .write(|r| unsafe { r.bits(writes.coil_toggle) });
+            count_if_late(edge.clock);
+            if writes.step_set != 0 {
+                let mask = writer.pulse.map_or(0, |(m, _)| m) | writes.step_set;
+                writer.pulse = Some((mask, edge.clock + PULSE_TICKS));
+            }
+            EDGES_OUTPUT.store(EDGES_OUTPUT.load(Ordering::Relaxed) + 1, Ordering::Relaxed);
+        }
+        Output::Screw {
+            clock,
+            duty,
+            pin_open,
+        } => {
+            wait_for_tick(clock);
+            set_screw_outputs(duty, pin_open);
+            count_if_late(clock);
+        }
+    }
+}
+
 /// Write every output that is due, end step pulses whose width has passed, then arm ALARM0
-/// for whichever comes next. Pulses end by the alarm too, not by waiting in here, so an edge
-/// of another axis one tick later is still written on its tick.
+/// [`ALARM_EARLY_TICKS`] before whichever comes next. Pulses end by the alarm too, not by
+/// waiting in here, so an edge of another axis one tick later is still written on its tick.
 #[interrupt]
 fn TIMER_IRQ_0() {
     let entered = cortex_m::peripheral::SYST::get_current();
     timer().intr().write(|w| w.alarm_0().clear_bit_by_one());
     critical_section::with(|cs| {
-        let mut stage = OUTPUT_STAGE.borrow_ref_mut(cs);
-        let Some(stage) = stage.as_mut() else { return };
+        let mut writer = PIN_WRITER.borrow_ref_mut(cs);
+        let Some(writer) = writer.as_mut() else {
+            return;
+        };
         loop {
             let now = timer_now();
-            if let Some((mask, high_until)) = stage.pulse {
+            if let Some((mask, high_until)) = writer.pulse {
                 if now >= high_until {
                     sio().gpio_out_clr().write(|r| unsafe { r.bits(mask) });
-                    stage.pulse = None;
+                    writer.pulse = None;
                 }
             }
-            let next_due = stage
-                .queue
-                .peek()
-                .map(|next| next.clock().saturating_sub(LEAD_TICKS));
-            match next_due {
-                Some(due) if due <= now => {}
-                _ => {
-                    let wake = match (next_due, stage.pulse) {
-                        (Some(due), Some((_, end))) => due.min(end),
-                        (Some(due), None) => due,
-                        (None, Some((_, end))) => end,
-                        (None, None) => break,
-                    };
-                    timer().alarm0().write(|w| unsafe { w.bits(wake as u32) });
-                    // Armed for a time still ahead: done. Passed meanwhile: disarm and go
-                    // round again (an alarm only fires on an exact match).
-                    if wake > timer_now() {
+            let next_due = writer.queue.peek().map(Output::clock);
+            if let Some(due) = next_due {
+                if due <= now + ALARM_EARLY_TICKS {
+                    let Some(output) = writer.queue.dequeue() else {
                         break;
-                    }
-                    timer().armed().write(|w| unsafe { w.bits(1) });
+                    };
+                    write_output(writer, output);
                     continue;
                 }
             }
-            let Some(next) = stage.queue.dequeue() else {
-                break;
+            let wake = match (next_due, writer.pulse) {
+                (Some(due), Some((_, end))) => (due - ALARM_EARLY_TICKS).min(end),
+                (Some(due), None) => due - ALARM_EARLY_TICKS,
+                (None, Some((_, end))) => end,
+                (None, None) => break,
             };
-            match next {
-                Output::Step(edge) => {
-                    let w = stage.outputs.edge(edge);
-                    if w.dir_set | w.dir_clear != 0 {
-                        sio().gpio_out_set().write(|r| unsafe { r.bits(w.dir_set) });
-                        sio()
-                            .gpio_out_clr()
-                            .write(|r| unsafe { r.bits(w.dir_clear) });
-                        cortex_m::asm::delay(DIR_SETUP_CYCLES);
-                    }
-                    sio().gpio_out_xor().write(|r| unsafe { r.bits(w.toggle) });
-                    if w.pulse_end != 0 {
-                        let mask = stage.pulse.map_or(0, |(m, _)| m) | w.pulse_end;
-                        stage.pulse = Some((mask, now + PULSE_TICKS));
-                    }
-                    EDGES_OUTPUT.store(EDGES_OUTPUT.load(Ordering::Relaxed) + 1, Ordering::Relaxed);
-                }
-                Output::Screw {
-                    millirpm, pin_open, ..
-                } => set_screw_outputs(millirpm, pin_open),
+            timer().alarm0().write(|w| unsafe { w.bits(wake as u32) });
+            // Armed for a time still ahead: done. Passed meanwhile: disarm and go round
+            // again (an alarm only fires on an exact match).
+            if wake > timer_now() {
+                break;
             }
+            timer().armed().write(|w| unsafe { w.bits(1) });
         }
     });
     // SysTick counts down from its reload value (24 bits, wraps every 134 ms at 125 MHz).
@@ -244,16 +314,16 @@ fn TIMER_IRQ_1() {
 fn UART0_IRQ() {
     // SAFETY: the data and flag registers; the main loop only transmits.
     let uart = unsafe { &*pac::UART0::ptr() };
-    critical_section::with(|cs| {
-        let mut rx = RX.borrow_ref_mut(cs);
-        let Some(rx) = rx.as_mut() else { return };
-        while uart.uartfr().read().rxfe().bit_is_clear() {
-            let byte = uart.uartdr().read().data().bits();
-            if rx.enqueue(byte).is_err() {
-                RX_OVERRUNS.store(RX_OVERRUNS.load(Ordering::Relaxed) + 1, Ordering::Relaxed);
-            }
+    // SAFETY: this interrupt owns the producer (see `InterruptOwned`).
+    let Some(rx) = (unsafe { &mut *RX.0.get() }).as_mut() else {
+        return;
+    };
+    while uart.uartfr().read().rxfe().bit_is_clear() {
+        let byte = uart.uartdr().read().data().bits();
+        if rx.enqueue(byte).is_err() {
+            RX_OVERRUNS.store(RX_OVERRUNS.load(Ordering::Relaxed) + 1, Ordering::Relaxed);
         }
-    });
+    }
 }
 
 fn uart_write(bytes: &[u8]) {
@@ -273,27 +343,38 @@ fn nonce(rosc: &pac::ROSC) -> u32 {
 }
 
 /// Stop every output now: drop the queued edges (and take them back from the positions),
-/// release the motors, close the pin, stop the screw.
-fn stop_outputs(endpoint: &mut McuEndpoint) {
+/// release the motors, close the pin, stop the screw. The output stage then follows the
+/// pins again, not the edges it had computed.
+fn stop_outputs(endpoint: &mut McuEndpoint, outputs: &mut Outputs) {
     critical_section::with(|cs| {
-        let mut stage = OUTPUT_STAGE.borrow_ref_mut(cs);
-        if let Some(stage) = stage.as_mut() {
-            let queue = &mut stage.queue;
+        let mut writer = PIN_WRITER.borrow_ref_mut(cs);
+        if let Some(writer) = writer.as_mut() {
+            let queue = &mut writer.queue;
             endpoint.discard_edges(core::iter::from_fn(|| loop {
                 match queue.dequeue()? {
-                    Output::Step(edge) => return Some(edge),
+                    Output::Step { edge, .. } => return Some(edge),
                     Output::Screw { .. } => continue,
                 }
             }));
-            let step_pins = stage.pulse.take().map_or(0, |(mask, _)| mask);
+            let step_pins = writer.pulse.take().map_or(0, |(mask, _)| mask);
+            outputs.resync(sio().gpio_out().read().bits());
             sio()
                 .gpio_out_clr()
-                .write(|w| unsafe { w.bits(stage.outputs.coil_mask() | step_pins) });
+                .write(|w| unsafe { w.bits(outputs.coil_mask() | step_pins) });
         }
         timer().armed().write(|w| unsafe { w.bits(1) });
     });
     profile::disable_drivers();
     set_screw_outputs(0, false);
+}
+
+/// Outputs on again after a reset cleared the fault: drivers enabled, coils energised at the
+/// phase they were released in.
+fn restart_outputs(outputs: &Outputs) {
+    sio()
+        .gpio_out_set()
+        .write(|w| unsafe { w.bits(outputs.initial_levels() & outputs.coil_mask()) });
+    profile::enable_drivers();
 }
 
 #[hal::entry]
@@ -324,7 +405,7 @@ fn main() -> ! {
 
     // Outputs: the profile's pins as SIO outputs, at their initial levels.
     let initial_steps = [0i32; 3];
-    let outputs = Outputs::new(profile::STAGES, initial_steps);
+    let mut outputs = Outputs::new(profile::STAGES, initial_steps);
     profile::configure_pins(outputs.mask(), outputs.initial_levels());
     let mut pwm_slices = hal::pwm::Slices::new(pac.PWM, &mut pac.RESETS);
     let screw_pwm = &mut pwm_slices.pwm6;
@@ -358,13 +439,13 @@ fn main() -> ! {
     let rx_ring = cortex_m::singleton!(: Queue<u8, RX_RING> = Queue::new()).unwrap();
     let (rx_producer, mut received) = rx_ring.split();
     critical_section::with(|cs| {
-        OUTPUT_STAGE.borrow_ref_mut(cs).replace(OutputStage {
+        PIN_WRITER.borrow_ref_mut(cs).replace(PinWriter {
             queue: from_generator,
-            outputs,
             pulse: None,
         });
-        RX.borrow_ref_mut(cs).replace(rx_producer);
     });
+    // SAFETY: UART0's interrupt, the producer's owner, is still masked.
+    unsafe { *RX.0.get() = Some(rx_producer) };
 
     let rosc = hal::rosc::RingOscillator::new(pac.ROSC).initialize();
     let nonce = nonce(&rosc.free());
@@ -407,7 +488,9 @@ fn main() -> ! {
     let mut screw_output = (0i32, false);
     let mut stopped = false;
     loop {
-        let now = timer_now() + LEAD_TICKS;
+        let pass_started = cortex_m::peripheral::SYST::get_current();
+        let now = timer_now();
+        let generate_until = now + LEAD_TICKS;
         loop {
             let mut n = 0;
             while n < bytes.len() {
@@ -422,42 +505,52 @@ fn main() -> ! {
             }
             endpoint.receive(&bytes[..n], now);
         }
-        let mut overflow = false;
-        endpoint.advance(now, &mut |edge| {
-            if to_pins.enqueue(Output::Step(edge)).is_err() {
-                overflow = true;
+        // At most one edge per tick: advancing by no more ticks than the queue has free
+        // places can never overflow it. A full queue holds the generator back (edges would
+        // then be late, which `LATE_EDGES` counts) instead of losing an edge.
+        loop {
+            let generated_to = endpoint.machine().clock();
+            let free = (to_pins.capacity() - to_pins.len()) as u64;
+            if generated_to >= generate_until || free == 0 {
+                break;
             }
-        });
-        if overflow {
-            OUTPUT_OVERFLOWS.store(
-                OUTPUT_OVERFLOWS.load(Ordering::Relaxed) + 1,
-                Ordering::Relaxed,
-            );
+            let until = generate_until.min(generated_to + free);
+            endpoint.advance(until, &mut |edge| {
+                let writes = outputs.edge(edge);
+                let queued = to_pins.enqueue(Output::Step { edge, writes });
+                debug_assert!(queued.is_ok(), "one edge per tick at most");
+            });
         }
         let machine = endpoint.machine();
         let screw = (machine.screw_millirpm(), machine.pin_open());
         if screw != screw_output && !to_pins.ready() {
             // Queue full: tried again next pass.
         } else if screw != screw_output {
+            // Sampled where the generator stands (each pass moves it some 250 µs on).
             let _ = to_pins.enqueue(Output::Screw {
-                clock: now,
-                millirpm: screw.0,
+                clock: machine.clock(),
+                duty: screw_duty(screw.0),
                 pin_open: screw.1,
             });
             screw_output = screw;
         }
         let faulted = machine.fault() != FaultCode::None;
         if faulted && !stopped {
-            stop_outputs(endpoint);
+            stop_outputs(endpoint, &mut outputs);
             screw_output = (0, false);
         } else if !faulted && stopped {
-            profile::enable_drivers();
+            restart_outputs(&outputs);
         }
         stopped = faulted;
         // Let the output interrupt arm its alarm for what was just queued.
         pac::NVIC::pend(pac::Interrupt::TIMER_IRQ_0);
         while let Some(len) = endpoint.poll_transmit(now, &mut frame) {
             uart_write(&frame[..len]);
+        }
+        let spent =
+            pass_started.wrapping_sub(cortex_m::peripheral::SYST::get_current()) & 0x00FF_FFFF;
+        if spent > MAIN_MAX_CYCLES.load(Ordering::Relaxed) {
+            MAIN_MAX_CYCLES.store(spent, Ordering::Relaxed);
         }
         let wake = timer_now() as u32 + LOOP_PERIOD_TICKS;
         timer().alarm1().write(|w| unsafe { w.bits(wake) });

@@ -3,6 +3,7 @@
 // output pin change recorded with its emulated time.
 //
 //   node harness.mjs --elf FILE --socket PATH [--speed K] [--edges FILE] [--pins 0-15]
+//                   [--profile FILE]
 //
 // * No boot ROM (the npm package ships none, and the firmware makes no ROM calls): the
 //   ELF's loadable segments go to flash and SRAM by their load address, and the core starts
@@ -59,15 +60,20 @@ function readElf(bytes) {
     return { type: b.readUInt32LE(o + 4), offset: b.readUInt32LE(o + 16), size: b.readUInt32LE(o + 20), link: b.readUInt32LE(o + 24) };
   });
   const symbols = new Map();
+  const functions = [];
   for (const s of sections.filter((s) => s.type === 2)) { // SHT_SYMTAB
     const strtab = sections[s.link];
     for (let o = s.offset; o < s.offset + s.size; o += 16) {
       const nameOff = b.readUInt32LE(o);
       const end = b.indexOf(0, strtab.offset + nameOff);
-      symbols.set(b.toString('latin1', strtab.offset + nameOff, end), b.readUInt32LE(o + 4));
+      const name = b.toString('latin1', strtab.offset + nameOff, end);
+      const value = b.readUInt32LE(o + 4), size = b.readUInt32LE(o + 8);
+      symbols.set(name, value);
+      if ((b[o + 12] & 0xf) === 2 && size > 0) functions.push({ name, start: value & ~1, end: (value & ~1) + size });
     }
   }
-  return { segments, symbols };
+  functions.sort((x, y) => x.start - y.start);
+  return { segments, symbols, functions };
 }
 
 const args = parseArgs(process.argv.slice(2));
@@ -127,6 +133,26 @@ const server = net.createServer((socket) => {
 });
 server.listen(args.socket, () => console.log(`socket ${args.socket}`));
 
+// Optional profile: the program counter every 64th instruction, summed per function.
+const profile = args.profile ? new Map() : null;
+function writeProfile() {
+  const perFunction = new Map();
+  let total = 0;
+  for (const [pc, n] of profile) {
+    let lo = 0, hi = elf.functions.length - 1, found = null;
+    while (lo <= hi) {
+      const mid = (lo + hi) >> 1, f = elf.functions[mid];
+      if (pc < f.start) hi = mid - 1; else if (pc >= f.end) lo = mid + 1; else { found = f.name; break; }
+    }
+    const name = found ?? `0x${pc.toString(16)}`;
+    perFunction.set(name, (perFunction.get(name) ?? 0) + n);
+    total += n;
+  }
+  const rows = [...perFunction].sort((a, b) => b[1] - a[1]).slice(0, 40)
+    .map(([name, n]) => `${(100 * n / total).toFixed(2).padStart(6)} %  ${name}`);
+  fs.writeFileSync(args.profile, rows.join('\n') + '\n');
+}
+
 // Paced execution.
 const CYCLE_NS = 1e9 / 125e6;
 const wallStart = process.hrtime.bigint();
@@ -151,6 +177,7 @@ function run() {
         if (pendingAt < pending.length) until = Math.min(until, Math.max(nextByteNs, clock.nanos + CYCLE_NS));
         clock.tick(Math.max(CYCLE_NS, Math.min(clock.nanosToNextAlarm, until - clock.nanos)));
       } else {
+        if (profile !== null && (instructions & 63) === 0) profile.set(mcu.core.PC, (profile.get(mcu.core.PC) ?? 0) + 1);
         clock.tick(mcu.core.executeInstruction() * CYCLE_NS);
         instructions++;
       }
@@ -168,6 +195,7 @@ function readWord(name) {
 
 function finish() {
   flushEdges();
+  if (profile !== null) writeProfile();
   const wallS = Number(process.hrtime.bigint() - wallStart) * 1e-9;
   const emulatedS = clock.nanos * 1e-9;
   console.log(JSON.stringify({
@@ -181,9 +209,10 @@ function finish() {
     uart_bytes_in: bytesIn,
     uart_bytes_out: bytesOut,
     isr_max_cycles: readWord('ISR_MAX_CYCLES'),
+    main_max_cycles: readWord('MAIN_MAX_CYCLES'),
     edges_output: readWord('EDGES_OUTPUT'),
     rx_overruns: readWord('RX_OVERRUNS'),
-    output_overflows: readWord('OUTPUT_OVERFLOWS'),
+    late_outputs: readWord('LATE_OUTPUTS'),
     pc: mcu.core.PC,
   }));
   process.exit(0);

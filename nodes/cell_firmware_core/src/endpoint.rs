@@ -126,7 +126,7 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
         let period = self.machine.state_period_ticks() as u64;
         if period > 0 && now >= self.next_state_at && self.link.is_synced() {
             self.next_state_at = now + period;
-            let len = McuMessage::State(self.machine.state(now)).encode(&mut payload);
+            let len = McuMessage::State(self.machine.state()).encode(&mut payload);
             return self.link.encode_unsequenced(&payload[..len], out).ok();
         }
         self.link.poll_transmit(now, out)

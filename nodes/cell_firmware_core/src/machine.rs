@@ -207,10 +207,13 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         self.screw.pin_open() && !self.pin_held_closed && self.fault == FaultCode::None
     }
 
-    /// The state message at MCU clock `now`.
-    pub fn state(&self, now: u64) -> McuState {
+    /// The state message, taken at the clock the machine has advanced to: positions, plan
+    /// clock and screw are all of that instant. A firmware that generates edges ahead of its
+    /// pins (`advance` to a later clock than the one its link runs on) thus reports where
+    /// the generator is and when, not a position stamped with an earlier time.
+    pub fn state(&self) -> McuState {
         McuState {
-            clock: now,
+            clock: self.clock,
             plan_clock: self.plan_clock(),
             position_steps: self.positions,
             screw_millirpm: self.screw_millirpm(),
@@ -315,7 +318,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 self.unreported_fault = None;
                 self.last_host_frame = now;
             }
-            HostMessage::QueryState => return Some(McuMessage::State(self.state(now))),
+            HostMessage::QueryState => return Some(McuMessage::State(self.state())),
             HostMessage::QueryCounters => {} // answered by the endpoint, which has the link's
         }
         None

@@ -63,10 +63,11 @@ pub struct EdgeWrites {
     /// Direction pins to set, then to clear, before the step pulse (a driver's set-up time).
     pub dir_set: u32,
     pub dir_clear: u32,
-    /// Pins to toggle for the edge itself: step pins rising, coil inputs changing phase.
-    pub toggle: u32,
-    /// Step pins to bring low again after the pulse width.
-    pub pulse_end: u32,
+    /// Step pins to raise for the edge (and to bring low again after the pulse width).
+    /// Raised, not toggled: a step whose predecessor's pulse has not ended keeps it high.
+    pub step_set: u32,
+    /// Coil inputs that change for the edge (exactly those: toggling them moves the phase).
+    pub coil_toggle: u32,
 }
 
 /// The output stages of all axes and the coil phases they are at.
@@ -94,8 +95,8 @@ impl Outputs {
         self.stages.iter().fold(0, |m, s| m | s.mask())
     }
 
-    /// Levels to drive at start: step pins low, directions low, coils energised at their
-    /// phase.
+    /// Levels to drive at start (and to energise the coils again after a stop): step pins
+    /// low, directions low, coils at their phase.
     pub fn initial_levels(&self) -> u32 {
         self.stages
             .iter()
@@ -113,6 +114,27 @@ impl Outputs {
             OutputStage::FourCoil { .. } => m | s.mask(),
             _ => m,
         })
+    }
+
+    /// Take the state back from the pins' `levels` (the SIO output register): after a stop
+    /// dropped edges whose writes were computed but never made, the direction pins and coil
+    /// phases are what the pins show, not what the dropped edges would have made them.
+    /// Coils showing no phase (released) keep the phase they had.
+    pub fn resync(&mut self, levels: u32) {
+        self.dir_levels = 0;
+        for (axis, stage) in self.stages.iter().enumerate() {
+            match *stage {
+                OutputStage::StepDir { dir_pin, .. } => {
+                    self.dir_levels |= levels & (1 << dir_pin);
+                }
+                OutputStage::FourCoil { pins } => {
+                    if let Some(phase) = coil_phase(levels, pins) {
+                        self.phases[axis] = phase;
+                    }
+                }
+                OutputStage::None => {}
+            }
+        }
     }
 
     /// The writes for `edge`, advancing the coil phases.
@@ -137,8 +159,7 @@ impl Outputs {
                         w.dir_clear |= dir_bit & self.dir_levels;
                         self.dir_levels &= !dir_bit;
                     }
-                    w.toggle |= 1 << step_pin;
-                    w.pulse_end |= 1 << step_pin;
+                    w.step_set |= 1 << step_pin;
                 }
                 OutputStage::FourCoil { pins } => {
                     let from = self.phases[axis];
@@ -148,7 +169,7 @@ impl Outputs {
                         (from + 1) & 3
                     };
                     self.phases[axis] = to;
-                    w.toggle |=
+                    w.coil_toggle |=
                         OutputStage::coil_levels(pins, from) ^ OutputStage::coil_levels(pins, to);
                 }
                 OutputStage::None => {}
@@ -223,8 +244,8 @@ mod tests {
         ];
         for (axes, negative) in moves {
             let w = outputs.edge(edge(axes, negative));
-            assert_eq!(w.dir_set | w.dir_clear | w.pulse_end, 0);
-            levels ^= w.toggle;
+            assert_eq!(w.dir_set | w.dir_clear | w.step_set, 0);
+            levels ^= w.coil_toggle;
             for (axis, position) in positions.iter_mut().enumerate() {
                 if axes & (1 << axis) != 0 {
                     *position += if negative & (1 << axis) != 0 { -1 } else { 1 };
@@ -261,11 +282,42 @@ mod tests {
             (1 << 1, 0),
             "axis 1 inverted: stays low"
         );
-        assert_eq!((w.toggle, w.pulse_end), (0b1_0001, 0b1_0001));
+        assert_eq!((w.step_set, w.coil_toggle), (0b1_0001, 0));
         let w = outputs.edge(edge(0b001, 0));
         assert_eq!((w.dir_set, w.dir_clear), (0, 0), "unchanged");
         let w = outputs.edge(edge(0b011, 0b011));
         assert_eq!((w.dir_set, w.dir_clear), (1 << 5, 1 << 1));
         assert_eq!(outputs.edge(edge(0b100, 0)), EdgeWrites::default());
+    }
+
+    #[test]
+    fn after_a_stop_the_stage_follows_the_pins_not_the_dropped_edges() {
+        let stages = [
+            OutputStage::StepDir {
+                step_pin: 0,
+                dir_pin: 1,
+                dir_inverted: false,
+            },
+            OutputStage::FourCoil { pins: [4, 5, 6, 7] },
+            OutputStage::None,
+        ];
+        let mut outputs = Outputs::new(stages, [0; 3]);
+        // Written to the pins: one forward step of each.
+        let mut levels = outputs.initial_levels();
+        let w = outputs.edge(edge(0b011, 0));
+        levels = ((levels | w.dir_set | w.step_set) & !w.dir_clear) ^ w.coil_toggle;
+        levels &= !w.step_set; // the pulse ended
+        let pins_then = outputs;
+        // Computed but dropped at a stop: two backward steps.
+        outputs.edge(edge(0b011, 0b011));
+        outputs.edge(edge(0b011, 0b011));
+        assert_ne!(outputs, pins_then);
+        outputs.resync(levels);
+        assert_eq!(outputs, pins_then);
+        // Released coils show no phase: the phase the stage had stays.
+        outputs.edge(edge(0b010, 0));
+        let phase_before = outputs;
+        outputs.resync(levels & !0xF0);
+        assert_eq!(outputs.initial_levels(), phase_before.initial_levels());
     }
 }

@@ -55,6 +55,19 @@ fn exchange(
     corrupt: &mut impl FnMut() -> bool,
     edges: &mut Vec<StepEdge>,
 ) {
+    exchange_generating_ahead(host, mcu, now, 0, corrupt, edges);
+}
+
+/// [`exchange`] with the MCU's generator `lead` ticks ahead of its link's clock, as the
+/// RP2040 firmware runs it (edges queued ahead of the pins).
+fn exchange_generating_ahead(
+    host: &mut Host,
+    mcu: &mut Mcu,
+    now: u64,
+    lead: u64,
+    corrupt: &mut impl FnMut() -> bool,
+    edges: &mut Vec<StepEdge>,
+) {
     let mut out = [0; MAX_WIRE_FRAME];
     while let Some(len) = host.endpoint.poll_transmit(now, &mut out) {
         let mut bytes = out[..len].to_vec();
@@ -63,7 +76,7 @@ fn exchange(
         }
         mcu.receive(&bytes, now);
     }
-    mcu.advance(now, &mut |e| edges.push(e));
+    mcu.advance(now + lead, &mut |e| edges.push(e));
     while let Some(len) = mcu.poll_transmit(now, &mut out) {
         let received = &mut host.received;
         host.endpoint.receive(&out[..len], now, &mut |m| match m {
@@ -215,4 +228,58 @@ fn an_emergency_stop_acts_even_behind_a_lost_frame() {
             ..
         }
     )));
+}
+
+#[test]
+fn a_generator_ahead_of_the_link_reports_its_own_clock_with_its_positions() {
+    const LEAD: u64 = 2_000;
+    let mut host = Host::new();
+    let mut mcu = mcu();
+    let mut edges = Vec::new();
+    let mut never = || false;
+    host.send(HostMessage::Configure {
+        host_timeout_ticks: 500_000,
+        state_period_ticks: 1_000,
+    });
+    let mut now = 0;
+    for _ in 0..5 {
+        exchange_generating_ahead(&mut host, &mut mcu, now, LEAD, &mut never, &mut edges);
+        now += 100;
+    }
+    // 1000 steps, one per 100 ticks, from clock 10,000.
+    host.send(HostMessage::QueueSegment(cruise(10_000, 1000, 100.0, 0, 1)));
+    while now < 40_000 {
+        exchange_generating_ahead(&mut host, &mut mcu, now, LEAD, &mut never, &mut edges);
+        now += 100;
+    }
+    host.send(HostMessage::ClockQuery { token: 9 });
+    exchange_generating_ahead(&mut host, &mut mcu, now, LEAD, &mut never, &mut edges);
+    // The clock reply is the link's (the timer the pins follow)...
+    let clock_reply = host.received.iter().find_map(|m| match m {
+        McuMessage::Clock { token: 9, clock } => Some(*clock),
+        _ => None,
+    });
+    assert_eq!(clock_reply, Some(now));
+    // ...the edges were generated LEAD ahead of it...
+    assert_eq!(edges.last().map(|e| e.clock), Some(now + LEAD));
+    // ...and every state pairs the generator's clock with the positions at that clock:
+    // bed −1 per 100 ticks from 10,000, z +1 per 400.
+    let states: Vec<_> = host
+        .received
+        .iter()
+        .filter_map(|m| match m {
+            McuMessage::State(s) if s.clock > 10_000 => Some(*s),
+            _ => None,
+        })
+        .collect();
+    assert!(states.len() > 20, "{} states", states.len());
+    for state in states {
+        let bed_steps = ((state.clock - 10_000) / 100) as i32;
+        assert_eq!(
+            state.position_steps[0], -bed_steps,
+            "at clock {}",
+            state.clock
+        );
+        assert_eq!(state.plan_clock, state.clock);
+    }
 }

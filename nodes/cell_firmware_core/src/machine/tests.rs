@@ -61,7 +61,7 @@ fn a_cruise_steps_on_its_exact_ticks_and_counts_positions() {
     assert_eq!(edges[0].axes, 0b001);
     assert_eq!(m.positions(), [10, -5, 0]);
     assert_eq!(m.mode(), Mode::Idle);
-    assert_eq!(m.state(5000).done_tag, 7);
+    assert_eq!(m.state().done_tag, 7);
     assert_eq!(m.fault(), FaultCode::None);
 }
 
@@ -151,7 +151,7 @@ fn running_dry_at_rest_stands_the_plan_clock_at_the_schedules_end() {
     queue(&mut m, cruise(100, 10, 100, SEGMENT_ENDS_AT_REST, 1));
     run(&mut m, 50_000);
     assert_eq!((m.mode(), m.plan_clock()), (Mode::Idle, 1100));
-    assert_eq!(m.state(m.clock()).plan_clock, 1100);
+    assert_eq!(m.state().plan_clock, 1100);
     queue(&mut m, cruise(1100, 4, 100, SEGMENT_ENDS_AT_REST, 2));
     let edges = run(&mut m, 60_000);
     let ticks: Vec<u64> = edges.iter().map(|e| e.clock).collect();
@@ -229,8 +229,8 @@ fn an_emergency_stop_stops_at_once_and_holds_until_reset() {
     assert_eq!(m.positions(), [20, -10, 0]);
     assert!(!m.pin_open());
     assert_eq!(m.screw_millirpm(), 0);
-    assert_eq!(m.state(20_000).mode, Mode::Fault);
-    assert_eq!(m.state(20_000).fault, FaultCode::EmergencyStop);
+    assert_eq!(m.state().mode, Mode::Fault);
+    assert_eq!(m.state().fault, FaultCode::EmergencyStop);
     m.handle(&HostMessage::Reset, 20_000);
     assert_eq!(m.mode(), Mode::Idle);
     assert_eq!(m.positions(), [20, -10, 0], "positions survive a reset");

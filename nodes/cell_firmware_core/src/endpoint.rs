@@ -3,11 +3,12 @@
 //! edges go.
 
 use cell_protocol::link::LinkCounters;
-use cell_protocol::message::{HostMessage, McuCounters, McuMessage};
+use cell_protocol::message::{FaultCode, HostMessage, McuCounters, McuMessage, Mode};
 use cell_protocol::{FrameDecoder, Link, LinkOptions, Received, MAX_PAYLOAD, MAX_WIRE_FRAME};
 use heapless::Deque;
 
 use crate::machine::{Machine, MachineConfig, StepEdge};
+use crate::seed_program::seed_001_program;
 
 /// Replies waiting for room in the link's window.
 const OUTBOX: usize = 16;
@@ -88,6 +89,28 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
                 }
             }
         }
+    }
+
+    /// The start switch was pressed at MCU clock `now`: play seed 001's program
+    /// ([`crate::seed_program`]) from the current position, starting `lead_ticks` after the
+    /// plan clock. Only an idle machine that no host has configured starts it (a host owns the
+    /// machine once it configures it); returns whether it started.
+    pub fn start_seed_program(&mut self, now: u64, lead_ticks: u64) -> bool {
+        let machine = &mut self.machine;
+        if machine.host_configured()
+            || machine.fault() != FaultCode::None
+            || machine.mode() != Mode::Idle
+        {
+            return false;
+        }
+        // A new schedule: an earlier one (an earlier run of the program) ended at rest.
+        machine.handle(&HostMessage::DropQueue, now);
+        let start_clock = machine.plan_clock() + lead_ticks;
+        let program = seed_001_program(machine.positions(), start_clock, machine.config().timer_hz);
+        for queued in program {
+            machine.handle(&HostMessage::QueueSegment(queued), now);
+        }
+        machine.fault() == FaultCode::None
     }
 
     /// See [`Machine::discard_edges`].

@@ -12,6 +12,8 @@
 //! * [`outputs`] — step edges to pin writes: step/dir drivers or a unipolar motor's four
 //!   coils (seed 001's bench rig).
 //! * [`endpoint`] — the MCU's end of [`cell_protocol`]: bytes in, replies and state out.
+//! * [`seed_program`] — seed 001's bench program (six linear moves on the start switch) and
+//!   its `X:..,Y:..,Z:..` position lines.
 //!
 //! The hardware layer only moves bytes between its UART/USB and [`Endpoint`], and step edges
 //! from [`Machine::advance`] to its pins at their ticks.
@@ -23,6 +25,7 @@ pub mod endpoint;
 pub mod machine;
 pub mod outputs;
 pub mod screw;
+pub mod seed_program;
 
 pub use endpoint::Endpoint;
 pub use machine::{Machine, MachineConfig, StepEdge};

@@ -172,6 +172,12 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         self.fault
     }
 
+    /// Whether a host has configured the machine since power-up (its watchdog or state
+    /// reports): from then on the host owns it, and the start switch is ignored.
+    pub fn host_configured(&self) -> bool {
+        self.host_timeout_ticks != 0 || self.state_period_ticks != 0
+    }
+
     /// How often the host wants a state message (0: only on query).
     pub fn state_period_ticks(&self) -> u32 {
         self.state_period_ticks
@@ -435,9 +441,25 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 self.clock = next;
                 self.step_ramp();
             } else {
-                self.clock += 1;
-                self.step_ramp();
-                self.plan_q32 += self.sigma_q32 as u128;
+                // Ramping: σ changes every tick, so the plan clock is stepped tick by tick,
+                // in a tight loop up to whatever needs the full pass (the next pulse or
+                // segment end on the plan clock, the ramp's end, the watchdog, `until`).
+                // The same ticks as one tick per pass, at a few dozen cycles each: an RP2040
+                // keeps up with real time through a hold.
+                let target = self.next_plan_event_q32();
+                let stop_at = until.min(self.watchdog_deadline());
+                let ramp = core::mem::discriminant(&self.ramp);
+                loop {
+                    self.clock += 1;
+                    self.step_ramp();
+                    self.plan_q32 += self.sigma_q32 as u128;
+                    if self.plan_q32 >= target
+                        || self.clock >= stop_at
+                        || core::mem::discriminant(&self.ramp) != ramp
+                    {
+                        break;
+                    }
+                }
             }
             self.screw.advance_to(self.plan_clock());
             self.check_watchdog();
@@ -448,6 +470,20 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
     /// Idle inside a schedule: the last segment ended at rest and nothing follows yet.
     fn waiting_in_schedule(&self) -> bool {
         self.playing.is_none() && self.queue.is_empty() && self.schedule_end.is_some()
+    }
+
+    /// The plan clock (Q32) from which `emit_due` has something to do: the next pulse
+    /// (emitted once `plan + ½ > its time`), the playing segment's end, or at once when a
+    /// queued segment waits to be taken up; `u128::MAX` when nothing is queued.
+    fn next_plan_event_q32(&self) -> u128 {
+        match &self.playing {
+            Some(playing) => match playing.train.next_time_q32() {
+                Some(t) => (playing.start_q32() + t as u128 + 1).saturating_sub(HALF),
+                None => playing.end_q32(),
+            },
+            None if !self.queue.is_empty() => 0,
+            None => u128::MAX,
+        }
     }
 
     /// At σ = 1: the next MCU tick at which something happens (always after `clock`).

@@ -283,3 +283,84 @@ fn a_generator_ahead_of_the_link_reports_its_own_clock_with_its_positions() {
         assert_eq!(state.plan_clock, state.clock);
     }
 }
+
+/// Positions after every edge, with the edge's clock.
+fn positions_after(edges: &[StepEdge], from: [i32; 3]) -> Vec<(u64, [i32; 3])> {
+    let mut at = from;
+    edges
+        .iter()
+        .map(|e| {
+            for k in 0..3 {
+                if e.axes & (1 << k) != 0 {
+                    at[k] += if e.negative & (1 << k) != 0 { -1 } else { 1 };
+                }
+            }
+            (e.clock, at)
+        })
+        .collect()
+}
+
+#[test]
+fn the_start_switch_plays_seed_001s_program_and_a_host_takes_it_away() {
+    use cell_firmware_core::seed_program::SEED_001_MOVES;
+    let mut mcu = mcu();
+    let mut edges = Vec::new();
+    mcu.advance(5_000, &mut |e| edges.push(e));
+    assert!(mcu.start_seed_program(5_000, 10_000));
+    // Pressed again while it runs: ignored.
+    mcu.advance(20_000, &mut |e| edges.push(e));
+    assert!(!mcu.start_seed_program(20_000, 10_000));
+    mcu.advance(30_000_000, &mut |e| edges.push(e));
+    assert_eq!(mcu.machine().fault(), FaultCode::None);
+    assert_eq!(mcu.machine().mode(), Mode::Idle);
+    assert_eq!(mcu.machine().positions(), [0, 0, 0]);
+    // Every target is reached, in order, at the end of its move: 2.5 ms per step at 400/s,
+    // 4 ms on the way home at 250/s; the first step one period after the 10 ms lead.
+    let path = positions_after(&edges, [0; 3]);
+    assert_eq!(path.first().unwrap().0, 5_000 + 10_000 + 2_500);
+    let mut end = 5_000 + 10_000u64;
+    let mut from = [0i32; 3];
+    for &(target, rate) in &SEED_001_MOVES {
+        let dominant = (0..3)
+            .map(|k| (target[k] - from[k]).unsigned_abs())
+            .max()
+            .unwrap();
+        end += dominant as u64 * 1_000_000 / rate as u64;
+        let (clock, _) = path
+            .iter()
+            .find(|(c, p)| *c > end - 1_000 && *p == target)
+            .unwrap();
+        assert_eq!(*clock, end, "reached {target:?}");
+        // One edge per dominant step, the followers stepping with it.
+        let edges_in_move = path
+            .iter()
+            .filter(|(c, _)| *c <= end && *c > end - dominant as u64 * 1_000_000 / rate as u64)
+            .count();
+        assert_eq!(edges_in_move, dominant as usize);
+        from = target;
+    }
+    assert_eq!(end, 5_000 + 10_000 + 23_750_000);
+    assert_eq!(edges.len(), 1000 + 2000 + 1000 + 2000 + 1900 + 1000);
+    // Pressed at rest again: it runs again (home to home).
+    assert!(mcu.start_seed_program(30_000_000, 10_000));
+    assert_eq!(mcu.machine().mode(), Mode::Running);
+
+    // Once a host has configured the MCU, the switch does nothing.
+    let mut host = Host::new();
+    let mut mcu = self::mcu();
+    let mut clean = || false;
+    let mut edges = Vec::new();
+    for now in (0..20_000).step_by(1_000) {
+        exchange(&mut host, &mut mcu, now, &mut clean, &mut edges);
+    }
+    host.send(HostMessage::Configure {
+        host_timeout_ticks: 0,
+        state_period_ticks: 10_000,
+    });
+    for now in (20_000..40_000).step_by(1_000) {
+        exchange(&mut host, &mut mcu, now, &mut clean, &mut edges);
+    }
+    assert!(mcu.machine().host_configured());
+    assert!(!mcu.start_seed_program(40_000, 10_000));
+    assert!(edges.is_empty());
+}

@@ -326,6 +326,54 @@ fn a_feed_hold_stops_on_the_path_and_resume_plays_the_same_steps() {
 }
 
 #[test]
+fn a_hold_and_resume_generated_in_big_chunks_match_tick_by_tick() {
+    // The ramp's tight loop must make exactly the ticks one tick per call makes.
+    let rate = (ONE / 1500) as u32;
+    let script = |m: &mut M, chunk: u64| {
+        let mut edges = Vec::new();
+        let mut samples = Vec::new();
+        let advance = |m: &mut M, until: u64, edges: &mut Vec<StepEdge>| {
+            while m.clock() < until {
+                let next = (m.clock() + chunk).min(until);
+                m.advance(next, &mut |e| edges.push(e));
+            }
+        };
+        queue(m, cruise(0, 300, 37, SEGMENT_ENDS_AT_REST, 1));
+        m.handle(
+            &HostMessage::Screw(ScrewRamp {
+                start_clock: 0,
+                ramp_ticks: 4000,
+                target_millirpm: 20_000,
+                pin_open: true,
+            }),
+            0,
+        );
+        advance(m, 2_990, &mut edges);
+        m.handle(&HostMessage::FeedHold { rate_q32: rate }, m.clock());
+        for until in [3_500, 4_000, 4_321, 9_000] {
+            advance(m, until, &mut edges);
+            samples.push((m.clock(), m.plan_clock(), m.screw_millirpm(), m.positions()));
+        }
+        m.handle(
+            &HostMessage::FeedResume {
+                rate_q32: rate,
+                delay_ticks: 100,
+            },
+            m.clock(),
+        );
+        for until in [9_050, 9_700, 10_333, 40_000] {
+            advance(m, until, &mut edges);
+            samples.push((m.clock(), m.plan_clock(), m.screw_millirpm(), m.positions()));
+        }
+        (edges, samples, m.state())
+    };
+    let tick_by_tick = script(&mut machine(), 1);
+    let chunked = script(&mut machine(), 5_000);
+    assert_eq!(tick_by_tick.0.len(), 300);
+    assert_eq!(chunked, tick_by_tick);
+}
+
+#[test]
 fn drop_queue_needs_rest() {
     let mut m = machine();
     queue(&mut m, cruise(0, 100, 100, 0, 4));

@@ -300,6 +300,9 @@ pub struct PulseTrain {
     ramp_q62: u64,
     elapsed_q32: u64,
     made: [u32; MAX_AXES],
+    /// Per follower, `T_k·i − N·made_k` (0 ≤ it < N): the pulse distribution as a DDA, so a
+    /// step costs additions, not the 64-bit multiplications an M0+ does in software.
+    share: [u64; MAX_AXES],
 }
 
 impl PulseTrain {
@@ -311,6 +314,7 @@ impl PulseTrain {
             ramp_q62: segment.first_ramp_q62,
             elapsed_q32: 0,
             made: [0; MAX_AXES],
+            share: [0; MAX_AXES],
         }
     }
 
@@ -373,12 +377,16 @@ impl PulseTrain {
         let mut axes = 1u8 << dominant;
         self.made[dominant] = i;
         for k in 0..MAX_AXES {
-            // Axis k steps when T_k·i ≥ N·(made_k + 1): its count reaches ⌊T_k·i/N⌋.
-            if k != dominant
-                && seg.step_counts[k] as u64 * i as u64 >= total as u64 * (self.made[k] as u64 + 1)
-            {
-                self.made[k] += 1;
-                axes |= 1 << k;
+            // Axis k steps when T_k·i ≥ N·(made_k + 1): its count reaches ⌊T_k·i/N⌋. With
+            // `share = T_k·i − N·made_k` carried from step to step (T_k ≤ N, so at most one
+            // follower step per dominant step), that is `share + T_k ≥ N`.
+            if k != dominant {
+                self.share[k] += seg.step_counts[k] as u64;
+                if self.share[k] >= total as u64 {
+                    self.share[k] -= total as u64;
+                    self.made[k] += 1;
+                    axes |= 1 << k;
+                }
             }
         }
         let pulse = Pulse {

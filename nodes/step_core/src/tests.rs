@@ -315,6 +315,37 @@ fn fields_strategy() -> impl Strategy<Value = SegmentFields> {
 }
 
 proptest! {
+    /// The DDA's follower steps are the seed's rule `⌊T_k·n/N⌋` after every dominant step,
+    /// for any counts up to 2³² − 1.
+    #[test]
+    fn followers_follow_the_floor_rule_for_any_counts(
+        dominant in 1u32..=u32::MAX,
+        shares in proptest::array::uniform2(0.0f64..=1.0),
+        samples in proptest::collection::vec(0.0f64..1.0, 1..50),
+    ) {
+        let counts = [dominant, (shares[0] * dominant as f64) as u32, (shares[1] * dominant as f64) as u32];
+        let segment = Segment {
+            step_counts: counts,
+            negative_mask: 0,
+            dominant_axis: 0,
+            accelerate_steps: 0,
+            cruise_steps: dominant,
+            decelerate_steps: 0,
+            first_period_q32: ONE_TICK_Q32,
+            first_ramp_q62: 0,
+        };
+        // Walk short segments to the end; long ones only to a few sampled steps' worth.
+        let limit = dominant.min(20_000);
+        let mut train = PulseTrain::new(&segment);
+        for n in 1..=limit {
+            train.next_pulse().unwrap().unwrap();
+            let floor = |t: u32| (t as u64 * n as u64 / dominant as u64) as u32;
+            if n == limit || samples.iter().any(|s| (s * limit as f64) as u32 == n) {
+                prop_assert_eq!(train.made(), [n, floor(counts[1]), floor(counts[2])]);
+            }
+        }
+    }
+
     /// Any valid description steps every axis exactly its count, in time order, and agrees
     /// with the floating-point recurrence.
     #[test]

@@ -448,16 +448,22 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 // keeps up with real time through a hold.
                 let target = self.next_plan_event_q32();
                 let stop_at = until.min(self.watchdog_deadline());
-                let ramp = core::mem::discriminant(&self.ramp);
-                loop {
-                    self.clock += 1;
-                    self.step_ramp();
-                    self.plan_q32 += self.sigma_q32 as u128;
-                    if self.plan_q32 >= target
-                        || self.clock >= stop_at
-                        || core::mem::discriminant(&self.ramp) != ramp
-                    {
-                        break;
+                match self.ramp {
+                    Ramp::Hold { rate } => self.walk_ramp(target, stop_at, rate, false),
+                    Ramp::Resume { rate } => self.walk_ramp(target, stop_at, rate, true),
+                    _ => {
+                        let ramp = core::mem::discriminant(&self.ramp);
+                        loop {
+                            self.clock += 1;
+                            self.step_ramp();
+                            self.plan_q32 += self.sigma_q32 as u128;
+                            if self.plan_q32 >= target
+                                || self.clock >= stop_at
+                                || core::mem::discriminant(&self.ramp) != ramp
+                            {
+                                break;
+                            }
+                        }
                     }
                 }
             }
@@ -470,6 +476,43 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
     /// Idle inside a schedule: the last segment ended at rest and nothing follows yet.
     fn waiting_in_schedule(&self) -> bool {
         self.playing.is_none() && self.queue.is_empty() && self.schedule_end.is_some()
+    }
+
+    /// A hold's or resume's σ ramp, tick by tick, until the plan clock reaches `target_q32`,
+    /// the MCU clock `stop_at`, or σ its end (0, or 1 rising): the same ticks as
+    /// [`Machine::step_ramp`] one at a time, with the loop's state in locals and 64-bit
+    /// arithmetic — an RP2040 walks a tick in a few dozen cycles this way, faster than the
+    /// 125 a tick lasts (the `u128` plan clock through `self` took 132, and a long hold ramp
+    /// fell behind real time).
+    fn walk_ramp(&mut self, target_q32: u128, stop_at: u64, rate: u64, rising: bool) {
+        // How far the plan clock may move before the target (capped: far enough for any
+        // stretch of ticks this call can walk).
+        let room = target_q32
+            .saturating_sub(self.plan_q32)
+            .min(u64::MAX as u128) as u64;
+        let ticks = stop_at.saturating_sub(self.clock).max(1);
+        let mut sigma = self.sigma_q32;
+        let mut walked = 0u64;
+        let mut advanced = 0u64;
+        loop {
+            walked += 1;
+            sigma = if rising {
+                (sigma + rate).min(ONE)
+            } else {
+                sigma.saturating_sub(rate)
+            };
+            advanced = advanced.saturating_add(sigma);
+            let ended = if rising { sigma == ONE } else { sigma == 0 };
+            if advanced >= room || walked >= ticks || ended {
+                break;
+            }
+        }
+        self.clock += walked;
+        self.plan_q32 += advanced as u128;
+        self.sigma_q32 = sigma;
+        if sigma == 0 || sigma == ONE {
+            self.ramp = Ramp::Steady;
+        }
     }
 
     /// The plan clock (Q32) from which `emit_due` has something to do: the next pulse

@@ -173,9 +173,9 @@ mod tests {
             let mut pos = at.map(i64::from);
             let mut ours = Vec::new();
             while let Some(pulse) = train.next_pulse().unwrap() {
-                for k in 0..3 {
+                for (k, position) in pos.iter_mut().enumerate() {
                     if pulse.axes & (1 << k) != 0 {
-                        pos[k] += segment.direction(k) as i64;
+                        *position += segment.direction(k) as i64;
                     }
                 }
                 ours.push((pulse.tick() as i64 - period as i64, pos));

@@ -290,9 +290,9 @@ fn positions_after(edges: &[StepEdge], from: [i32; 3]) -> Vec<(u64, [i32; 3])> {
     edges
         .iter()
         .map(|e| {
-            for k in 0..3 {
+            for (k, position) in at.iter_mut().enumerate() {
                 if e.axes & (1 << k) != 0 {
-                    at[k] += if e.negative & (1 << k) != 0 { -1 } else { 1 };
+                    *position += if e.negative & (1 << k) != 0 { -1 } else { 1 };
                 }
             }
             (e.clock, at)

@@ -519,6 +519,14 @@ impl<L: McuLink> Machine for McuMachine<L> {
         let counters = self.session.endpoint().link().counters();
         values.push(("link_retransmits", counters.retransmits.to_string()));
         values.push(("link_naks", counters.naks_sent.to_string()));
+        values.push(("screw_commands_late", self.session.screw_late.to_string()));
+        values.push((
+            "screw_late_worst_ms",
+            format!(
+                "{:.3}",
+                self.session.screw_late_worst_ticks as f64 * 1e3 / self.session.timer_hz()
+            ),
+        ));
         if let Some(e) = self.session.error() {
             values.push(("mcu_error", e.to_string()));
         }

@@ -124,6 +124,10 @@ pub struct McuSession {
     on_mcu: VecDeque<(u64, f64)>,
     /// Start clocks of the screw commands sent that the MCU may still hold queued.
     screw_on_mcu: VecDeque<u64>,
+    /// Screw commands that reached the line too late for their start, and were sent to start
+    /// as soon as the MCU could take them ([`SCREW_MARGIN_S`] ahead); the worst lateness.
+    pub screw_late: u64,
+    pub screw_late_worst_ticks: u64,
     /// States received since [`McuSession::take_reports`] was last called.
     reports: Vec<McuState>,
     /// Holds, resumes, drops and resets waiting for room in the link's window: they go
@@ -139,6 +143,14 @@ pub struct McuSession {
     emergency: bool,
     emergency_sent_us: Option<u64>,
 }
+
+/// How far ahead of the MCU's plan clock (as the host estimates it) a screw command must
+/// start: the MCU's generator runs ahead of its timer (2 ms on the RP2040) and a frame takes
+/// a few ms to arrive, more when it is resent. A command that would start sooner — the
+/// screw driver's, say, for a pin opening before the plan's first move — starts this far
+/// ahead instead: late material, reported, rather than a LATE_SEGMENT fault that stops the
+/// print.
+pub const SCREW_MARGIN_S: f64 = 0.02;
 
 /// Clock samples the fit keeps: 51 s of them at the default query period. A long window
 /// averages the round trips' jitter out of the rate (over 3 s, ±120 ppm on a pty at 1×; the
@@ -169,6 +181,8 @@ impl McuSession {
             sent_since_state: 0,
             on_mcu: VecDeque::new(),
             screw_on_mcu: VecDeque::new(),
+            screw_late: 0,
+            screw_late_worst_ticks: 0,
             controls: VecDeque::new(),
             reports: Vec::new(),
             sent_end: None,
@@ -573,7 +587,15 @@ impl McuSession {
             return Ok(());
         };
         let horizon = ticks(self.options.horizon_s, self.timer_hz()) as u64;
-        let mut room = (state.queue_free as usize).saturating_sub(self.sent_since_state);
+        // Room in the MCU's queue: what its last state reported less what was sent since,
+        // and never more than its capacity less every segment sent that its plan clock has
+        // not yet passed — a state taken while segments were still on the line does not
+        // count them, and clearing `sent_since_state` on it alone overfilled the queue
+        // (QUEUE_OVERFLOW on the emulated RP2040, short segments at the cell's top rates).
+        let capacity = self.identity.map_or(0, |i| i.queue_capacity as usize);
+        let mut room = (state.queue_free as usize)
+            .saturating_sub(self.sent_since_state)
+            .min(capacity.saturating_sub(self.on_mcu.len()));
         while let Some(next) = self.segments.front() {
             if room == 0 || next.start_clock > plan_now + horizon || !self.endpoint.can_send() {
                 break;
@@ -597,7 +619,18 @@ impl McuSession {
             if full || ramp.start_clock > plan_now + horizon || !self.endpoint.can_send() {
                 break;
             }
-            let ramp = *ramp;
+            let mut ramp = *ramp;
+            let earliest = (plan_now + ticks(SCREW_MARGIN_S, self.timer_hz()) as u64)
+                .max(self.screw_on_mcu.back().copied().unwrap_or(0));
+            if ramp.start_clock < earliest {
+                // Keep where a ramp ends; start it when the MCU can take it.
+                let end = ramp.start_clock + ramp.ramp_ticks as u64;
+                self.screw_late += 1;
+                self.screw_late_worst_ticks =
+                    self.screw_late_worst_ticks.max(earliest - ramp.start_clock);
+                ramp.ramp_ticks = end.saturating_sub(earliest).min(u32::MAX as u64) as u32;
+                ramp.start_clock = earliest;
+            }
             self.endpoint.send(&HostMessage::Screw(ramp))?;
             self.screw.pop_front();
             self.screw_on_mcu.push_back(ramp.start_clock);

@@ -309,3 +309,35 @@ fn a_pause_holds_on_the_path_and_resume_makes_the_same_steps() {
         1.0 / rho
     );
 }
+
+#[test]
+fn a_screw_command_too_late_for_its_start_starts_when_the_mcu_can_take_it() {
+    let segments = finger_start(60);
+    let mut rig = printing(EmulatorOptions::default(), &segments);
+    // Half a second of the plan played before a command for plan time 0.1 s arrives (a screw
+    // driver that fell behind, a pin opening due before the plan began).
+    let anchor = rig.session.anchor_clock().unwrap();
+    while rig
+        .session
+        .state()
+        .is_none_or(|s| s.plan_clock < anchor + 500_000)
+    {
+        rig.round();
+    }
+    let command = ScrewCommand {
+        rpm: 42.0,
+        pin_open: true,
+        ..ScrewCommand::default()
+    };
+    rig.session.on_screw(&command, 0.1, rig.now_us).unwrap();
+    for _ in 0..100 {
+        rig.round();
+    }
+    assert!(rig.session.error().is_none(), "{:?}", rig.session.error());
+    let state = rig.session.state().unwrap();
+    assert_eq!((state.screw_millirpm, state.pin_open), (42_000, true));
+    assert_eq!(rig.session.screw_late, 1);
+    // It was due 0.4 s and more before it could go; it went out the margin ahead instead.
+    let late_s = rig.session.screw_late_worst_ticks as f64 * 1e-6;
+    assert!((0.4..0.5).contains(&late_s), "late by {late_s} s");
+}

@@ -245,9 +245,10 @@ async fn interrupted(interrupts: &tokio::sync::watch::Receiver<u32>, n: u32) {
 /// and in the exit code.
 pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> anyhow::Result<()> {
     let (count, interrupts) = tokio::sync::watch::channel(0u32);
+    let mut shutdown = cell_runtime::ShutdownSignals::new()?;
     let signals = tokio::spawn(async move {
         loop {
-            cell_runtime::shutdown_signal().await;
+            shutdown.next().await;
             count.send_modify(|n| *n += 1);
         }
     });
@@ -578,6 +579,8 @@ fn execution_overrides(
     let executor_overrides = vec![
         param("speed", format!("{speed:?}")),
         param("steps_per_unit", list(planner.f64s("steps_per_unit"))),
+        // The machine shows the joints the planner planned for (a rig profile's URDF).
+        param("urdf_file", format!("{:?}", planner.string("urdf_file"))),
         param(
             "step_timer_hz",
             format!("{:?}", planner.f64("step_timer_hz")),

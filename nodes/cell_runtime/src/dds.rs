@@ -467,6 +467,32 @@ pub async fn publish<T: RosMessage>(
     }
 }
 
+/// Every SIGINT and SIGTERM the process gets, counted from creation on: unlike calling
+/// [`shutdown_signal`] in a loop, a second Ctrl-C that comes while the first is being handled
+/// is not lost (a job's second Ctrl-C is its emergency stop).
+pub struct ShutdownSignals {
+    interrupt: tokio::signal::unix::Signal,
+    terminate: tokio::signal::unix::Signal,
+}
+
+impl ShutdownSignals {
+    pub fn new() -> std::io::Result<ShutdownSignals> {
+        use tokio::signal::unix::{signal, SignalKind};
+        Ok(ShutdownSignals {
+            interrupt: signal(SignalKind::interrupt())?,
+            terminate: signal(SignalKind::terminate())?,
+        })
+    }
+
+    /// The next signal (at once if one came since the last call).
+    pub async fn next(&mut self) {
+        tokio::select! {
+            _ = self.interrupt.recv() => {}
+            _ = self.terminate.recv() => {}
+        }
+    }
+}
+
 /// Resolves when the process gets SIGINT or SIGTERM.
 pub async fn shutdown_signal() {
     use tokio::signal::unix::{signal, SignalKind};

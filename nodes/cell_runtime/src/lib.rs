@@ -15,7 +15,7 @@ pub mod params;
 pub use args::{ArgsError, RosArgs};
 pub use dds::{
     now_ns, parse_service_mapping, publish, reliable_qos, resolve_node, ros_default_qos,
-    shutdown_signal, transient_local_qos, CellNode, Network, ServiceMapping, Wire,
+    shutdown_signal, transient_local_qos, CellNode, Network, ServiceMapping, ShutdownSignals, Wire,
     PUBLISH_PATIENCE,
 };
 pub use names::{NameError, NameResolver};

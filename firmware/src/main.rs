@@ -6,6 +6,15 @@
 //! * **UART0** (GP16 TX, GP17 RX, 921,600 baud, 8N1) carries the wire protocol
 //!   (`nodes/cell_protocol/PROTOCOL.md`). Received bytes are moved to a ring by the UART's
 //!   interrupt, so a frame being decoded never overruns the 32-byte FIFO.
+//! * **USB** is a composite device with two CDC-ACM serial ports: the first carries the
+//!   same wire protocol (`/dev/ttyACM0` on Linux), the second seed 001's position lines
+//!   `X:<steps>,Y:<steps>,Z:<steps>` for its PC plotter, sent at most every 10 ms while the
+//!   position changes and always once it stops. The protocol's replies go where the host's
+//!   bytes last came from, UART0 or USB. USB is polled by the main loop; the driver's
+//!   critical sections mask every interrupt but the step timer's ([`AllButSteps`]).
+//! * **Start switch** (bench rig, GP15 to ground): pressed for 20 ms on an idle MCU that no
+//!   host has configured, it plays seed 001's own bench program (`cell_firmware_core::
+//!   seed_program`), as the seed's Pico did.
 //! * **Step timing** comes from the 1 MHz hardware timer, which is the MCU clock of the
 //!   protocol: an edge at clock `c` reaches its pins when the timer reads `c`. The main loop
 //!   runs the generator [`LEAD_TICKS`] ahead of the timer into an output queue, and the
@@ -44,6 +53,9 @@ use heapless::spsc::{Consumer, Producer, Queue};
 use rp2040_hal as hal;
 use rp2040_hal::fugit::RateExtU32;
 use rp2040_hal::pac::{self, interrupt};
+use usb_device::class_prelude::UsbBusAllocator;
+use usb_device::prelude::{StringDescriptors, UsbDeviceBuilder, UsbVidPid};
+use usbd_serial::SerialPort;
 
 /// The second-stage bootloader for the Pico's W25Q080-compatible flash.
 #[link_section = ".boot2"]
@@ -74,11 +86,26 @@ const DIR_SETUP_CYCLES: u32 = 82;
 /// PWM top of the screw's speed output: 125 MHz / 10,000 = 12.5 kHz.
 const PWM_TOP: u16 = 9_999;
 
+/// USB identity: pid.codes' VID and its test PID 0x0001 (for development; a product
+/// would take its own PID from pid.codes).
+const USB_VID_PID: UsbVidPid = UsbVidPid(0x1209, 0x0001);
+/// Position lines at most this often while the position changes (ticks).
+const LINES_PERIOD_TICKS: u64 = 10_000;
+/// The start switch must read pressed this long (ticks) before it counts: contact bounce.
+const SWITCH_DEBOUNCE_TICKS: u64 = 20_000;
+/// Seed 001's program starts this long after the switch counts (ticks on the plan clock).
+const SEED_PROGRAM_LEAD_TICKS: u64 = 10_000;
+
 const LINK_WINDOW: usize = 16;
-const SEGMENT_QUEUE: usize = 256;
+/// Segments the MCU holds: 1,024 cover more than the 2 s horizon at the cell's densest plans
+/// (circles about the centre at 6 rad/s, some 300 segments a second); 256 did not, and the
+/// bridge held the machine on the path waiting for room.
+const SEGMENT_QUEUE: usize = 1024;
 const SCREW_QUEUE: usize = 512;
 const OUTPUT_QUEUE: usize = 512;
 const RX_RING: usize = 2048;
+/// Replies waiting for UART0's transmit FIFO (32 bytes) to take them.
+const UART_TX: usize = 1024;
 
 type McuEndpoint = Endpoint<LINK_WINDOW, SEGMENT_QUEUE, SCREW_QUEUE>;
 
@@ -113,6 +140,49 @@ struct PinWriter {
 
 static PIN_WRITER: Mutex<RefCell<Option<PinWriter>>> = Mutex::new(RefCell::new(None));
 
+/// The pin writer, with every interrupt masked (PRIMASK), the step timer's too: the
+/// critical section everything else uses ([`AllButSteps`]) leaves the timer running.
+fn with_pin_writer<R>(f: impl FnOnce(&mut Option<PinWriter>) -> R) -> R {
+    cortex_m::interrupt::free(|_| {
+        // SAFETY: every interrupt is masked while the closure runs.
+        let cs = unsafe { critical_section::CriticalSection::new() };
+        f(&mut PIN_WRITER.borrow_ref_mut(cs))
+    })
+}
+
+/// The `critical-section` implementation for everything but the pin writer (the HAL's USB
+/// driver, `singleton!`): it masks every interrupt line *except* the step timer's in the NVIC,
+/// so a critical section elsewhere — the USB driver copying a packet — never delays an edge.
+/// Sound because the step timer's interrupt touches nothing such a section guards: only the
+/// pin writer (guarded by [`with_pin_writer`]), its own registers and atomics. Single core.
+struct AllButSteps;
+critical_section::set_impl!(AllButSteps);
+
+/// The NVIC lines [`AllButSteps`] may mask: all but TIMER_IRQ_0.
+const MASKABLE_IRQS: u32 = !(1 << pac::Interrupt::TIMER_IRQ_0 as u32);
+
+// SAFETY: acquire masks every maskable line that was enabled and returns which; release
+// enables those again. Nested sections restore in order; no interrupt handler changes the
+// NVIC's enables.
+unsafe impl critical_section::Impl for AllButSteps {
+    unsafe fn acquire() -> critical_section::RawRestoreState {
+        // SAFETY: the NVIC's set/clear-enable registers; writes are single and atomic.
+        let nvic = unsafe { &*cortex_m::peripheral::NVIC::PTR };
+        let enabled = nvic.iser[0].read() & MASKABLE_IRQS;
+        unsafe { nvic.icer[0].write(enabled) };
+        cortex_m::asm::dsb();
+        cortex_m::asm::isb();
+        enabled
+    }
+
+    unsafe fn release(enabled: critical_section::RawRestoreState) {
+        cortex_m::asm::dsb();
+        // SAFETY: as above.
+        let nvic = unsafe { &*cortex_m::peripheral::NVIC::PTR };
+        unsafe { nvic.iser[0].write(enabled) };
+    }
+}
+
 /// A value `main` hands to one interrupt before unmasking it, touched by that interrupt
 /// alone from then on. No critical section: the UART's interrupt must never mask the step
 /// timer's, or edges would wait for it.
@@ -138,9 +208,34 @@ pub static EDGES_OUTPUT: AtomicU32 = AtomicU32::new(0);
 /// Bytes lost because the receive ring was full.
 #[no_mangle]
 pub static RX_OVERRUNS: AtomicU32 = AtomicU32::new(0);
+/// Frames from the host that failed their CRC or framing, and NAKs sent for them (copied
+/// from the endpoint's counters each pass).
+#[no_mangle]
+pub static BAD_FRAMES: AtomicU32 = AtomicU32::new(0);
+#[no_mangle]
+pub static NAKS_SENT: AtomicU32 = AtomicU32::new(0);
+/// Bytes of the protocol that came over USB, and bytes sent back that way.
+#[no_mangle]
+pub static USB_LINK_BYTES_IN: AtomicU32 = AtomicU32::new(0);
+#[no_mangle]
+pub static USB_LINK_BYTES_OUT: AtomicU32 = AtomicU32::new(0);
+/// Position lines sent on the second USB port.
+#[no_mangle]
+pub static POSITION_LINES: AtomicU32 = AtomicU32::new(0);
+/// Times the start switch started seed 001's program.
+#[no_mangle]
+pub static SEED_PROGRAM_STARTS: AtomicU32 = AtomicU32::new(0);
 /// Outputs written more than one tick after their own (the generator fell behind the pins).
 #[no_mangle]
 pub static LATE_OUTPUTS: AtomicU32 = AtomicU32::new(0);
+
+/// Add to a counter only the main loop writes (the M0+ has no atomic read-modify-write).
+fn bump(counter: &AtomicU32, n: u32) {
+    counter.store(
+        counter.load(Ordering::Relaxed).wrapping_add(n),
+        Ordering::Relaxed,
+    );
+}
 
 fn timer() -> &'static pac::timer::RegisterBlock {
     // SAFETY: read-only counters and the alarm registers, which only this firmware uses.
@@ -257,8 +352,7 @@ fn write_output(writer: &mut PinWriter, output: Output) {
 fn TIMER_IRQ_0() {
     let entered = cortex_m::peripheral::SYST::get_current();
     timer().intr().write(|w| w.alarm_0().clear_bit_by_one());
-    critical_section::with(|cs| {
-        let mut writer = PIN_WRITER.borrow_ref_mut(cs);
+    with_pin_writer(|writer| {
         let Some(writer) = writer.as_mut() else {
             return;
         };
@@ -326,13 +420,64 @@ fn UART0_IRQ() {
     }
 }
 
-fn uart_write(bytes: &[u8]) {
+/// Move queued bytes into UART0's transmit FIFO while it has room, never waiting for it:
+/// a pass that waited for the line (250 bytes of replies take 2.7 ms at 921,600 baud) held
+/// the step generator back past its lead, and edges went out late.
+fn uart_drain(queue: &mut heapless::Deque<u8, UART_TX>) {
     // SAFETY: the data and flag registers; the interrupt only receives.
     let uart = unsafe { &*pac::UART0::ptr() };
-    for &byte in bytes {
-        while uart.uartfr().read().txff().bit_is_set() {}
+    while uart.uartfr().read().txff().bit_is_clear() {
+        let Some(byte) = queue.pop_front() else {
+            break;
+        };
         uart.uartdr().write(|w| unsafe { w.data().bits(byte) });
     }
+}
+
+/// Bytes waiting for a USB serial port: whole frames or lines go in only when they fit, so
+/// the port never carries half of one.
+struct UsbOut<const N: usize>(heapless::Deque<u8, N>);
+
+impl<const N: usize> UsbOut<N> {
+    fn free(&self) -> usize {
+        N - self.0.len()
+    }
+
+    /// Queue all of `bytes`, or nothing if they do not fit.
+    fn push(&mut self, bytes: &[u8]) -> bool {
+        if bytes.len() > self.free() {
+            return false;
+        }
+        for &byte in bytes {
+            let _ = self.0.push_back(byte);
+        }
+        true
+    }
+
+    /// Hand the port what it takes now; returns the bytes it took.
+    fn flush<B: usb_device::bus::UsbBus>(&mut self, port: &mut SerialPort<'_, B>) -> usize {
+        let mut sent = 0;
+        while !self.0.is_empty() {
+            let (head, _) = self.0.as_slices();
+            match port.write(head) {
+                Ok(n) if n > 0 => {
+                    for _ in 0..n {
+                        self.0.pop_front();
+                    }
+                    sent += n;
+                }
+                _ => break,
+            }
+        }
+        sent
+    }
+}
+
+/// Where the protocol's replies go: where the host's bytes last came from.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Transport {
+    Uart,
+    Usb,
 }
 
 /// A nonce for the link session: the ring oscillator's jitter, one bit at a time.
@@ -346,8 +491,7 @@ fn nonce(rosc: &pac::ROSC) -> u32 {
 /// release the motors, close the pin, stop the screw. The output stage then follows the
 /// pins again, not the edges it had computed.
 fn stop_outputs(endpoint: &mut McuEndpoint, outputs: &mut Outputs) {
-    critical_section::with(|cs| {
-        let mut writer = PIN_WRITER.borrow_ref_mut(cs);
+    with_pin_writer(|writer| {
         if let Some(writer) = writer.as_mut() {
             let queue = &mut writer.queue;
             endpoint.discard_edges(core::iter::from_fn(|| loop {
@@ -434,15 +578,43 @@ fn main() -> ! {
     };
     uart.enable_rx_interrupt();
 
+    // USB: two CDC-ACM ports, the protocol's and the position lines'.
+    let usb_bus: &'static UsbBusAllocator<hal::usb::UsbBus> = cortex_m::singleton!(
+        : UsbBusAllocator<hal::usb::UsbBus> = UsbBusAllocator::new(hal::usb::UsbBus::new(
+            pac.USBCTRL_REGS,
+            pac.USBCTRL_DPRAM,
+            clocks.usb_clock,
+            true,
+            &mut pac.RESETS,
+        ))
+    )
+    .unwrap();
+    let mut usb_link = SerialPort::new(usb_bus);
+    let mut usb_lines = SerialPort::new(usb_bus);
+    let Ok(builder) =
+        UsbDeviceBuilder::new(usb_bus, USB_VID_PID).strings(&[StringDescriptors::default()
+            .manufacturer("polar-cell")
+            .product("polar cell MCU (link, position lines)")
+            .serial_number("1")])
+    else {
+        panic!("usb strings");
+    };
+    let Ok(builder) = builder.composite_with_iads().max_packet_size_0(64) else {
+        panic!("usb ep0");
+    };
+    let mut usb = builder.build();
+    let mut usb_link_out = UsbOut::<1024>(heapless::Deque::new());
+    let mut usb_lines_out = UsbOut::<256>(heapless::Deque::new());
+
     let outputs_queue = cortex_m::singleton!(: Queue<Output, OUTPUT_QUEUE> = Queue::new()).unwrap();
     let (mut to_pins, from_generator) = outputs_queue.split();
     let rx_ring = cortex_m::singleton!(: Queue<u8, RX_RING> = Queue::new()).unwrap();
     let (rx_producer, mut received) = rx_ring.split();
-    critical_section::with(|cs| {
-        PIN_WRITER.borrow_ref_mut(cs).replace(PinWriter {
+    with_pin_writer(|writer| {
+        writer.replace(PinWriter {
             queue: from_generator,
             pulse: None,
-        });
+        })
     });
     // SAFETY: UART0's interrupt, the producer's owner, is still masked.
     unsafe { *RX.0.get() = Some(rx_producer) };
@@ -487,10 +659,17 @@ fn main() -> ! {
     let mut frame = [0u8; MAX_WIRE_FRAME];
     let mut screw_output = (0i32, false);
     let mut stopped = false;
+    let mut link_on = Transport::Uart;
+    let mut uart_out: heapless::Deque<u8, UART_TX> = heapless::Deque::new();
+    let mut line_sent: Option<[i32; 3]> = None;
+    let mut line_sent_at = 0u64;
+    let mut switch_low_since: Option<u64> = None;
+    let mut switch_counted = false;
     loop {
         let pass_started = cortex_m::peripheral::SYST::get_current();
         let now = timer_now();
         let generate_until = now + LEAD_TICKS;
+        usb.poll(&mut [&mut usb_link, &mut usb_lines]);
         loop {
             let mut n = 0;
             while n < bytes.len() {
@@ -503,7 +682,31 @@ fn main() -> ! {
             if n == 0 {
                 break;
             }
+            link_on = Transport::Uart;
             endpoint.receive(&bytes[..n], now);
+        }
+        while let Ok(n) = usb_link.read(&mut bytes) {
+            if n == 0 {
+                break;
+            }
+            link_on = Transport::Usb;
+            bump(&USB_LINK_BYTES_IN, n as u32);
+            endpoint.receive(&bytes[..n], now);
+        }
+        // The start switch (bench rig): pressed (low) for the debounce time, once per press.
+        if let Some(pin) = profile::START_SWITCH_PIN {
+            if sio().gpio_in().read().bits() & (1 << pin) == 0 {
+                let since = *switch_low_since.get_or_insert(now);
+                if !switch_counted && now - since >= SWITCH_DEBOUNCE_TICKS {
+                    switch_counted = true;
+                    if endpoint.start_seed_program(now, SEED_PROGRAM_LEAD_TICKS) {
+                        bump(&SEED_PROGRAM_STARTS, 1);
+                    }
+                }
+            } else {
+                switch_low_since = None;
+                switch_counted = false;
+            }
         }
         // At most one edge per tick: advancing by no more ticks than the queue has free
         // places can never overflow it. A full queue holds the generator back (edges would
@@ -544,9 +747,51 @@ fn main() -> ! {
         stopped = faulted;
         // Let the output interrupt arm its alarm for what was just queued.
         pac::NVIC::pend(pac::Interrupt::TIMER_IRQ_0);
-        while let Some(len) = endpoint.poll_transmit(now, &mut frame) {
-            uart_write(&frame[..len]);
+        match link_on {
+            Transport::Uart => {
+                uart_drain(&mut uart_out);
+                while UART_TX - uart_out.len() >= MAX_WIRE_FRAME {
+                    let Some(len) = endpoint.poll_transmit(now, &mut frame) else {
+                        break;
+                    };
+                    for &byte in &frame[..len] {
+                        let _ = uart_out.push_back(byte); // room checked above
+                    }
+                }
+                uart_drain(&mut uart_out);
+            }
+            Transport::Usb => {
+                usb_link_out.flush(&mut usb_link);
+                while usb_link_out.free() >= MAX_WIRE_FRAME {
+                    let Some(len) = endpoint.poll_transmit(now, &mut frame) else {
+                        break;
+                    };
+                    usb_link_out.push(&frame[..len]);
+                }
+                let sent = usb_link_out.flush(&mut usb_link);
+                bump(&USB_LINK_BYTES_OUT, sent as u32);
+            }
         }
+        // Seed 001's position lines, while a terminal holds the port open (DTR).
+        let positions = endpoint.machine().positions();
+        let position = [positions[0], positions[1], positions[2]];
+        if usb_lines.dtr()
+            && line_sent != Some(position)
+            && now - line_sent_at >= LINES_PERIOD_TICKS
+            && usb_lines_out
+                .push(cell_firmware_core::seed_program::position_line(position).as_bytes())
+        {
+            line_sent = Some(position);
+            line_sent_at = now;
+            bump(&POSITION_LINES, 1);
+        }
+        usb_lines_out.flush(&mut usb_lines);
+        let counters = endpoint.counters();
+        BAD_FRAMES.store(
+            counters.crc_errors + counters.framing_errors,
+            Ordering::Relaxed,
+        );
+        NAKS_SENT.store(counters.naks_sent, Ordering::Relaxed);
         let spent =
             pass_started.wrapping_sub(cortex_m::peripheral::SYST::get_current()) & 0x00FF_FFFF;
         if spent > MAIN_MAX_CYCLES.load(Ordering::Relaxed) {

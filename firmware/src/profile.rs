@@ -48,6 +48,7 @@ mod pins {
     ];
     /// The step/dir drivers' shared enable, active low.
     pub const ENABLE_PIN: Option<u8> = Some(14);
+    pub const START_SWITCH_PIN: Option<u8> = None;
 }
 
 #[cfg(feature = "bench-rig")]
@@ -61,9 +62,11 @@ mod pins {
         },
     ];
     pub const ENABLE_PIN: Option<u8> = None;
+    /// Seed 001's start switch, to ground (input with pull-up).
+    pub const START_SWITCH_PIN: Option<u8> = Some(15);
 }
 
-pub use pins::STAGES;
+pub use pins::{STAGES, START_SWITCH_PIN};
 
 /// Every pin the firmware drives (the panic handler's safe state clears them all; the
 /// enable pin is set again afterwards).

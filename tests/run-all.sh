@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Every test of the suite: format, lints, Rust unit/integration tests, and the interop tests
-# against independent peers (Cyclone DDS, mcap-ros2-support, rosbags, Pinocchio, check_urdf).
+# Every test of the suite: format, lints, Rust unit/integration tests, the interop tests
+# against independent peers (Cyclone DDS, mcap-ros2-support, rosbags, Pinocchio, check_urdf),
+# the RP2040 firmware in the loop (rp2040js) and a fuzz smoke run.
 #
 # DDS tests run inside a private network namespace (loopback only) so they never touch a real
 # network: as root, this script re-executes itself under `unshare -n`.
@@ -17,6 +18,8 @@ if [[ "${POLAR_CELL_NETNS:-}" != "1" ]]; then
   .venv/bin/pip install --quiet --disable-pip-version-check -r tests/interop/requirements.txt
   cargo test --workspace --release --locked --no-run --quiet
   (cd firmware && cargo fetch --locked --quiet)
+  cargo build --release --locked --quiet --example firmware_edges
+  (cd tests/firmware && npm ci --silent --no-audit --no-fund)
   if cargo fuzz --version >/dev/null 2>&1; then
     RUSTC_BOOTSTRAP=1 cargo fuzz build --fuzz-dir tests/fuzz -O
   fi
@@ -59,6 +62,8 @@ echo "== interop tests (Cyclone DDS, mcap-ros2-support, rosbags, Pinocchio, chec
 cd tests/interop
 POLAR_CELL_BIN_DIR="$root/target/release" "$root/.venv/bin/python" -m pytest -q -p no:cacheprovider
 cd "$root"
+echo "== the RP2040 firmware in the loop (tests/firmware/run.sh: rp2040js against the node graph)"
+tests/firmware/run.sh
 echo "== fuzz smoke run (tests/fuzz/run.sh: 20,000 inputs per target, fixed seed)"
 if cargo fuzz --version >/dev/null 2>&1; then
   tests/fuzz/run.sh 20000

@@ -1,21 +1,34 @@
 #!/usr/bin/env bash
 # Firmware in the loop: build the RP2040 firmware, run it in rp2040js (harness.mjs), print
-# the first moves of a G-code file through the cell's real node graph into it over UART0
-# (mcu_bridge on the harness's Unix socket), then compare every recorded pin edge with the
-# planner's decoder (examples/firmware_edges.rs). Exit 0 when every check holds.
+# G-code through the cell's real node graph into it over UART0 (mcu_bridge on the harness's
+# Unix socket), then compare every recorded pin edge with the planner's decoder and the
+# screw commands (examples/firmware_edges.rs). Exit 0 when every check holds.
 #
-#   tests/firmware/run.sh [--speed K] [--profile FILE] [GCODE] [MOVES]
+#   tests/firmware/run.sh [--speed K] [--profile FILE]                 the whole suite
+#   tests/firmware/run.sh [--speed K] [--profile FILE] GCODE [MOVES]   one print
 #
-# Defaults: polartest.gcode, its first 300 moves, speed 1 (emulated time = wall time; a
-# slower speed gives a loaded machine's emulator room to keep up, the timeline is the same).
-# --profile writes the firmware's instructions per function (sampled) to FILE.
+# The suite, each print through the UF2 image a Pico would be flashed with:
+#   1. the first 300 moves of polartest.gcode through a damaged line (every 400th byte to
+#      the MCU corrupted: frames are NAKed and resent);
+#   2. the first 300 moves of finger.gcode with the protocol over USB CDC instead of UART0;
+#   3. polartest again, stopped by Ctrl-C (a cancel) and at once a second Ctrl-C (an
+#      emergency stop) while the bed turns fast;
+#   4. seed 001's bench rig (28BYJ-48 coils, launch-scripts/params/bench_rig.yaml) printing
+#      tests/firmware/bench_rig.gcode;
+#   5. seed 001's own program from the bench rig's start switch, with its position lines;
+#   6. the cell's top step rates (tests/firmware/top_speed.gcode).
+#
+# --speed: emulated seconds per wall second (default 0.5, so that a loaded machine's
+# emulator keeps up; the machine's timeline is the same at any speed). --profile writes the
+# firmware's instructions per function (sampled) to FILE. POLAR_CELL_KEEP=1 keeps each run's
+# bag, edges and logs; POLAR_CELL_FIRMWARE_CASES="1 3" runs only those of the suite.
 #
 # Builds and installs first (network needed), then, as root, re-runs itself in a private
-# network namespace (loopback only) for the print, like tests/run-all.sh.
+# network namespace (loopback only) for the prints, like tests/run-all.sh.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 original_args=("$@")
-speed=1
+speed=0.5
 profile=()
 while [[ $# -gt 0 && $1 == --* ]]; do
   case $1 in
@@ -24,11 +37,18 @@ while [[ $# -gt 0 && $1 == --* ]]; do
     *) echo "unknown option $1" >&2; exit 64 ;;
   esac
 done
-gcode=${1:-../shared/fixtures/gcode/polartest.gcode}
-moves=${2:-300}
 
+fw=firmware/target/thumbv6m-none-eabi/release/polar_cell_firmware
 if [[ "${POLAR_CELL_NETNS:-}" == "" ]]; then
+  # Both profiles, each as the ELF (symbols for the harness's counters) and the UF2 a Pico is
+  # flashed with (elf2uf2-rs, as `cargo run` in firmware/ does); the harness runs the UF2.
+  (cd firmware && cargo build --release --locked --quiet --features bench-rig)
+  cp "$fw" firmware/target/polar_cell_firmware-bench-rig.elf
   (cd firmware && cargo build --release --locked --quiet)
+  cp "$fw" firmware/target/polar_cell_firmware.elf
+  for image in polar_cell_firmware polar_cell_firmware-bench-rig; do
+    elf2uf2-rs "firmware/target/$image.elf" "firmware/target/$image.uf2" > /dev/null
+  done
   cargo build --release --locked --quiet --workspace --bins --example firmware_edges
   (cd tests/firmware && npm ci --silent --no-audit --no-fund)
   if [[ $(id -u) == 0 ]] && unshare -n true 2>/dev/null; then
@@ -40,21 +60,99 @@ if [[ "${POLAR_CELL_NETNS}" == "1" ]]; then
   ip link set lo up
   ip link set lo multicast on
 fi
-work=$(mktemp -d /tmp/polar-cell-firmware.XXXXXX)
+
+fixtures=../shared/fixtures/gcode
 harness=
-# POLAR_CELL_KEEP=1 keeps the bag, the edges and the harness's output for a closer look.
-trap '[[ -n $harness ]] && kill $harness 2>/dev/null; [[ -n ${POLAR_CELL_KEEP:-} ]] && echo "kept $work" || rm -rf "$work"' EXIT
+work=
+trap '[[ -n $harness ]] && kill $harness 2>/dev/null; [[ -n $work && -z ${POLAR_CELL_KEEP:-} ]] && rm -rf "$work"; true' EXIT
 
-# The first G1/G0 moves of the file (and everything before them: units, modes).
-awk -v n="$moves" '/^[ \t]*G[01][ \t]/ {k++} k > n {exit} {print}' "$gcode" > "$work/part.gcode"
+# run_print TITLE GCODE MOVES CORRUPT_EVERY STOP_AFTER_S [RIG [LINK]]
+#   CORRUPT_EVERY: 0 for a clean line; STOP_AFTER_S: wall seconds after the first step
+#   segment before Ctrl-C, Ctrl-C (0: print to the end); RIG: `bench-rig` for seed 001's
+#   rig (its firmware profile, launch-scripts/params/bench_rig.yaml, coils decoded), else
+#   `cell`; LINK: `uart` (UART0, the default) or `usb` (the protocol over USB CDC).
+run_print() {
+  local title=$1 gcode=$2 moves=$3 corrupt=$4 stop_after=$5 rig=${6:-cell} link=${7:-uart}
+  local image=polar_cell_firmware rig_params=() rig_check=()
+  if [[ $rig == bench-rig ]]; then
+    image=polar_cell_firmware-bench-rig
+    rig_params=(--ros-args --params-file launch-scripts/params/bench_rig.yaml)
+    rig_check=(--bench-rig)
+  fi
+  echo "== $title"
+  work=$(mktemp -d /tmp/polar-cell-firmware.XXXXXX)
+  # The first G0/G1 moves of the file (and everything before them: units, modes).
+  awk -v n="$moves" '/^[ \t]*G[01][ \t]/ {k++} k > n {exit} {print}' "$gcode" > "$work/part.gcode"
+  node tests/firmware/harness.mjs --elf "firmware/target/$image.elf" \
+    --uf2 "firmware/target/$image.uf2" --socket "$work/uart0.sock" --speed "$speed" \
+    --edges "$work/edges.csv" --uart-log "$work/uart_in.csv" --corrupt-every "$corrupt" \
+    --link "$link" "${profile[@]}" > "$work/harness.out" 2> "$work/harness.err" &
+  harness=$!
+  for _ in $(seq 50); do [[ -S "$work/uart0.sock" ]] && break; sleep 0.1; done
+  env -u RUST_BACKTRACE target/release/polar-cell print "$work/part.gcode" \
+    --device "unix:$work/uart0.sock" --bag "$work/print.mcap" --speed "$speed" --no-progress \
+    "${rig_params[@]}" > "$work/print.out" 2>&1 &
+  local print=$!
+  if [[ $stop_after != 0 ]]; then
+    sleep "$stop_after"
+    kill -INT $print
+    sleep 0.01
+    kill -INT $print
+  fi
+  local print_status=0
+  wait $print || print_status=$?
+  grep -v '^  /' "$work/print.out" || true
+  kill -INT $harness
+  wait $harness || true
+  harness=
+  echo "rp2040js: $(tail -1 "$work/harness.out")"
+  if [[ $stop_after == 0 && $print_status != 0 ]]; then
+    echo "the print failed (exit $print_status)"
+    return 1
+  fi
+  target/release/examples/firmware_edges "$work/print.mcap" "$work/edges.csv" \
+    --uart-in "$work/uart_in.csv" "${rig_check[@]}"
+  [[ -n ${POLAR_CELL_KEEP:-} ]] && echo "kept $work"
+  [[ -z ${POLAR_CELL_KEEP:-} ]] && rm -rf "$work"
+  work=
+}
 
-node tests/firmware/harness.mjs --elf firmware/target/thumbv6m-none-eabi/release/polar_cell_firmware \
-  --socket "$work/uart0.sock" --edges "$work/edges.csv" --speed "$speed" "${profile[@]}" > "$work/harness.out" 2> "$work/harness.err" &
-harness=$!
-for _ in $(seq 50); do [[ -S "$work/uart0.sock" ]] && break; sleep 0.1; done
-env -u RUST_BACKTRACE target/release/polar-cell print "$work/part.gcode" --device "unix:$work/uart0.sock" \
-  --bag "$work/print.mcap" --speed "$speed" --no-progress 2>&1 | grep -v '^  /'
-kill -INT $harness
-wait $harness || true
-echo "rp2040js: $(tail -1 "$work/harness.out")"
-target/release/examples/firmware_edges "$work/print.mcap" "$work/edges.csv"
+# Seed 001's own program on the bench rig, no host: the start switch pressed at 0.5 s, the
+# coils decoded back to the seed's six moves, the position lines read from the second USB
+# port. Nothing outside the emulator to keep pace with: it runs as fast as it can.
+run_seed_program() {
+  echo "== seed 001's program on the bench rig: start switch (GP15), coils, USB position lines"
+  work=$(mktemp -d /tmp/polar-cell-firmware.XXXXXX)
+  node tests/firmware/harness.mjs --elf firmware/target/polar_cell_firmware-bench-rig.elf \
+    --uf2 firmware/target/polar_cell_firmware-bench-rig.uf2 --socket "$work/uart0.sock" \
+    --speed 1000 --edges "$work/edges.csv" --usb-lines "$work/lines.csv" \
+    --switch-at 0.5 --stop-at 25 > "$work/harness.out" 2> "$work/harness.err"
+  echo "rp2040js: $(tail -1 "$work/harness.out")"
+  target/release/examples/firmware_edges --seed-program "$work/edges.csv" "$work/lines.csv"
+  [[ -n ${POLAR_CELL_KEEP:-} ]] && echo "kept $work"
+  [[ -z ${POLAR_CELL_KEEP:-} ]] && rm -rf "$work"
+  work=
+}
+
+if [[ $# -gt 0 ]]; then
+  run_print "$1, first ${2:-300} moves" "$1" "${2:-300}" 0 0
+  exit
+fi
+cases=${POLAR_CELL_FIRMWARE_CASES:-1 2 3 4 5 6}
+[[ " $cases " == *" 1 "* ]] &&
+  run_print "polartest.gcode, first 300 moves, every 400th byte to the MCU damaged" \
+    "$fixtures/polartest.gcode" 300 400 0
+[[ " $cases " == *" 2 "* ]] &&
+  run_print "finger.gcode, first 300 moves, the protocol over USB CDC" \
+    "$fixtures/finger.gcode" 300 0 0 cell usb
+[[ " $cases " == *" 3 "* ]] &&
+  run_print "polartest.gcode: Ctrl-C (cancel), then at once Ctrl-C (emergency stop)" \
+    "$fixtures/polartest.gcode" 300 0 40
+[[ " $cases " == *" 4 "* ]] &&
+  run_print "seed 001's bench rig: 28BYJ-48 coils, tests/firmware/bench_rig.gcode" \
+    tests/firmware/bench_rig.gcode 1000 0 0 bench-rig
+[[ " $cases " == *" 5 "* ]] && run_seed_program
+[[ " $cases " == *" 6 "* ]] &&
+  run_print "top speed: the bed at 6 rad/s (30.6k steps/s), the arm at 0.2 m/s (16k steps/s)" \
+    tests/firmware/top_speed.gcode 1000 0 0
+echo "firmware in the loop: every check held"

@@ -18,8 +18,7 @@ if [[ "${POLAR_CELL_NETNS:-}" != "1" ]]; then
   .venv/bin/pip install --quiet --disable-pip-version-check -r tests/interop/requirements.txt
   cargo test --workspace --release --locked --no-run --quiet
   (cd firmware && cargo fetch --locked --quiet)
-  cargo build --release --locked --quiet --example firmware_edges
-  (cd tests/firmware && npm ci --silent --no-audit --no-fund)
+  tests/firmware/run.sh --build-only
   if cargo fuzz --version >/dev/null 2>&1; then
     RUSTC_BOOTSTRAP=1 cargo fuzz build --fuzz-dir tests/fuzz -O
   fi

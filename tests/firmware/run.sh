@@ -23,25 +23,30 @@
 # firmware's instructions per function (sampled) to FILE. POLAR_CELL_KEEP=1 keeps each run's
 # bag, edges and logs; POLAR_CELL_FIRMWARE_CASES="1 3" runs only those of the suite.
 #
-# Builds and installs first (network needed), then, as root, re-runs itself in a private
-# network namespace (loopback only) for the prints, like tests/run-all.sh.
+# Builds and installs first (network needed; --build-only stops there), then, as root,
+# re-runs itself in a private network namespace (loopback only) for the prints, like
+# tests/run-all.sh. Inside a namespace already (POLAR_CELL_NETNS set) it builds nothing.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 original_args=("$@")
 speed=0.5
 profile=()
+build_only=
 while [[ $# -gt 0 && $1 == --* ]]; do
   case $1 in
     --speed) speed=$2; shift 2 ;;
     --profile) profile=(--profile "$(realpath -m "$2")"); shift 2 ;;
+    --build-only) build_only=1; shift ;;
     *) echo "unknown option $1" >&2; exit 64 ;;
   esac
 done
 
-fw=firmware/target/thumbv6m-none-eabi/release/polar_cell_firmware
-if [[ "${POLAR_CELL_NETNS:-}" == "" ]]; then
-  # Both profiles, each as the ELF (symbols for the harness's counters) and the UF2 a Pico is
-  # flashed with (elf2uf2-rs, as `cargo run` in firmware/ does); the harness runs the UF2.
+# Everything the prints need, built and installed (network needed: tests/run-all.sh calls
+# this with --build-only before it enters its network namespace). Both firmware profiles,
+# each as the ELF (symbols for the harness's counters) and the UF2 a Pico is flashed with
+# (elf2uf2-rs, as `cargo run` in firmware/ does); the harness runs the UF2.
+build() {
+  local fw=firmware/target/thumbv6m-none-eabi/release/polar_cell_firmware
   (cd firmware && cargo build --release --locked --quiet --features bench-rig)
   cp "$fw" firmware/target/polar_cell_firmware-bench-rig.elf
   (cd firmware && cargo build --release --locked --quiet)
@@ -51,6 +56,13 @@ if [[ "${POLAR_CELL_NETNS:-}" == "" ]]; then
   done
   cargo build --release --locked --quiet --workspace --bins --example firmware_edges
   (cd tests/firmware && npm ci --silent --no-audit --no-fund)
+}
+if [[ -n $build_only ]]; then
+  build
+  exit
+fi
+if [[ "${POLAR_CELL_NETNS:-}" == "" ]]; then
+  build
   if [[ $(id -u) == 0 ]] && unshare -n true 2>/dev/null; then
     exec env POLAR_CELL_NETNS=1 unshare -n "$0" "${original_args[@]}"
   fi
@@ -89,6 +101,11 @@ run_print() {
     --link "$link" "${profile[@]}" > "$work/harness.out" 2> "$work/harness.err" &
   harness=$!
   for _ in $(seq 50); do [[ -S "$work/uart0.sock" ]] && break; sleep 0.1; done
+  if [[ ! -S "$work/uart0.sock" ]]; then
+    echo "the harness did not start:"
+    tail -20 "$work/harness.out" "$work/harness.err"
+    return 1
+  fi
   env -u RUST_BACKTRACE target/release/polar-cell print "$work/part.gcode" \
     --device "unix:$work/uart0.sock" --bag "$work/print.mcap" --speed "$speed" --no-progress \
     "${rig_params[@]}" > "$work/print.out" 2>&1 &

@@ -42,12 +42,11 @@ echo "== the MCU crates for the RP2040 (thumbv6m-none-eabi: no_std, no alloc, no
 cargo build --release --locked --quiet -p step_core -p cell_protocol -p cell_firmware_core \
   --target thumbv6m-none-eabi
 echo "== the RP2040 firmware (firmware/: its own workspace, thumbv6m-none-eabi), both profiles"
+# Both built before the namespace (tests/firmware/run.sh --build-only: ELF and UF2 each).
 (cd firmware && cargo fmt -- --check \
   && cargo clippy --release --locked --quiet -- -D warnings \
-  && cargo clippy --release --locked --quiet --features bench-rig -- -D warnings \
-  && cargo build --release --locked --quiet --features bench-rig \
-  && mv target/thumbv6m-none-eabi/release/polar_cell_firmware target/polar_cell_firmware-bench-rig \
-  && cargo build --release --locked --quiet)
+  && cargo clippy --release --locked --quiet --features bench-rig -- -D warnings)
+ls -l firmware/target/polar_cell_firmware.uf2 firmware/target/polar_cell_firmware-bench-rig.uf2
 echo "== cargo test"
 cargo test --workspace --release --locked --no-fail-fast 2>&1 | tee /tmp/polar-cell-cargo-test.log | grep -E "^(test result|running|error|failures)|FAILED|panicked" || true
 if grep -qE "FAILED|error(\[|:)" /tmp/polar-cell-cargo-test.log || ! grep -q "test result" /tmp/polar-cell-cargo-test.log; then

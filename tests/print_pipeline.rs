@@ -419,9 +419,11 @@ fn a_print_on_the_mcu_emulator_executes_every_step() {
         .unwrap_or_else(|| panic!("{stderr}"));
     assert!(executed_line.contains(", 0 underruns"), "{executed_line}");
     let states: Vec<JointState> = topic_messages(&bag, "/joint_states");
-    // 168 s of the MCU's 100 Hz state reports, sampled at 50 Hz of machine time (at 10x a
-    // loaded machine's emulator misses some of its 1 ms report periods: ≥ 40 Hz).
-    assert!(states.len() > 6700, "{} states", states.len());
+    // 168 s of the MCU's 100 Hz state reports, sampled at 50 Hz of machine time. At 10x a
+    // report period is 1 ms of wall time, and a loaded machine's emulator misses some: a CI
+    // run beside the other pipeline tests sampled 37 Hz. At least 25 Hz, as the interop
+    // launch test asks of the same reports.
+    assert!(states.len() > 4200, "{} states", states.len());
     for w in states.windows(2) {
         assert!(w[1].header.stamp.as_nanos() > w[0].header.stamp.as_nanos());
     }

@@ -46,7 +46,7 @@ use core::sync::atomic::{AtomicU32, Ordering};
 
 use cell_firmware_core::outputs::{EdgeWrites, Outputs};
 use cell_firmware_core::{Endpoint, MachineConfig, StepEdge};
-use cell_protocol::message::FaultCode;
+use cell_protocol::message::{FaultCode, Mode};
 use cell_protocol::{LinkOptions, MAX_WIRE_FRAME};
 use critical_section::Mutex;
 use heapless::spsc::{Consumer, Producer, Queue};
@@ -72,6 +72,12 @@ const TIMER_HZ: u32 = 1_000_000;
 pub const LEAD_TICKS: u64 = 2_000;
 /// The main loop's wake-up period when no byte arrives (ticks).
 const LOOP_PERIOD_TICKS: u32 = 250;
+/// Most ticks generated between two looks at the receive ring, so that an emergency stop
+/// waits for little generation: at full feed the generator jumps from pulse to pulse (500
+/// ticks cost little; shorter chunks cost the top step rates their margin), while a hold's
+/// σ ramp walks every tick at some 100 cycles each (100 ticks, under 0.1 ms).
+const GENERATE_CHUNK_TICKS: u64 = 500;
+const RAMP_CHUNK_TICKS: u64 = 100;
 /// How early the output alarm fires (ticks): the interrupt's entry and bookkeeping happen
 /// before the tick, the write itself right at it. An output due sooner than this after the
 /// one just written is waited for without leaving the interrupt.
@@ -434,6 +440,31 @@ fn uart_drain(queue: &mut heapless::Deque<u8, UART_TX>) {
     }
 }
 
+/// Hand the endpoint every byte UART0's interrupt has put in the ring, stamped with the
+/// timer now; whether any came.
+fn take_received(
+    received: &mut Consumer<'static, u8>,
+    endpoint: &mut McuEndpoint,
+    bytes: &mut [u8; 64],
+) -> bool {
+    let mut any = false;
+    loop {
+        let mut n = 0;
+        while n < bytes.len() {
+            let Some(byte) = received.dequeue() else {
+                break;
+            };
+            bytes[n] = byte;
+            n += 1;
+        }
+        if n == 0 {
+            return any;
+        }
+        any = true;
+        endpoint.receive(&bytes[..n], timer_now());
+    }
+}
+
 /// Bytes waiting for a USB serial port: whole frames or lines go in only when they fit, so
 /// the port never carries half of one.
 struct UsbOut<const N: usize>(heapless::Deque<u8, N>);
@@ -670,20 +701,8 @@ fn main() -> ! {
         let now = timer_now();
         let generate_until = now + LEAD_TICKS;
         usb.poll(&mut [&mut usb_link, &mut usb_lines]);
-        loop {
-            let mut n = 0;
-            while n < bytes.len() {
-                let Some(byte) = received.dequeue() else {
-                    break;
-                };
-                bytes[n] = byte;
-                n += 1;
-            }
-            if n == 0 {
-                break;
-            }
+        if take_received(&mut received, endpoint, &mut bytes) {
             link_on = Transport::Uart;
-            endpoint.receive(&bytes[..n], now);
         }
         while let Ok(n) = usb_link.read(&mut bytes) {
             if n == 0 {
@@ -712,12 +731,27 @@ fn main() -> ! {
         // places can never overflow it. A full queue holds the generator back (edges would
         // then be late, which `LATE_EDGES` counts) instead of losing an edge.
         loop {
+            // What UART0 brought meanwhile first: an emergency stop acts between chunks, not
+            // after a whole pass (a pass through a hold's ramp can outlast a control period).
+            if take_received(&mut received, endpoint, &mut bytes) {
+                link_on = Transport::Uart;
+            }
+            if endpoint.machine().fault() != FaultCode::None {
+                break;
+            }
             let generated_to = endpoint.machine().clock();
             let free = (to_pins.capacity() - to_pins.len()) as u64;
             if generated_to >= generate_until || free == 0 {
                 break;
             }
-            let until = generate_until.min(generated_to + free);
+            let chunk = if endpoint.machine().mode() == Mode::Ramping {
+                RAMP_CHUNK_TICKS
+            } else {
+                GENERATE_CHUNK_TICKS
+            };
+            let until = generate_until
+                .min(generated_to + free)
+                .min(generated_to + chunk);
             endpoint.advance(until, &mut |edge| {
                 let writes = outputs.edge(edge);
                 let queued = to_pins.enqueue(Output::Step { edge, writes });

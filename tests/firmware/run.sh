@@ -155,7 +155,7 @@ if [[ $# -gt 0 ]]; then
   run_print "$1, first ${2:-300} moves" "$1" "${2:-300}" 0 0
   exit
 fi
-cases=${POLAR_CELL_FIRMWARE_CASES:-1 2 3 4 5 6}
+cases=${POLAR_CELL_FIRMWARE_CASES:-1 2 3 4 5}
 [[ " $cases " == *" 1 "* ]] &&
   run_print "polartest.gcode, first 300 moves, every 400th byte to the MCU damaged" \
     "$fixtures/polartest.gcode" 300 400 0

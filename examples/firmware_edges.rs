@@ -387,7 +387,9 @@ fn check_screw(
     // hold's frame is the hold's, not a command's.
     if let Some(hold_plan_ns) = hold_plan_ns {
         if changes.len() == wanted.len() + 1
-            && changes.last().is_some_and(|&(t, open)| !open && t >= hold_plan_ns)
+            && changes
+                .last()
+                .is_some_and(|&(t, open)| !open && t >= hold_plan_ns)
         {
             changes.pop();
         }

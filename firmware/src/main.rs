@@ -235,7 +235,7 @@ pub static SEED_PROGRAM_STARTS: AtomicU32 = AtomicU32::new(0);
 #[no_mangle]
 pub static LATE_OUTPUTS: AtomicU32 = AtomicU32::new(0);
 
-/// Add to a counter only the main loop writes (the M0+ has no atomic read-modify-write).
+/// Add to a counter that one context alone writes (the M0+ has no atomic read-modify-write).
 fn bump(counter: &AtomicU32, n: u32) {
     counter.store(
         counter.load(Ordering::Relaxed).wrapping_add(n),
@@ -301,7 +301,7 @@ fn wait_for_tick(tick: u64) {
 
 fn count_if_late(tick: u64) {
     if timer_low().wrapping_sub(tick as u32) as i32 > 1 {
-        LATE_OUTPUTS.store(LATE_OUTPUTS.load(Ordering::Relaxed) + 1, Ordering::Relaxed);
+        bump(&LATE_OUTPUTS, 1);
     }
 }
 
@@ -337,7 +337,7 @@ fn write_output(writer: &mut PinWriter, output: Output) {
                 let mask = writer.pulse.map_or(0, |(m, _)| m) | writes.step_set;
                 writer.pulse = Some((mask, edge.clock + PULSE_TICKS));
             }
-            EDGES_OUTPUT.store(EDGES_OUTPUT.load(Ordering::Relaxed) + 1, Ordering::Relaxed);
+            bump(&EDGES_OUTPUT, 1);
         }
         Output::Screw {
             clock,
@@ -421,22 +421,8 @@ fn UART0_IRQ() {
     while uart.uartfr().read().rxfe().bit_is_clear() {
         let byte = uart.uartdr().read().data().bits();
         if rx.enqueue(byte).is_err() {
-            RX_OVERRUNS.store(RX_OVERRUNS.load(Ordering::Relaxed) + 1, Ordering::Relaxed);
+            bump(&RX_OVERRUNS, 1);
         }
-    }
-}
-
-/// Move queued bytes into UART0's transmit FIFO while it has room, never waiting for it:
-/// a pass that waited for the line (250 bytes of replies take 2.7 ms at 921,600 baud) held
-/// the step generator back past its lead, and edges went out late.
-fn uart_drain(queue: &mut heapless::Deque<u8, UART_TX>) {
-    // SAFETY: the data and flag registers; the interrupt only receives.
-    let uart = unsafe { &*pac::UART0::ptr() };
-    while uart.uartfr().read().txff().bit_is_clear() {
-        let Some(byte) = queue.pop_front() else {
-            break;
-        };
-        uart.uartdr().write(|w| unsafe { w.data().bits(byte) });
     }
 }
 
@@ -465,11 +451,17 @@ fn take_received(
     }
 }
 
-/// Bytes waiting for a USB serial port: whole frames or lines go in only when they fit, so
-/// the port never carries half of one.
-struct UsbOut<const N: usize>(heapless::Deque<u8, N>);
+/// Bytes waiting for a serial line (UART0's FIFO or a USB port): whole frames or lines go
+/// in only when they fit, so the line never carries half of one, and the line takes them
+/// as it can, never waited for (a pass that waited for UART0 — 250 bytes of replies take
+/// 2.7 ms at 921,600 baud — held the step generator back past its lead).
+struct TxQueue<const N: usize>(heapless::Deque<u8, N>);
 
-impl<const N: usize> UsbOut<N> {
+impl<const N: usize> TxQueue<N> {
+    const fn new() -> Self {
+        TxQueue(heapless::Deque::new())
+    }
+
     fn free(&self) -> usize {
         N - self.0.len()
     }
@@ -485,8 +477,18 @@ impl<const N: usize> UsbOut<N> {
         true
     }
 
-    /// Hand the port what it takes now; returns the bytes it took.
-    fn flush<B: usb_device::bus::UsbBus>(&mut self, port: &mut SerialPort<'_, B>) -> usize {
+    /// Queue the endpoint's frames while a whole frame still fits.
+    fn fill(&mut self, endpoint: &mut McuEndpoint, now: u64, frame: &mut [u8; MAX_WIRE_FRAME]) {
+        while self.free() >= MAX_WIRE_FRAME {
+            let Some(len) = endpoint.poll_transmit(now, frame) else {
+                break;
+            };
+            self.push(&frame[..len]);
+        }
+    }
+
+    /// Hand a USB port what it takes now; returns the bytes it took.
+    fn flush_usb<B: usb_device::bus::UsbBus>(&mut self, port: &mut SerialPort<'_, B>) -> usize {
         let mut sent = 0;
         while !self.0.is_empty() {
             let (head, _) = self.0.as_slices();
@@ -501,6 +503,18 @@ impl<const N: usize> UsbOut<N> {
             }
         }
         sent
+    }
+
+    /// Move bytes into UART0's transmit FIFO while it has room.
+    fn flush_uart(&mut self) {
+        // SAFETY: the data and flag registers; the interrupt only receives.
+        let uart = unsafe { &*pac::UART0::ptr() };
+        while uart.uartfr().read().txff().bit_is_clear() {
+            let Some(byte) = self.0.pop_front() else {
+                break;
+            };
+            uart.uartdr().write(|w| unsafe { w.data().bits(byte) });
+        }
     }
 }
 
@@ -634,8 +648,8 @@ fn main() -> ! {
         panic!("usb ep0");
     };
     let mut usb = builder.build();
-    let mut usb_link_out = UsbOut::<1024>(heapless::Deque::new());
-    let mut usb_lines_out = UsbOut::<256>(heapless::Deque::new());
+    let mut usb_link_out = TxQueue::<1024>::new();
+    let mut usb_lines_out = TxQueue::<256>::new();
 
     let outputs_queue = cortex_m::singleton!(: Queue<Output, OUTPUT_QUEUE> = Queue::new()).unwrap();
     let (mut to_pins, from_generator) = outputs_queue.split();
@@ -691,7 +705,7 @@ fn main() -> ! {
     let mut screw_output = (0i32, false);
     let mut stopped = false;
     let mut link_on = Transport::Uart;
-    let mut uart_out: heapless::Deque<u8, UART_TX> = heapless::Deque::new();
+    let mut uart_out = TxQueue::<UART_TX>::new();
     let mut line_sent: Option<[i32; 3]> = None;
     let mut line_sent_at = 0u64;
     let mut switch_low_since: Option<u64> = None;
@@ -701,9 +715,6 @@ fn main() -> ! {
         let now = timer_now();
         let generate_until = now + LEAD_TICKS;
         usb.poll(&mut [&mut usb_link, &mut usb_lines]);
-        if take_received(&mut received, endpoint, &mut bytes) {
-            link_on = Transport::Uart;
-        }
         while let Ok(n) = usb_link.read(&mut bytes) {
             if n == 0 {
                 break;
@@ -783,32 +794,19 @@ fn main() -> ! {
         pac::NVIC::pend(pac::Interrupt::TIMER_IRQ_0);
         match link_on {
             Transport::Uart => {
-                uart_drain(&mut uart_out);
-                while UART_TX - uart_out.len() >= MAX_WIRE_FRAME {
-                    let Some(len) = endpoint.poll_transmit(now, &mut frame) else {
-                        break;
-                    };
-                    for &byte in &frame[..len] {
-                        let _ = uart_out.push_back(byte); // room checked above
-                    }
-                }
-                uart_drain(&mut uart_out);
+                uart_out.flush_uart();
+                uart_out.fill(endpoint, now, &mut frame);
+                uart_out.flush_uart();
             }
             Transport::Usb => {
-                usb_link_out.flush(&mut usb_link);
-                while usb_link_out.free() >= MAX_WIRE_FRAME {
-                    let Some(len) = endpoint.poll_transmit(now, &mut frame) else {
-                        break;
-                    };
-                    usb_link_out.push(&frame[..len]);
-                }
-                let sent = usb_link_out.flush(&mut usb_link);
+                let mut sent = usb_link_out.flush_usb(&mut usb_link);
+                usb_link_out.fill(endpoint, now, &mut frame);
+                sent += usb_link_out.flush_usb(&mut usb_link);
                 bump(&USB_LINK_BYTES_OUT, sent as u32);
             }
         }
         // Seed 001's position lines, while a terminal holds the port open (DTR).
-        let positions = endpoint.machine().positions();
-        let position = [positions[0], positions[1], positions[2]];
+        let position = endpoint.machine().positions();
         if usb_lines.dtr()
             && line_sent != Some(position)
             && now - line_sent_at >= LINES_PERIOD_TICKS
@@ -819,7 +817,7 @@ fn main() -> ! {
             line_sent_at = now;
             bump(&POSITION_LINES, 1);
         }
-        usb_lines_out.flush(&mut usb_lines);
+        usb_lines_out.flush_usb(&mut usb_lines);
         let counters = endpoint.counters();
         BAD_FRAMES.store(
             counters.crc_errors + counters.framing_errors,

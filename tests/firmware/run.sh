@@ -78,6 +78,12 @@ harness=
 work=
 trap '[[ -n $harness ]] && kill $harness 2>/dev/null; [[ -n $work && -z ${POLAR_CELL_KEEP:-} ]] && rm -rf "$work"; true' EXIT
 
+# A case passed: its work directory goes (POLAR_CELL_KEEP=1 keeps it).
+end_case() {
+  if [[ -n ${POLAR_CELL_KEEP:-} ]]; then echo "kept $work"; else rm -rf "$work"; fi
+  work=
+}
+
 # run_print TITLE GCODE MOVES CORRUPT_EVERY STOP_AFTER_S [RIG [LINK]]
 #   CORRUPT_EVERY: 0 for a clean line; STOP_AFTER_S: wall seconds after the first step
 #   segment before Ctrl-C, Ctrl-C (0: print to the end); RIG: `bench-rig` for seed 001's
@@ -129,9 +135,7 @@ run_print() {
   fi
   target/release/examples/firmware_edges "$work/print.mcap" "$work/edges.csv" \
     --uart-in "$work/uart_in.csv" "${rig_check[@]}"
-  [[ -n ${POLAR_CELL_KEEP:-} ]] && echo "kept $work"
-  [[ -z ${POLAR_CELL_KEEP:-} ]] && rm -rf "$work"
-  work=
+  end_case
 }
 
 # Seed 001's own program on the bench rig, no host: the start switch pressed at 0.5 s, the
@@ -146,9 +150,7 @@ run_seed_program() {
     --switch-at 0.5 --stop-at 25 > "$work/harness.out" 2> "$work/harness.err"
   echo "rp2040js: $(tail -1 "$work/harness.out")"
   target/release/examples/firmware_edges --seed-program "$work/edges.csv" "$work/lines.csv"
-  [[ -n ${POLAR_CELL_KEEP:-} ]] && echo "kept $work"
-  [[ -z ${POLAR_CELL_KEEP:-} ]] && rm -rf "$work"
-  work=
+  end_case
 }
 
 if [[ $# -gt 0 ]]; then

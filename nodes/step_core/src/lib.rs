@@ -284,9 +284,50 @@ impl Pulse {
     }
 }
 
-/// Multiply two unsigned fixed-point numbers, the second in Q62, rounding to nearest.
-fn mul_q62(a: u64, b_q62: u64) -> u128 {
-    (a as u128 * b_q62 as u128 + (1u128 << (RAMP_FRACTION_BITS - 1))) >> RAMP_FRACTION_BITS
+/// `a·b` in full. A Cortex-M0+ multiplies 32×32 bits to the low 32 only, so a 64-bit
+/// product there is four 16×16-bit multiplications; the compiler's own (`__aeabi_lmul`, a
+/// call that multiplies 64×64 bits) costs several times that on the step path.
+#[cfg(all(target_arch = "arm", not(target_feature = "v7")))]
+#[inline(always)]
+fn mul_wide_u32(a: u32, b: u32) -> u64 {
+    mul_wide_u32_by_halves(a, b)
+}
+
+#[cfg(not(all(target_arch = "arm", not(target_feature = "v7"))))]
+#[inline(always)]
+fn mul_wide_u32(a: u32, b: u32) -> u64 {
+    a as u64 * b as u64
+}
+
+/// `a·b` from 16-bit halves: what a core without a widening multiply does (exact; tested
+/// against the native product on the host).
+#[cfg_attr(
+    not(all(target_arch = "arm", not(target_feature = "v7"))),
+    allow(dead_code)
+)]
+#[inline(always)]
+fn mul_wide_u32_by_halves(a: u32, b: u32) -> u64 {
+    let (a_lo, a_hi) = (a & 0xFFFF, a >> 16);
+    let (b_lo, b_hi) = (b & 0xFFFF, b >> 16);
+    let middle = (a_lo * b_hi) as u64 + (a_hi * b_lo) as u64;
+    (((a_hi * b_hi) as u64) << 32) + (middle << 16) + (a_lo * b_lo) as u64
+}
+
+/// Multiply two unsigned fixed-point numbers, the second in Q62, rounding to nearest:
+/// `⌊(a·b + 2⁶¹) / 2⁶²⌋`, exact, from four 32×32-bit products (no 128-bit arithmetic, which
+/// an M0+ does through several library calls). The result must fit 64 bits, as every use
+/// here does (`a·b < 2¹²⁶`).
+fn mul_q62(a: u64, b_q62: u64) -> u64 {
+    let (a_lo, a_hi) = (a as u32, (a >> 32) as u32);
+    let (b_lo, b_hi) = (b_q62 as u32, (b_q62 >> 32) as u32);
+    let (middle, middle_carry) = mul_wide_u32(a_lo, b_hi).overflowing_add(mul_wide_u32(a_hi, b_lo));
+    // The product as high·2⁶⁴ + low.
+    let (low, carry) = mul_wide_u32(a_lo, b_lo).overflowing_add(middle << 32);
+    let high =
+        mul_wide_u32(a_hi, b_hi) + (middle >> 32) + ((middle_carry as u64) << 32) + carry as u64;
+    let (low, carry) = low.overflowing_add(1 << (RAMP_FRACTION_BITS - 1));
+    let high = high + carry as u64;
+    (high << (64 - RAMP_FRACTION_BITS)) | (low >> RAMP_FRACTION_BITS)
 }
 
 /// The pulse train of one segment, one dominant step at a time.
@@ -402,7 +443,7 @@ impl PulseTrain {
                 return Err(StepFault::RampDiverged { step: i });
             }
             // g = 1 ± y + 1.5·y²  (y ≤ ½ ⇒ 0.83 < g ≤ 1.875 < 2: fits Q62 in u64).
-            let y2 = mul_q62(y, y) as u64;
+            let y2 = mul_q62(y, y);
             let quadratic = y2 + (y2 >> 1);
             let g = if accelerating {
                 ONE_Q62 - y + quadratic
@@ -410,12 +451,12 @@ impl PulseTrain {
                 ONE_Q62 + y + quadratic
             };
             let period = mul_q62(self.period_q32, g);
-            if period > MAX_PERIOD_Q32 as u128 {
+            if period > MAX_PERIOD_Q32 {
                 return Err(StepFault::PeriodOverflow { step: i });
             }
-            self.period_q32 = period as u64;
+            self.period_q32 = period;
             // y·g² < ½·4 = 2: fits.
-            self.ramp_q62 = mul_q62(mul_q62(y, g) as u64, g) as u64;
+            self.ramp_q62 = mul_q62(mul_q62(y, g), g);
         }
         Ok(Some(pulse))
     }

@@ -421,4 +421,45 @@ proptest! {
             prop_assert!(segment.check().is_ok());
         }
     }
+
+    /// The limb-wise Q62 product is the exact rounded 128-bit one, over the whole range the
+    /// ramp uses (products below 2¹²⁶) and at its edges.
+    #[test]
+    fn mul_q62_is_the_rounded_wide_product(a in 0u64..(1 << 63), b in 0u64..(1 << 63)) {
+        let exact = (a as u128 * b as u128 + (1u128 << 61)) >> 62;
+        prop_assert_eq!(mul_q62(a, b) as u128, exact);
+    }
+
+    /// The 16-bit-halves product an M0+ runs is the native one.
+    #[test]
+    fn wide_product_by_halves_is_exact(a in any::<u32>(), b in any::<u32>()) {
+        prop_assert_eq!(mul_wide_u32_by_halves(a, b), a as u64 * b as u64);
+    }
+}
+
+#[test]
+fn mul_q62_at_the_edges_of_its_range() {
+    let max = (1u64 << 63) - 1;
+    for (a, b) in [
+        (0, 0),
+        (max, max),
+        (max, 1),
+        (1, 1 << 61),
+        (1, (1 << 61) - 1),
+        (u32::MAX as u64, u32::MAX as u64),
+    ] {
+        assert_eq!(
+            mul_q62(a, b) as u128,
+            (a as u128 * b as u128 + (1u128 << 61)) >> 62,
+            "{a} × {b}"
+        );
+    }
+    for (a, b) in [
+        (0, 0),
+        (u32::MAX, u32::MAX),
+        (0xFFFF, 0x1_0000),
+        (0x8000_0000, 2),
+    ] {
+        assert_eq!(mul_wide_u32_by_halves(a, b), a as u64 * b as u64);
+    }
 }

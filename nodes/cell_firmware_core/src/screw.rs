@@ -2,9 +2,9 @@
 //! angle integrated exactly (the speed is piecewise linear, so each piece's trapezoid is its
 //! integral).
 //!
-//! Speeds are evaluated where an output or a report needs them (a control period, a state
-//! message), not per step, so the one integer division of an interpolation stays off the
-//! step path.
+//! Speeds and the angle are evaluated where an output or a report needs them (a control
+//! period, a state message), not per step, so the multiplications and the one integer
+//! division of an interpolation stay off the step path.
 
 use cell_protocol::message::ScrewRamp;
 use heapless::Deque;
@@ -29,7 +29,10 @@ pub struct Screw<const S: usize> {
     from_millirpm: i32,
     to_millirpm: i32,
     pin_open: bool,
-    /// Plan tick up to which the angle is integrated, and twice the integral in millirpm·ticks.
+    /// Plan tick the schedule has been played to.
+    now: u64,
+    /// Plan tick up to which the angle is integrated (at most `now`), and twice the integral
+    /// in millirpm·ticks.
     integrated_to: u64,
     twice_angle: i64,
 }
@@ -49,6 +52,7 @@ impl<const S: usize> Screw<S> {
             from_millirpm: 0,
             to_millirpm: 0,
             pin_open: false,
+            now: 0,
             integrated_to: 0,
             twice_angle: 0,
         }
@@ -81,25 +85,39 @@ impl<const S: usize> Screw<S> {
         (self.from_millirpm as i64 + span * into as i64 / self.ramp_ticks as i64) as i32
     }
 
-    /// Integrate from `integrated_to` to `t` within the ramp in force, splitting at its end.
-    fn integrate_piece(&mut self, t: u64) {
+    /// Twice the integral of the ramp in force from `integrated_to` to `t`, split at the
+    /// ramp's end (each piece is linear, so its trapezoid is exact).
+    fn twice_angle_since_integrated(&self, t: u64) -> i64 {
         let ramp_end = self.start + self.ramp_ticks as u64;
-        while self.integrated_to < t {
-            let a = self.integrated_to;
+        let mut twice = 0i64;
+        let mut a = self.integrated_to;
+        while a < t {
             let b = if a < ramp_end { t.min(ramp_end) } else { t };
-            let twice = (self.ramp_at(a) as i64 + self.ramp_at(b) as i64) * (b - a) as i64;
-            self.twice_angle = self.twice_angle.saturating_add(twice);
-            self.integrated_to = b;
+            twice = twice
+                .saturating_add((self.ramp_at(a) as i64 + self.ramp_at(b) as i64) * (b - a) as i64);
+            a = b;
         }
+        twice
+    }
+
+    /// Fold the ramp in force into the angle up to plan tick `t`.
+    fn integrate_to(&mut self, t: u64) {
+        self.twice_angle = self
+            .twice_angle
+            .saturating_add(self.twice_angle_since_integrated(t));
+        self.integrated_to = self.integrated_to.max(t);
     }
 
     /// Play the schedule up to plan tick `t`: commands starting by then take effect in order.
+    /// Called at every step event, so it only integrates when a command takes effect (the
+    /// angle up to `now` is computed when asked for): a step costs no 64-bit multiplication
+    /// here.
     pub fn advance_to(&mut self, t: u64) {
         while let Some(next) = self.queue.front().copied() {
             if next.start_clock > t {
                 break;
             }
-            self.integrate_piece(next.start_clock);
+            self.integrate_to(next.start_clock);
             self.queue.pop_front();
             self.from_millirpm = self.ramp_at(next.start_clock);
             self.start = next.start_clock;
@@ -107,12 +125,12 @@ impl<const S: usize> Screw<S> {
             self.to_millirpm = next.target_millirpm;
             self.pin_open = next.pin_open;
         }
-        self.integrate_piece(t);
+        self.now = self.now.max(t);
     }
 
     /// Speed at the plan tick last advanced to.
     pub fn millirpm(&self) -> i32 {
-        self.ramp_at(self.integrated_to)
+        self.ramp_at(self.now)
     }
 
     /// The pin as scheduled (a feed hold may still keep it closed).
@@ -122,7 +140,10 @@ impl<const S: usize> Screw<S> {
 
     /// Angle turned so far, thousandths of a revolution (rpm × minutes = revolutions).
     pub fn angle_millirev(&self, timer_hz: u32) -> i32 {
-        (self.twice_angle / (2 * 60 * timer_hz as i64)) as i32
+        let twice = self
+            .twice_angle
+            .saturating_add(self.twice_angle_since_integrated(self.now));
+        (twice / (2 * 60 * timer_hz as i64)) as i32
     }
 
     /// Commands queued and not yet in force.
@@ -132,8 +153,9 @@ impl<const S: usize> Screw<S> {
 
     /// Stop now: speed 0, pin closed, nothing queued; the angle turned stays.
     pub fn stop(&mut self) {
+        self.integrate_to(self.now);
         self.queue.clear();
-        self.start = self.integrated_to;
+        self.start = self.now;
         self.ramp_ticks = 0;
         self.from_millirpm = 0;
         self.to_millirpm = 0;
@@ -166,6 +188,8 @@ mod tests {
         assert_eq!((screw.millirpm(), screw.pin_open()), (0, false));
         screw.advance_to(1_500_000);
         assert_eq!((screw.millirpm(), screw.pin_open()), (30_000, true));
+        // Mid-ramp, between commands: ½·0.5 s·0.5 rev/s.
+        assert_eq!(screw.angle_millirev(1_000_000), 125);
         screw.advance_to(5_000_000);
         assert_eq!((screw.millirpm(), screw.pin_open()), (0, false));
         // ½·1 s·1 rev/s + 2 s·1 rev/s = 2.5 revolutions.

@@ -209,6 +209,34 @@ fn a_silent_host_faults_after_its_timeout() {
 }
 
 #[test]
+fn a_silent_host_stops_the_pulses_at_its_deadline_not_after() {
+    // Pulses every 10 ticks from 10; the host is silent from 0 with a 99-tick timeout, so
+    // tick 100 is the first silent too long: the pulses at 10..=90 go out, not the one due
+    // at the very tick of the fault.
+    let mut m = machine();
+    m.handle(
+        &HostMessage::Configure {
+            host_timeout_ticks: 99,
+            state_period_ticks: 0,
+        },
+        0,
+    );
+    queue(&mut m, cruise(0, 50, 10, SEGMENT_ENDS_AT_REST, 4));
+    let edges = run(&mut m, 1000);
+    let ticks: Vec<u64> = edges.iter().map(|e| e.clock).collect();
+    assert_eq!(ticks, (1..=9).map(|i| 10 * i).collect::<Vec<_>>());
+    assert_eq!(m.positions()[0], 9);
+    assert_eq!(
+        m.take_fault_report(),
+        Some(McuMessage::Fault {
+            code: FaultCode::HostSilent,
+            clock: 100,
+            tag: 0
+        })
+    );
+}
+
+#[test]
 fn an_emergency_stop_stops_at_once_and_holds_until_reset() {
     let mut m = machine();
     queue(&mut m, cruise(0, 100, 100, 0, 1));

@@ -29,10 +29,14 @@
 //   (`time_ns,line`).
 // * --switch-at S: the start switch (GP15, pulled up) is held to ground for 100 ms from
 //   emulated second S. --stop-at S: stop (and report) at emulated second S.
+// * --replay-uart FILE (instead of --socket): feed UART0 the bytes of an earlier run's
+//   --uart-log at their recorded emulated times, so that two builds of the firmware can be
+//   measured on exactly the same input (run it with a large --speed and --stop-at).
 //
 // First line of stdout: `socket PATH` once listening. On SIGTERM/SIGINT: one JSON line of
-// figures (instructions, emulated and wall seconds, edges, the firmware's own counters read
-// from its RAM by symbol).
+// figures (instructions, emulated and wall seconds, edges, the core's load — the share of
+// cycles it executed rather than slept in WFI/WFE, over the run and over its busiest 100 ms —
+// and the firmware's own counters read from its RAM by symbol).
 
 import fs from 'node:fs';
 import net from 'node:net';
@@ -47,7 +51,7 @@ function parseArgs(argv) {
     const key = argv[i].replace(/^--/, '').replace(/-([a-z])/g, (_, c) => c.toUpperCase());
     args[key] = argv[i + 1];
   }
-  if (!args.elf || !args.socket) {
+  if (!args.elf || (!args.socket && !args.replayUart)) {
     console.error('usage: node harness.mjs --elf FILE --socket PATH [--speed K] [--edges FILE] [--pins 0-15]');
     process.exit(64);
   }
@@ -176,7 +180,13 @@ mcu.uart[0].onByte = (byte) => {
   bytesOut++;
   if (client !== null) client.write(Buffer.from([byte]));
 };
-try { fs.unlinkSync(args.socket); } catch {}
+// A recorded input instead of a live host: [emulated ns, byte] in order.
+const replay = args.replayUart
+  ? fs.readFileSync(args.replayUart, 'utf8').split('\n').filter((l) => l.length > 0)
+    .map((l) => l.split(',').map(Number))
+  : [];
+let replayAt = 0;
+if (args.socket) try { fs.unlinkSync(args.socket); } catch {}
 const server = net.createServer((socket) => {
   if (client !== null) client.destroy();
   client = socket;
@@ -191,7 +201,7 @@ const server = net.createServer((socket) => {
   socket.on('close', () => { if (client === socket) client = null; });
   socket.on('error', () => {});
 });
-server.listen(args.socket, () => console.log(`socket ${args.socket}`));
+if (args.socket) server.listen(args.socket, () => console.log(`socket ${args.socket}`));
 
 
 // USB host: enumerate the firmware's composite device and open its CDC-ACM ports.
@@ -353,12 +363,19 @@ function writeProfile() {
   const rows = [...perFunction].sort((a, b) => b[1] - a[1]).slice(0, 40)
     .map(([name, n]) => `${(100 * n / total).toFixed(2).padStart(6)} %  ${name}`);
   fs.writeFileSync(args.profile, rows.join('\n') + '\n');
+  // Every sampled address too, for a per-line view (`llvm-addr2line -i -e ELF`).
+  const pcs = [...profile].sort((a, b) => b[1] - a[1])
+    .map(([pc, n]) => `0x${pc.toString(16)} ${n}`);
+  fs.writeFileSync(`${args.profile}.pcs`, pcs.join('\n') + '\n');
 }
 
 // Paced execution.
 const CYCLE_NS = 1e9 / 125e6;
 const wallStart = process.hrtime.bigint();
 let instructions = 0;
+// Load: cycles the core executed (not asleep in WFI), in all and over the busiest 100 ms.
+const LOAD_WINDOW_NS = 100e6;
+let busyCycles = 0, windowBusyCycles = 0, windowStartNs = 0, peakLoad = 0;
 let maxLagNs = 0;
 let pendingAt = 0;
 function run() {
@@ -382,15 +399,28 @@ function run() {
         bytesIn++;
         nextByteNs = clock.nanos + BYTE_NS;
       }
+      if (replayAt < replay.length && clock.nanos >= replay[replayAt][0] && !mcu.uart[0].rxFIFO.full) {
+        mcu.uart[0].feedByte(replay[replayAt++][1]);
+        bytesIn++;
+      }
       if (mcu.core.waiting) {
         // Asleep (WFI): on to the next timer alarm, the next byte, or the pacing target.
         let until = targetNs;
+        if (replayAt < replay.length) until = Math.min(until, Math.max(replay[replayAt][0], clock.nanos + CYCLE_NS));
         if (pendingAt < pending.length) until = Math.min(until, Math.max(nextByteNs, clock.nanos + CYCLE_NS));
         clock.tick(Math.max(CYCLE_NS, Math.min(clock.nanosToNextAlarm, until - clock.nanos)));
       } else {
         if (profile !== null && (instructions & 63) === 0) profile.set(mcu.core.PC, (profile.get(mcu.core.PC) ?? 0) + 1);
-        clock.tick(mcu.core.executeInstruction() * CYCLE_NS);
+        const cycles = mcu.core.executeInstruction();
+        clock.tick(cycles * CYCLE_NS);
         instructions++;
+        busyCycles += cycles;
+        windowBusyCycles += cycles;
+      }
+      if (clock.nanos - windowStartNs >= LOAD_WINDOW_NS) {
+        peakLoad = Math.max(peakLoad, windowBusyCycles * CYCLE_NS / (clock.nanos - windowStartNs));
+        windowStartNs = clock.nanos;
+        windowBusyCycles = 0;
       }
     }
   }
@@ -417,6 +447,8 @@ function finish() {
     wall_s: wallS,
     emulated_per_wall: emulatedS / wallS,
     instructions_per_wall_s: instructions / wallS,
+    cpu_load: busyCycles * CYCLE_NS / clock.nanos,
+    cpu_load_peak_100ms: peakLoad,
     max_lag_ms: maxLagNs * 1e-6,
     pin_edges: edgeCount,
     uart_bytes_in: bytesIn,
@@ -426,7 +458,8 @@ function finish() {
     main_max_cycles: readWord('MAIN_MAX_CYCLES'),
     edges_output: readWord('EDGES_OUTPUT'),
     rx_overruns: readWord('RX_OVERRUNS'),
-    late_outputs: readWord('LATE_OUTPUTS'),
+    late_step_outputs: readWord('LATE_STEP_OUTPUTS'),
+    late_screw_outputs: readWord('LATE_SCREW_OUTPUTS'),
     usb_configured: usbConfigured,
     usb_link_bytes_in: usbBytesIn,
     usb_link_bytes_out: usbBytesOut,

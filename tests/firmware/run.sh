@@ -16,7 +16,8 @@
 #   4. seed 001's bench rig (28BYJ-48 coils, launch-scripts/params/bench_rig.yaml) printing
 #      tests/firmware/bench_rig.gcode;
 #   5. seed 001's own program from the bench rig's start switch, with its position lines;
-#   6. the cell's top step rates (tests/firmware/top_speed.gcode).
+#   6. the cell's top step rates (tests/firmware/top_speed.gcode);
+#   7. (not by default, a measurement) 1.5 times those, the cell's URDF limits raised.
 #
 # --speed: emulated seconds per wall second (default 0.5, so that a loaded machine's
 # emulator keeps up; the machine's timeline is the same at any speed). --profile writes the
@@ -91,11 +92,14 @@ end_case() {
 #   `cell`; LINK: `uart` (UART0, the default) or `usb` (the protocol over USB CDC).
 run_print() {
   local title=$1 gcode=$2 moves=$3 corrupt=$4 stop_after=$5 rig=${6:-cell} link=${7:-uart}
+  local params=${8:-}
   local image=polar_cell_firmware rig_params=() rig_check=()
   if [[ $rig == bench-rig ]]; then
     image=polar_cell_firmware-bench-rig
     rig_params=(--ros-args --params-file launch-scripts/params/bench_rig.yaml)
     rig_check=(--bench-rig)
+  elif [[ -n $params ]]; then
+    rig_params=(--ros-args --params-file "$params")
   fi
   echo "== $title"
   work=$(mktemp -d /tmp/polar-cell-firmware.XXXXXX)
@@ -157,7 +161,7 @@ if [[ $# -gt 0 ]]; then
   run_print "$1, first ${2:-300} moves" "$1" "${2:-300}" 0 0
   exit
 fi
-cases=${POLAR_CELL_FIRMWARE_CASES:-1 2 3 4 5}
+cases=${POLAR_CELL_FIRMWARE_CASES:-1 2 3 4 5 6}
 [[ " $cases " == *" 1 "* ]] &&
   run_print "polartest.gcode, first 300 moves, every 400th byte to the MCU damaged" \
     "$fixtures/polartest.gcode" 300 400 0
@@ -174,4 +178,16 @@ cases=${POLAR_CELL_FIRMWARE_CASES:-1 2 3 4 5}
 [[ " $cases " == *" 6 "* ]] &&
   run_print "top speed: the bed at 6 rad/s (30.6k steps/s), the arm at 0.2 m/s (16k steps/s)" \
     tests/firmware/top_speed.gcode 1000 0 0
+# Beyond the cell: its URDF's bed and arm limits raised 1.5 times (9 rad/s, 0.3 m/s) and
+# top_speed.gcode's feeds with them, to find the rates the firmware sustains.
+if [[ " $cases " == *" 7 "* ]]; then
+  scaled=$(mktemp -d /tmp/polar-cell-firmware-scaled.XXXXXX)
+  sed 's/velocity="6.0"/velocity="9.0"/; s/upper="0.15" effort="100.0" velocity="0.2"/upper="0.15" effort="100.0" velocity="0.3"/' \
+    urdf/polar_cell.urdf > "$scaled/fast.urdf"
+  printf 'polar_planner:\n  ros__parameters:\n    urdf_file: %s\n' "$scaled/fast.urdf" > "$scaled/fast.yaml"
+  sed 's/F12000/F18000/g; s/F6000/F9000/g' tests/firmware/top_speed.gcode > "$scaled/fast.gcode"
+  run_print "1.5 times the cell's limits: the bed at 9 rad/s (46k steps/s), the arm at 0.3 m/s (24k)" \
+    "$scaled/fast.gcode" 1000 0 0 cell uart "$scaled/fast.yaml"
+  rm -rf "$scaled"
+fi
 echo "firmware in the loop: every check held"

@@ -130,7 +130,7 @@ mod tests {
             topic("/b", "sensor_msgs/msg/JointState", b),
         ];
         let yaml = metadata_yaml("bag_0.mcap", &topics, "jazzy");
-        let v: serde_yaml::Value = serde_yaml::from_str(&yaml).unwrap();
+        let v: yaml_serde::Value = yaml_serde::from_str(&yaml).unwrap();
         let info = &v["rosbag2_bagfile_information"];
         assert_eq!(info["message_count"].as_u64(), Some(5));
         assert_eq!(info["duration"]["nanoseconds"].as_u64(), Some(300));

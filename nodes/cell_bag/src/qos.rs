@@ -42,7 +42,7 @@ impl QosRecord {
 
     /// Read back the first profile of an `offered_qos_profiles` YAML list.
     pub fn from_yaml(text: &str) -> Option<QosRecord> {
-        let list: Vec<serde_yaml::Value> = serde_yaml::from_str(text).ok()?;
+        let list: Vec<yaml_serde::Value> = yaml_serde::from_str(text).ok()?;
         let first = list.first()?;
         let int = |key: &str| first.get(key).and_then(|v| v.as_u64());
         Some(QosRecord {
@@ -71,7 +71,7 @@ mod tests {
             depth: 1,
         };
         let yaml = q.to_yaml();
-        let parsed: serde_yaml::Value = serde_yaml::from_str(&yaml).unwrap();
+        let parsed: yaml_serde::Value = yaml_serde::from_str(&yaml).unwrap();
         assert_eq!(parsed[0]["reliability"].as_u64(), Some(1));
         assert_eq!(parsed[0]["durability"].as_u64(), Some(1));
         assert_eq!(parsed[0]["history"].as_u64(), Some(1));

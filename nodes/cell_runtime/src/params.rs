@@ -136,8 +136,8 @@ impl Params {
             .collect();
         let base_name = fully_qualified_name.rsplit('/').next().unwrap_or_default();
         for (file, text) in files {
-            let doc: serde_yaml::Value =
-                serde_yaml::from_str(text).map_err(|e| ParamError::BadYaml {
+            let doc: yaml_serde::Value =
+                yaml_serde::from_str(text).map_err(|e| ParamError::BadYaml {
                     source_name: file.clone(),
                     message: e.to_string(),
                 })?;
@@ -180,8 +180,8 @@ impl Params {
             if o.node.as_deref().is_some_and(|n| n != base_name) {
                 continue;
             }
-            let value: serde_yaml::Value = serde_yaml::from_str(&o.value_yaml)
-                .unwrap_or_else(|_| serde_yaml::Value::String(o.value_yaml.clone()));
+            let value: yaml_serde::Value = yaml_serde::from_str(&o.value_yaml)
+                .unwrap_or_else(|_| yaml_serde::Value::String(o.value_yaml.clone()));
             set(
                 specs,
                 &mut values,
@@ -251,7 +251,7 @@ fn selector_matches(selector: &str, fqn: &str) -> bool {
         || (!selector.starts_with('/') && fqn == format!("/{selector}"))
 }
 
-fn flatten(prefix: &str, value: &serde_yaml::Value, out: &mut Vec<(String, serde_yaml::Value)>) {
+fn flatten(prefix: &str, value: &yaml_serde::Value, out: &mut Vec<(String, yaml_serde::Value)>) {
     match value.as_mapping() {
         Some(map) => {
             for (k, v) in map {
@@ -276,7 +276,7 @@ fn set(
     values: &mut BTreeMap<String, ParamValue>,
     node: &str,
     name: &str,
-    value: &serde_yaml::Value,
+    value: &yaml_serde::Value,
     source_name: &str,
 ) -> Result<(), ParamError> {
     // ROS tools set these on every node; they are not ours to reject.
@@ -296,7 +296,7 @@ fn set(
         name: name.to_string(),
         expected: spec.default.type_name(),
         given: yaml_type(value),
-        value: serde_yaml::to_string(value)
+        value: yaml_serde::to_string(value)
             .unwrap_or_default()
             .trim()
             .to_string(),
@@ -327,21 +327,21 @@ fn set(
     Ok(())
 }
 
-fn yaml_type(v: &serde_yaml::Value) -> &'static str {
+fn yaml_type(v: &yaml_serde::Value) -> &'static str {
     match v {
-        serde_yaml::Value::Null => "null",
-        serde_yaml::Value::Bool(_) => "bool",
-        serde_yaml::Value::Number(n) if n.is_f64() => "double",
-        serde_yaml::Value::Number(_) => "integer",
-        serde_yaml::Value::String(_) => "string",
-        serde_yaml::Value::Sequence(_) => "array",
-        serde_yaml::Value::Mapping(_) => "map",
-        serde_yaml::Value::Tagged(_) => "tagged value",
+        yaml_serde::Value::Null => "null",
+        yaml_serde::Value::Bool(_) => "bool",
+        yaml_serde::Value::Number(n) if n.is_f64() => "double",
+        yaml_serde::Value::Number(_) => "integer",
+        yaml_serde::Value::String(_) => "string",
+        yaml_serde::Value::Sequence(_) => "array",
+        yaml_serde::Value::Mapping(_) => "map",
+        yaml_serde::Value::Tagged(_) => "tagged value",
     }
 }
 
-fn convert(like: &ParamValue, v: &serde_yaml::Value) -> Option<ParamValue> {
-    use serde_yaml::Value as Y;
+fn convert(like: &ParamValue, v: &yaml_serde::Value) -> Option<ParamValue> {
+    use yaml_serde::Value as Y;
     let double = |v: &Y| match v {
         Y::Number(n) => n.as_f64(),
         _ => None,

@@ -6,7 +6,7 @@ use std::path::Path;
 use std::process::Command;
 
 use cell_bag::read_bag;
-use polar_cell_msgs::{cdr, GcodeMove};
+use polar_cell_msgs::{cdr, GcodeMove, Log};
 
 /// `polar-cell print GCODE --bag BAG --no-progress EXTRA…` on DDS domain `domain` (tests run
 /// in parallel: each uses its own domain so their nodes never meet): success and stderr.
@@ -442,4 +442,49 @@ fn a_print_on_the_mcu_emulator_executes_every_step() {
         assert_eq!(reported, steps, "joint {k}");
     }
     std::fs::remove_file(&bag).ok();
+}
+
+/// `/rosout` as rclcpp writes it: each node's logger name with its namespace in dots, and
+/// the file, line and function of the log call in that node's code — not the runtime's one
+/// logging function (every message used to say `dds.rs:321 <unknown_func>`).
+#[test]
+fn rosout_names_the_namespaced_logger_and_the_calling_code() {
+    let fixture =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/polartest.gcode");
+    let dir = std::env::temp_dir().join(format!("polar-cell-rosout-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let bag = dir.join("rosout.mcap");
+    print(45, &fixture, &bag, &["--ros-args", "-r", "__ns:=/bar"]);
+    let bytes = std::fs::read(&bag).unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+    let contents = read_bag(&bytes).unwrap();
+    let logs: Vec<Log> = contents
+        .messages()
+        .unwrap()
+        .map(|m| m.unwrap())
+        .filter(|m| m.topic == "/rosout")
+        .map(|m| cdr::decode::<Log>(&m.data).unwrap())
+        .collect();
+    let from = |name: &str| logs.iter().find(|l| l.name == name);
+    let streamer = from("bar.gcode_streamer").expect("the streamer's log, in namespace bar");
+    assert_eq!(streamer.file, "nodes/gcode_streamer/src/node.rs");
+    assert_eq!(streamer.function, "gcode_streamer::node::stream");
+    let planner = from("bar.polar_planner").expect("the planner's log");
+    assert_eq!(planner.file, "nodes/polar_planner/src/node.rs");
+    assert!(planner.function.starts_with("polar_planner::node::"));
+    for log in &logs {
+        assert!(log.name.starts_with("bar."), "{log:?}");
+        assert!(log.line > 0 && log.file.ends_with("/node.rs"), "{log:?}");
+        assert!(!log.function.contains("unknown"), "{log:?}");
+        // The line holds the call.
+        let source =
+            std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(&log.file)).unwrap();
+        let line = source.lines().nth(log.line as usize - 1).unwrap();
+        assert!(
+            line.contains("cell_log!"),
+            "{}:{} is `{line}`",
+            log.file,
+            log.line
+        );
+    }
 }

@@ -372,9 +372,12 @@ impl Recorder {
             )?);
         }
         drop(tx);
-        node.log(
+        cell_runtime::cell_log!(
+            node,
             LogLevel::Info,
-            &format!("recording {} topics to {}", topics.len(), output.display()),
+            "recording {} topics to {}",
+            topics.len(),
+            output.display()
         );
         let directory_path = directory.then(|| output.clone());
         let written = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));

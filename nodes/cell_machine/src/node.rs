@@ -297,12 +297,11 @@ pub async fn run<M: Machine>(
             data: options.urdf.clone(),
         })
         .map_err(|e| anyhow!("/robot_description: {e:?}"))?;
-    node.log(
+    cell_runtime::cell_log!(
+        node,
         LogLevel::Info,
-        &format!(
-            "executing /polar/steps and /screw/command at {speed}× machine pace, horizon {} s",
-            options.horizon_s
-        ),
+        "executing /polar/steps and /screw/command at {speed}× machine pace, horizon {} s",
+        options.horizon_s
     );
 
     let sample_ns = (1e9 / options.rate_hz) as i64;
@@ -361,13 +360,17 @@ pub async fn run<M: Machine>(
             let (success, message) = apply(executor, command);
             cancelled = next_cancelled(cancelled, command, success);
             match caller {
-                None => node.log(LogLevel::Info, &message),
+                None => cell_runtime::cell_log!(node, LogLevel::Info, "{}", message),
                 Some((index, id)) => {
                     let service = SERVICES[index].0;
-                    node.log(LogLevel::Info, &format!("{service}: {message}"));
+                    cell_runtime::cell_log!(node, LogLevel::Info, "{service}: {message}");
                     let reply = TriggerResponse { success, message };
                     if let Err(e) = servers[index].0.send_response(id, Wire(reply)) {
-                        node.log(LogLevel::Warn, &format!("{service}: reply lost: {e:?}"));
+                        cell_runtime::cell_log!(
+                            node,
+                            LogLevel::Warn,
+                            "{service}: reply lost: {e:?}"
+                        );
                     }
                 }
             }
@@ -553,9 +556,10 @@ pub async fn run<M: Machine>(
             status.send_replace(next);
         }
         if done && exit_when_done {
-            node.log(
+            cell_runtime::cell_log!(
+                node,
                 LogLevel::Info,
-                &format!("plan executed: {completed} segments, {executed_s:.3} s of machine time"),
+                "plan executed: {completed} segments, {executed_s:.3} s of machine time"
             );
             return Ok(());
         }

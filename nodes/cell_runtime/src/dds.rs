@@ -361,10 +361,68 @@ impl CellNode {
         }
     }
 
-    /// Log to `/rosout` (and through `tracing` to stderr).
-    pub fn log(&self, level: LogLevel, message: &str) {
-        ros2_client::rosout!(self.node, level, "{}", message);
+    /// Log to `/rosout` (and through `tracing` to stderr) as rclcpp does: under the node's
+    /// logger name (`bar.gcode_streamer`), with the source of the call. Use [`crate::cell_log!`],
+    /// which fills `site` in where it is written.
+    pub fn log_at(&self, level: LogLevel, message: &str, site: LogSite) {
+        ros2_client::rosout::RosoutRaw::rosout_raw(
+            &self.node,
+            ros2_client::builtin_interfaces::Time::now(),
+            level,
+            &logger_name(&self.fully_qualified_name()),
+            message,
+            site.file,
+            site.function,
+            site.line,
+        );
     }
+}
+
+/// Where a log call is written: what `/rosout`'s `file`, `line` and `function` carry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LogSite {
+    pub file: &'static str,
+    pub line: u32,
+    pub function: &'static str,
+}
+
+/// rclcpp's logger name for a node: its fully qualified name without the leading slash, in
+/// dots (`/bar/gcode_streamer` → `bar.gcode_streamer`).
+pub fn logger_name(fully_qualified_name: &str) -> String {
+    fully_qualified_name
+        .trim_start_matches('/')
+        .replace('/', ".")
+}
+
+/// The function a [`crate::cell_log!`] is written in, from the type name of the marker
+/// function it declares there (`crate::module::function::{{closure}}::marker`): the path up
+/// to the enclosing named function. Rust has no `__func__`; this is its usual stand-in.
+pub fn function_of(marker_type_name: &'static str) -> &'static str {
+    let mut path = marker_type_name
+        .rsplit_once("::")
+        .map_or(marker_type_name, |(head, _)| head);
+    while let Some(head) = path.strip_suffix("::{{closure}}") {
+        path = head;
+    }
+    path
+}
+
+/// Log to `/rosout` from a node with the caller's file, line and function, as rclcpp's
+/// `RCLCPP_INFO(logger, ...)` does: `cell_log!(node, LogLevel::Info, "planned {n} moves")`.
+#[macro_export]
+macro_rules! cell_log {
+    ($node:expr, $level:expr, $($arg:tt)+) => {{
+        fn cell_log_site() {}
+        $node.log_at(
+            $level,
+            &::std::format!($($arg)+),
+            $crate::dds::LogSite {
+                file: ::std::file!(),
+                line: ::std::line!(),
+                function: $crate::dds::function_of(::std::any::type_name_of_val(&cell_log_site)),
+            },
+        )
+    }};
 }
 
 /// A message or service payload as ros2-client carries it (its `Message` marker trait, which
@@ -509,4 +567,48 @@ pub fn now_ns() -> u64 {
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_nanos() as u64)
         .unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What `cell_log!` puts in `function`, taken where the macro would be written.
+    macro_rules! site_function {
+        () => {{
+            fn cell_log_site() {}
+            function_of(std::any::type_name_of_val(&cell_log_site))
+        }};
+    }
+
+    fn planning_step() -> &'static str {
+        site_function!()
+    }
+
+    #[test]
+    fn the_function_is_the_enclosing_named_one_even_inside_closures() {
+        assert_eq!(planning_step(), "cell_runtime::dds::tests::planning_step");
+        let in_closure = || site_function!();
+        assert_eq!(
+            in_closure(),
+            "cell_runtime::dds::tests::the_function_is_the_enclosing_named_one_even_inside_closures"
+        );
+        let in_async = async { site_function!() };
+        let waker = std::task::Waker::noop();
+        let mut cx = std::task::Context::from_waker(waker);
+        let mut in_async = std::pin::pin!(in_async);
+        assert_eq!(
+            std::future::Future::poll(in_async.as_mut(), &mut cx),
+            std::task::Poll::Ready(
+                "cell_runtime::dds::tests::the_function_is_the_enclosing_named_one_even_inside_closures"
+            )
+        );
+    }
+
+    #[test]
+    fn logger_names_are_rclcpp_s() {
+        assert_eq!(logger_name("/gcode_streamer"), "gcode_streamer");
+        assert_eq!(logger_name("/bar/gcode_streamer"), "bar.gcode_streamer");
+        assert_eq!(logger_name("/a/b/planner"), "a.b.planner");
+    }
 }

@@ -185,9 +185,10 @@ pub async fn stream(
     let mut consumers_announced = consumers.is_empty();
     // A consumer that (re)announces itself needs its resume point from /gcode/progress now.
     let mut progress_due = false;
-    node.log(
+    cell_runtime::cell_log!(
+        node,
         LogLevel::Info,
-        &format!("streaming {file_label} to {consumers:?} (window {window_size})"),
+        "streaming {file_label} to {consumers:?} (window {window_size})"
     );
     loop {
         let now = start.elapsed();
@@ -206,7 +207,7 @@ pub async fn stream(
                         Event::Move(m) => window.push(m),
                         Event::Warning(w) => {
                             progress.warnings += 1;
-                            node.log(LogLevel::Warn, &format!("{file_label}: {w}"));
+                            cell_runtime::cell_log!(node, LogLevel::Warn, "{file_label}: {w}");
                         }
                     }
                 }
@@ -235,7 +236,7 @@ pub async fn stream(
             }
             if !consumers_announced {
                 consumers_announced = true;
-                node.log(LogLevel::Info, "every consumer announced itself");
+                cell_runtime::cell_log!(node, LogLevel::Info, "every consumer announced itself");
             }
         }
         progress.moves_published = progress

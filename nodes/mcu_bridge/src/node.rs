@@ -308,7 +308,7 @@ pub async fn run(
             Err(e) => return Err(e),
         }
     };
-    node.log(LogLevel::Info, &format!("MCU on {name}"));
+    cell_runtime::cell_log!(node, LogLevel::Info, "MCU on {name}");
     let session = McuSession::new(session_options(node, &params), session_nonce());
     let link = SerialLink::new(device, name);
     let mut machine = McuMachine::new(session, link, params.queue_capacity, params.horizon_s);

@@ -147,12 +147,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let states = node.publisher::<JointState>("/mechanism/joint_states", &reliable_qos(100))?;
     let poses = node.subscription::<PoseStamped>("/mechanism/tool_pose", &reliable_qos(100))?;
     let mut fk = ForwardSolver::default();
-    node.log(
+    cell_runtime::cell_log!(
+        node,
         LogLevel::Info,
-        &format!(
-            "3-RPS + XY table: R_in {} mm, R_out {} mm, tool {} mm",
-            geom.base_radius_mm, geom.platform_radius_mm, geom.tool_length_mm
-        ),
+        "3-RPS + XY table: R_in {} mm, R_out {} mm, tool {} mm",
+        geom.base_radius_mm,
+        geom.platform_radius_mm,
+        geom.tool_length_mm
     );
     if node.params.bool("publish_home") {
         // Home: platform flat at the seed's Z = 393 mm, table centred under the tool.
@@ -169,9 +170,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 )
                 .await?
             }
-            Err(err) => node.log(
+            Err(err) => cell_runtime::cell_log!(
+                node,
                 LogLevel::Warn,
-                &format!("home pose (Z 393 mm, flat) not reachable with this URDF: {err}"),
+                "home pose (Z 393 mm, flat) not reachable with this URDF: {err}"
             ),
         }
     }
@@ -196,7 +198,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     "tool pose tip ({:.6}, {:.6}, {:.6}) m unreachable: {err}",
                     msg.pose.position.x, msg.pose.position.y, msg.pose.position.z
                 );
-                node.log(LogLevel::Warn, &text);
+                cell_runtime::cell_log!(node, LogLevel::Warn, "{}", text);
                 node.diagnose(2, &text, &[]);
             }
         }

@@ -210,7 +210,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let mut last_move = Instant::now();
     let mut tick = tokio::time::interval(Duration::from_millis(10));
     let (mut moves_planned, mut plan_time) = (0u64, 0.0f64);
-    node.log(LogLevel::Info, "planning /gcode/moves");
+    cell_runtime::cell_log!(node, LogLevel::Info, "planning /gcode/moves");
     loop {
         tokio::select! {
             taken = moves_sub.async_take() => {

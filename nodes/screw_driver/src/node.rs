@@ -212,9 +212,11 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     // Times are kept relative to the first trajectory's stamp (integer ns).
     let mut base_ns: Option<i64> = None;
     let mut tick = tokio::time::interval(Duration::from_millis(10));
-    node.log(
+    cell_runtime::cell_log!(
+        node,
         LogLevel::Info,
-        &format!("screw commands, model {}", model_name(&options)),
+        "screw commands, model {}",
+        model_name(&options)
     );
     let stall_flush = Duration::from_secs_f64(params.f64("stall_flush_s"));
     let mut stream_finished = false;

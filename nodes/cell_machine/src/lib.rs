@@ -93,13 +93,6 @@ pub trait Machine {
     fn is_drained(&self) -> bool;
     /// Plan time queued ahead of execution (s).
     fn plan_ahead_s(&self) -> f64;
-    /// Plan time this machine must be able to have in hand (s): the producers' horizon is
-    /// raised to it. A microcontroller that holds when its plan runs short resumes only
-    /// with twice a hold's stopping distance in hand; a horizon shorter than that would
-    /// hold it for good (the plan clock stands in a hold, so the credit never grows).
-    fn min_horizon_s(&self) -> f64 {
-        0.0
-    }
     /// Segments completed, and the move and G-code line of the last one.
     fn completed(&self) -> (u64, Option<(u64, u32)>);
     /// Times the plan ran short (the machine held on the path for lack of plan).

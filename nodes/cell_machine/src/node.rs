@@ -481,11 +481,10 @@ pub async fn run<M: Machine>(
             || (state.plan_time_s - last_credit.1).abs() >= options.horizon_s / 20.0;
         if credit_due {
             last_credit = (now, state.plan_time_s);
-            let horizon_s = options.horizon_s.max(executor.min_horizon_s());
             let (executed_until, accept_until) = match executor.epoch_ns() {
                 Some(epoch) => (
                     Time::after(epoch, state.plan_time_s),
-                    Time::after(epoch, state.plan_time_s + horizon_s),
+                    Time::after(epoch, state.plan_time_s + options.horizon_s),
                 ),
                 None => (Time::default(), Time::default()),
             };
@@ -497,7 +496,7 @@ pub async fn run<M: Machine>(
                 executor: node.fully_qualified_name(),
                 executed_until,
                 accept_until,
-                horizon_s,
+                horizon_s: options.horizon_s,
                 closed: cancelled || state.state == PlayerState::Stopped,
             });
         }

@@ -48,12 +48,6 @@ pub enum McuMachineError<E: std::fmt::Display + std::fmt::Debug> {
 
 /// Reports kept: a second of them at the default 10 ms period.
 const REPORTS_KEPT: usize = 100;
-/// Plan time asked for beyond what resuming from an underrun needs: the credit moves on in
-/// steps (a twentieth of the horizon, or every 100 ms), so exactly the threshold might
-/// never quite be in hand.
-const HORIZON_MARGIN_S: f64 = 0.25;
-/// Added to a hold's stopping distance: the age of the MCU's state and the loop's period.
-const STOPPING_MARGIN_S: f64 = 0.1;
 
 /// One state report of the MCU.
 #[derive(Clone, Copy, Debug)]
@@ -239,7 +233,7 @@ impl<L: McuLink> McuMachine<L> {
                 }
             }
             Some(HoldReason::Underrun)
-                if left_s >= self.resume_in_hand_s()
+                if left_s >= (self.horizon_s / 2.0).max(2.0 * self.stopping_s())
                     || at_rest
                     || (self.input_finished && all_sent) =>
             {
@@ -251,28 +245,10 @@ impl<L: McuLink> McuMachine<L> {
         Ok(())
     }
 
-    /// Plan time sent ahead that ends an underrun's hold: half the horizon, and at least
-    /// twice a hold's stopping distance (so that the next hold is not due at once).
-    fn resume_in_hand_s(&self) -> f64 {
-        (self.horizon_s / 2.0).max(2.0 * self.stopping_s())
-    }
-
-    /// How far ahead plan is asked for and sent: the node's horizon, raised where a hold
-    /// needs more (seed 001's bench rig: 500 steps/s at 1,000 steps/s², its accelerating
-    /// segments leave a hold a tenth of that, 2.6 s to stop — past the 2 s horizon, and a
-    /// hold for lack of plan waited for 5.2 s of plan that the credit never allowed).
-    fn effective_horizon_s(&self) -> f64 {
-        // Sized by the plan in hand, not only what the MCU holds, so that more is asked for
-        // before a steep segment plays rather than after it held the machine.
-        let stopping_s = 0.5 / self.session.sigma_rate_for_plan_per_s() + STOPPING_MARGIN_S;
-        let resume_s = (self.horizon_s / 2.0).max(2.0 * stopping_s);
-        self.horizon_s.max(resume_s + HORIZON_MARGIN_S)
-    }
-
     /// Plan time a hold from full feed needs to come to rest (1/(2ρ)), with a margin for
     /// the age of the MCU's state and the loop's period.
     fn stopping_s(&self) -> f64 {
-        0.5 / self.session.sigma_rate_per_s() + STOPPING_MARGIN_S
+        0.5 / self.session.sigma_rate_per_s() + 0.1
     }
 
     /// A cancel's hold has come to rest (or the MCU is idle): drop the plan.
@@ -331,7 +307,6 @@ impl<L: McuLink> McuMachine<L> {
             });
         }
         self.track_completion();
-        self.session.set_horizon_s(self.effective_horizon_s());
         self.session.tick(self.now_us())?;
         self.finish_cancel()?;
         if self.session_error().is_none() {
@@ -475,10 +450,6 @@ impl<L: McuLink> Machine for McuMachine<L> {
 
     fn is_drained(&self) -> bool {
         self.session.is_drained() && self.hold.is_none()
-    }
-
-    fn min_horizon_s(&self) -> f64 {
-        self.effective_horizon_s()
     }
 
     fn plan_ahead_s(&self) -> f64 {

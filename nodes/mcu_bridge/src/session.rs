@@ -230,12 +230,6 @@ impl McuSession {
         self.configured && self.clock.fit().is_some() && self.state.is_some()
     }
 
-    /// Send segments and screw ramps that start within `horizon_s` of the MCU's plan clock
-    /// (the machine raises it where a hold needs more than the node's horizon).
-    pub fn set_horizon_s(&mut self, horizon_s: f64) {
-        self.options.horizon_s = horizon_s;
-    }
-
     /// Segments and screw ramps converted and not yet sent.
     pub fn waiting(&self) -> (usize, usize) {
         (self.segments.len(), self.screw.len())
@@ -405,15 +399,6 @@ impl McuSession {
         } else {
             1000.0
         }
-    }
-
-    /// The slowest σ rate a hold may need over the plan in hand — on the MCU and waiting to
-    /// be sent: what the plan-ahead must be sized for before those segments play.
-    pub fn sigma_rate_for_plan_per_s(&self) -> f64 {
-        self.segments
-            .iter()
-            .map(|q| self.sigma_rate_bound(q))
-            .fold(self.sigma_rate_per_s(), f64::min)
     }
 
     fn sigma_rate_q32(&self) -> u32 {

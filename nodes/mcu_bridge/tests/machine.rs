@@ -81,19 +81,11 @@ struct Rig {
 
 impl Rig {
     fn new(emulator: EmulatorOptions) -> Rig {
-        Rig::for_machine(
+        let options = SessionOptions::new(
             StepOptions::default().steps_per_unit,
             std::array::from_fn(|j| PlannerOptions::default().joints[j].acceleration),
-            emulator,
-        )
-    }
-
-    fn for_machine(
-        steps_per_unit: [f64; 3],
-        accelerations: [f64; 3],
-        emulator: EmulatorOptions,
-    ) -> Rig {
-        let options = SessionOptions::new(steps_per_unit, accelerations, 0.25);
+            0.25,
+        );
         let link = InProcess {
             mcu: Emulator::new(EmulatorOptions {
                 crystal: Crystal {
@@ -117,24 +109,6 @@ impl Rig {
     fn ms(&mut self, segments: &[StepSegment]) -> Result<(), String> {
         let (room, _) = self.machine.free_slots();
         for s in segments[self.fed..].iter().take(room) {
-            self.machine.on_segment(s).map_err(|e| e.to_string())?;
-            self.fed += 1;
-        }
-        self.now_ns += 1_000_000;
-        self.machine.on_tick(self.now_ns).map_err(|e| e.to_string())
-    }
-
-    /// One millisecond as the node runs it: segments handed over only as far as the credit
-    /// allows — `horizon_s` of plan time past the executed plan time, or what the machine
-    /// asks for beyond that.
-    fn ms_on_credit(&mut self, segments: &[StepSegment], horizon_s: f64) -> Result<(), String> {
-        let accept_until_s =
-            self.machine.state().plan_time_s + horizon_s.max(self.machine.min_horizon_s());
-        let (room, _) = self.machine.free_slots();
-        for s in segments[self.fed..].iter().take(room) {
-            if (s.header.stamp.as_nanos() - EPOCH_NS) as f64 * 1e-9 > accept_until_s {
-                break;
-            }
             self.machine.on_segment(s).map_err(|e| e.to_string())?;
             self.fed += 1;
         }
@@ -485,71 +459,4 @@ fn the_mcu_matches_the_virtual_executor_within_one_step_at_every_report() {
     println!("{compared} reports compared, worst {worst} step");
     assert!(compared > 1800, "{compared} reports"); // 38.5 s at 50 Hz
     assert_eq!(player.position_steps(), end_steps(&segments));
-}
-
-/// Seed 001's bench rig (`launch-scripts/params/bench_rig.yaml`) with the cell's 2 s horizon
-/// instead of its own 8 s: at 500 steps/s and 1,000 steps/s² its accelerating segments leave
-/// a hold a tenth of the limit, 2.6 s to stop. The MCU held for lack of plan and, the credit
-/// standing with its plan clock, never got the 5.2 s it waited for (a print that never
-/// ended); the machine now asks for the horizon a hold needs, and the plan plays out.
-#[test]
-fn a_horizon_shorter_than_a_hold_needs_is_raised_not_a_deadlock() {
-    let steps_per_unit = [2048.0 / std::f64::consts::TAU, 256_000.0, 256_000.0];
-    let mut planner = PlannerOptions::default();
-    for (joint, steps) in planner.joints.iter_mut().zip(steps_per_unit) {
-        joint.velocity = 500.0 / steps;
-        joint.acceleration = 1000.0 / steps;
-        joint.velocity_jump = 100.0 / steps;
-    }
-    planner.joints[1].position = Some((0.0, 0.3));
-    planner.joints[2].position = Some((0.0, 0.15));
-    let path = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../tests/firmware/bench_rig.gcode"
-    );
-    let src = std::fs::read(path).unwrap();
-    let moves = parse_all(&src, "bench_rig.gcode", InterpreterOptions::default())
-        .unwrap()
-        .0;
-    let step_options = StepOptions {
-        steps_per_unit,
-        ..StepOptions::default()
-    };
-    let mut segments = plan_program(&moves, planner.clone(), step_options)
-        .unwrap()
-        .segments;
-    stamp(&mut segments, EPOCH_NS);
-    let plan_s: f64 = segments.iter().map(|s| s.duration_s).sum();
-    let accelerations = std::array::from_fn(|j| planner.joints[j].acceleration);
-    let mut rig = Rig::for_machine(steps_per_unit, accelerations, EmulatorOptions::default());
-    // Ready: identified, configured, clock in sync.
-    rig.run_for(&[], 0.5);
-    assert!(
-        rig.machine.min_horizon_s() <= 2.0,
-        "nothing moving asks for no more than the horizon"
-    );
-    let limit_ms = ((plan_s * 2.0 + 5.0) * 1000.0) as usize;
-    let mut asked_s = 0.0f64;
-    for _ in 0..limit_ms {
-        if rig.fed == segments.len() {
-            rig.machine.finish_input();
-            if rig.machine.is_drained() {
-                break;
-            }
-        }
-        rig.ms_on_credit(&segments, 2.0).unwrap();
-        asked_s = asked_s.max(rig.machine.min_horizon_s());
-    }
-    assert!(
-        rig.fed == segments.len() && rig.machine.is_drained(),
-        "{plan_s:.1} s of plan not played in {:.1} s: {} of {} segments fed, {} completed, hold {:?}",
-        limit_ms as f64 * 1e-3,
-        rig.fed,
-        segments.len(),
-        rig.machine.completed().0,
-        rig.machine.state().hold
-    );
-    assert_eq!(rig.executed_steps(), end_steps(&segments));
-    // The horizon asked for: twice the 2.6 s a hold from 500 steps/s needs, and a margin.
-    assert!((5.2..6.0).contains(&asked_s), "asked for {asked_s} s");
 }

@@ -344,15 +344,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             return;
         }
         for edge in edges {
-            for (axis, position) in self.positions.iter_mut().enumerate() {
-                if edge.axes & (1 << axis) != 0 {
-                    *position -= if edge.negative & (1 << axis) != 0 {
-                        -1
-                    } else {
-                        1
-                    };
-                }
-            }
+            move_positions(&mut self.positions, &edge, -1);
         }
     }
 
@@ -519,17 +511,8 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                     break;
                 }
             };
-            let negative = playing.queued.segment.negative_mask & pulse.axes;
-            for k in 0..MAX_AXES {
-                if pulse.axes >> k & 1 == 1 {
-                    self.positions[k] += if negative >> k & 1 == 1 { -1 } else { 1 };
-                }
-            }
-            sink(StepEdge {
-                clock,
-                axes: pulse.axes,
-                negative,
-            });
+            let negative_mask = playing.queued.segment.negative_mask;
+            sink(step(&mut self.positions, negative_mask, pulse.axes, clock));
         }
         self.plan_q32 += ((clock - self.clock) as u128) << 32;
         self.clock = clock;
@@ -685,17 +668,13 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                             return self.latch(FaultCode::StepFault, tag);
                         }
                     };
-                    let negative = playing.queued.segment.negative_mask & pulse.axes;
-                    for k in 0..MAX_AXES {
-                        if pulse.axes >> k & 1 == 1 {
-                            self.positions[k] += if negative >> k & 1 == 1 { -1 } else { 1 };
-                        }
-                    }
-                    sink(StepEdge {
-                        clock: self.clock,
-                        axes: pulse.axes,
-                        negative,
-                    });
+                    let negative_mask = playing.queued.segment.negative_mask;
+                    sink(step(
+                        &mut self.positions,
+                        negative_mask,
+                        pulse.axes,
+                        self.clock,
+                    ));
                 }
                 Some(_) => return,
                 None if self.plan_q32 >= playing.end_q32() => {
@@ -711,6 +690,34 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 }
                 None => return,
             }
+        }
+    }
+}
+
+/// A pulse on `axes` at MCU tick `clock`, of a segment whose `negative_mask` axes step
+/// backwards: the positions moved by it, and its edge.
+#[inline(always)]
+fn step(positions: &mut [i32; MAX_AXES], negative_mask: u8, axes: u8, clock: u64) -> StepEdge {
+    let edge = StepEdge {
+        clock,
+        axes,
+        negative: negative_mask & axes,
+    };
+    move_positions(positions, &edge, 1);
+    edge
+}
+
+/// Move `positions` by `edge`'s steps, `sign` 1 to make them, −1 to take them back.
+#[inline(always)]
+fn move_positions(positions: &mut [i32; MAX_AXES], edge: &StepEdge, sign: i32) {
+    for (axis, position) in positions.iter_mut().enumerate() {
+        if edge.axes >> axis & 1 == 1 {
+            *position += sign
+                * if edge.negative >> axis & 1 == 1 {
+                    -1
+                } else {
+                    1
+                };
         }
     }
 }

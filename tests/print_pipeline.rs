@@ -2,7 +2,7 @@
 //! tests/run-all.sh): every move reaches the bag exactly once and in order.
 
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use cell_bag::read_bag;
@@ -32,6 +32,20 @@ fn run_print(domain: u16, gcode: &Path, bag: &Path, extra: &[&str]) -> (bool, St
         out.status.success(),
         String::from_utf8_lossy(&out.stderr).into_owned(),
     )
+}
+
+/// A G-code file of the original printer (`../shared/fixtures/gcode/`).
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/fixtures/gcode")
+        .join(name)
+}
+
+/// A new directory for one test's files, named after the test and this process.
+fn scratch_dir(label: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("polar-cell-{label}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
 }
 
 /// A print that must succeed: its stderr.
@@ -65,8 +79,7 @@ fn recorded_moves(bag: &Path) -> (Vec<u64>, u64) {
 #[test]
 fn a_million_moves_stream_with_zero_loss_in_order() {
     const MOVES: u64 = 1_000_000;
-    let dir = std::env::temp_dir().join(format!("polar-cell-million-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = scratch_dir("million");
     let gcode = dir.join("million.gcode");
     let mut f = std::io::BufWriter::new(std::fs::File::create(&gcode).unwrap());
     for i in 0..MOVES {
@@ -95,10 +108,8 @@ fn a_million_moves_stream_with_zero_loss_in_order() {
 
 #[test]
 fn small_window_forces_flow_control_and_still_loses_nothing() {
-    let fixture =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/polartest.gcode");
-    let dir = std::env::temp_dir().join(format!("polar-cell-window-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let fixture = fixture("polartest.gcode");
+    let dir = scratch_dir("window");
     let bag = dir.join("w.mcap");
     let log = print(42, &fixture, &bag, &["--ros-args", "-p", "window:=3"]);
     let (seqs, count) = recorded_moves(&bag);
@@ -113,8 +124,7 @@ fn small_window_forces_flow_control_and_still_loses_nothing() {
 
 /// Stderr of a `print` of finger.gcode with these ROS arguments that must fail.
 fn failing_print(ros_args: &[&str]) -> String {
-    let fixture =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
+    let fixture = fixture("finger.gcode");
     let extra: Vec<&str> = ["--ros-args"].iter().chain(ros_args).copied().collect();
     let (ok, stderr) = run_print(43, &fixture, Path::new("/dev/null"), &extra);
     assert!(!ok, "{stderr}");
@@ -140,10 +150,8 @@ fn unknown_parameter_is_an_error_that_names_it() {
 /// `--no-preflight` starts the print, which then fails at that move.
 #[test]
 fn a_file_leaving_the_reach_at_its_end_is_refused_before_anything_moves() {
-    let fixture =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/polartest.gcode");
-    let dir = std::env::temp_dir().join(format!("polar-cell-preflight-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let fixture = fixture("polartest.gcode");
+    let dir = scratch_dir("preflight");
     let gcode = dir.join("beyond.gcode");
     let mut text = std::fs::read_to_string(&fixture).unwrap();
     let last_line = text.lines().count() + 1;
@@ -184,8 +192,7 @@ fn a_file_leaving_the_reach_at_its_end_is_refused_before_anything_moves() {
 /// The pre-flight of a good file reports its machine time before the print starts.
 #[test]
 fn the_preflight_reports_the_machine_time_of_a_good_file() {
-    let fixture =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
+    let fixture = fixture("finger.gcode");
     let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
         .arg("check")
         .arg(&fixture)
@@ -234,8 +241,7 @@ fn end_steps(segments: &[polar_cell_msgs::StepSegment]) -> [i64; 3] {
 #[test]
 fn an_executed_print_records_the_executed_joints_at_50_hz() {
     use polar_cell_msgs::{JointState, StepSegment, StringMsg, TFMessage};
-    let fixture =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
+    let fixture = fixture("finger.gcode");
     let bag = std::env::temp_dir().join(format!("polar-cell-exec-{}.mcap", std::process::id()));
     // At 40× the default 2 s horizon is 50 ms of the test's time; on a loaded CI machine a
     // starved planner could fall behind it. Twenty seconds of plan is half a second here.
@@ -314,8 +320,7 @@ fn an_executed_print_records_the_executed_joints_at_50_hz() {
 #[test]
 fn ctrl_c_cancels_on_the_path_and_a_second_stops_at_once() {
     use polar_cell_msgs::JointState;
-    let dir = std::env::temp_dir().join(format!("polar-cell-cancel-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = scratch_dir("cancel");
     // Out along the arm, then round the bed: moving at every instant of the first seconds.
     let gcode = dir.join("circle.gcode");
     let mut text = String::from("G1 X50 Y0 F3000\n");
@@ -393,8 +398,7 @@ fn print_without_a_file_prints_the_built_in_demo() {
 #[test]
 fn a_print_on_the_mcu_emulator_executes_every_step() {
     use polar_cell_msgs::{JointState, StepSegment};
-    let fixture =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
+    let fixture = fixture("finger.gcode");
     let bag = std::env::temp_dir().join(format!("polar-cell-mcu-{}.mcap", std::process::id()));
     let stderr = print(
         61,
@@ -449,10 +453,8 @@ fn a_print_on_the_mcu_emulator_executes_every_step() {
 /// logging function (every message used to say `dds.rs:321 <unknown_func>`).
 #[test]
 fn rosout_names_the_namespaced_logger_and_the_calling_code() {
-    let fixture =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/polartest.gcode");
-    let dir = std::env::temp_dir().join(format!("polar-cell-rosout-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let fixture = fixture("polartest.gcode");
+    let dir = scratch_dir("rosout");
     let bag = dir.join("rosout.mcap");
     print(45, &fixture, &bag, &["--ros-args", "-r", "__ns:=/bar"]);
     let bytes = std::fs::read(&bag).unwrap();

@@ -411,17 +411,26 @@ pub fn function_of(marker_type_name: &'static str) -> &'static str {
 /// `RCLCPP_INFO(logger, ...)` does: `cell_log!(node, LogLevel::Info, "planned {n} moves")`.
 #[macro_export]
 macro_rules! cell_log {
-    ($node:expr, $level:expr, $($arg:tt)+) => {{
-        fn cell_log_site() {}
+    ($node:expr, $level:expr, $($arg:tt)+) => {
         $node.log_at(
             $level,
             &::std::format!($($arg)+),
             $crate::dds::LogSite {
                 file: ::std::file!(),
                 line: ::std::line!(),
-                function: $crate::dds::function_of(::std::any::type_name_of_val(&cell_log_site)),
+                function: $crate::log_site_function!(),
             },
         )
+    };
+}
+
+/// The function this is written in (see [`function_of`]): what [`cell_log!`] records.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! log_site_function {
+    () => {{
+        fn cell_log_site() {}
+        $crate::dds::function_of(::std::any::type_name_of_val(&cell_log_site))
     }};
 }
 
@@ -573,27 +582,19 @@ pub fn now_ns() -> u64 {
 mod tests {
     use super::*;
 
-    /// What `cell_log!` puts in `function`, taken where the macro would be written.
-    macro_rules! site_function {
-        () => {{
-            fn cell_log_site() {}
-            function_of(std::any::type_name_of_val(&cell_log_site))
-        }};
-    }
-
     fn planning_step() -> &'static str {
-        site_function!()
+        crate::log_site_function!()
     }
 
     #[test]
     fn the_function_is_the_enclosing_named_one_even_inside_closures() {
         assert_eq!(planning_step(), "cell_runtime::dds::tests::planning_step");
-        let in_closure = || site_function!();
+        let in_closure = || crate::log_site_function!();
         assert_eq!(
             in_closure(),
             "cell_runtime::dds::tests::the_function_is_the_enclosing_named_one_even_inside_closures"
         );
-        let in_async = async { site_function!() };
+        let in_async = async { crate::log_site_function!() };
         let waker = std::task::Waker::noop();
         let mut cx = std::task::Context::from_waker(waker);
         let mut in_async = std::pin::pin!(in_async);

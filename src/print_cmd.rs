@@ -494,9 +494,19 @@ pub async fn run_job(
     }
     planner.abort();
     screw.abort();
-    if let Some(task) = executor.as_ref() {
+    if let Some(task) = executor.take() {
         task.abort();
+        // Its last /joint_states and /tf went out together; once the task is gone, nothing
+        // follows them. (A finished task may have been awaited already: not twice.)
+        if !task.is_finished() {
+            let _ = task.await;
+        }
     }
+    // What the nodes published just before they stopped is still on its way to the
+    // recorder's readers: a bag closed now could hold a /joint_states without its /tf.
+    recorder
+        .wait_quiet(Duration::from_millis(100), Duration::from_secs(2))
+        .await;
     let recorded = recorder.stop().await.context("finishing the bag")?;
     match outcome {
         Err(Stop::Interrupted) => {

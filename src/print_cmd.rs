@@ -343,7 +343,7 @@ pub async fn run_job(
     )?;
     let recorder = Recorder::start(recorder_node)?;
     let (executor_overrides, planner_extra, screw_extra) = match options.execution {
-        Some(speed) => execution_overrides(ros_args, speed)?,
+        Some(speed) => execution_overrides(ros_args, speed, options.device.is_some())?,
         None => (vec![], vec![], vec![]),
     };
     let mut screw_node = start_node(
@@ -564,6 +564,7 @@ pub async fn run_job(
 fn execution_overrides(
     ros_args: &RosArgs,
     speed: f64,
+    on_mcu: bool,
 ) -> anyhow::Result<(Vec<ParamOverride>, Vec<ParamOverride>, Vec<ParamOverride>)> {
     let NodeParams {
         screw,
@@ -572,8 +573,22 @@ fn execution_overrides(
         ..
     } = node_params(ros_args)?;
     let screw_options = screw_driver::node::options_from_params(&screw)?;
-    let hold = match screw_driver::node::command_hold(&screw_options, screw.f64("command_period_s"))
-    {
+    // The screw on an amplifier's serial line takes a few commands a second: the screw
+    // driver puts its commands on that grid, each the exact average over its interval.
+    let mut command_period_s = screw.f64("command_period_s");
+    let mut screw_extra = vec![];
+    if on_mcu {
+        let specs = mcu_bridge::node::param_specs();
+        let name = mcu_bridge::node::NODE_NAME;
+        let (_, bridge) =
+            cell_runtime::resolve_node(name, &specs, &args_for(ros_args, name, &specs, vec![]))?;
+        let line_period_s = 1.0 / bridge.f64("screw_max_rate_hz");
+        if !bridge.string("screw_port").is_empty() && command_period_s < line_period_s {
+            command_period_s = line_period_s;
+            screw_extra.push(param("command_period_s", format!("{command_period_s:?}")));
+        }
+    }
+    let hold = match screw_driver::node::command_hold(&screw_options, command_period_s) {
         polar_cell_msgs::Hold::ZeroOrder => "zero_order",
         polar_cell_msgs::Hold::FirstOrder => "first_order",
     };
@@ -607,10 +622,10 @@ fn execution_overrides(
     ];
     let horizon_s = executor.f64("horizon_s");
     let planner_extra = vec![param("follow_execution", "true".into())];
-    let screw_extra = vec![
+    screw_extra.extend([
         param("max_buffer_s", format!("{:?}", (horizon_s / 4.0).max(0.1))),
         param("stall_flush_s", "3600.0".into()),
-    ];
+    ]);
     Ok((executor_overrides, planner_extra, screw_extra))
 }
 

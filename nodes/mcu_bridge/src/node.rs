@@ -28,6 +28,8 @@ use nix::sys::termios::{cfmakeraw, cfsetspeed, tcgetattr, tcsetattr, BaudRate, S
 use tokio::sync::{mpsc, watch};
 
 use crate::machine::{McuLink, McuMachine};
+use crate::screw_line::{CommandTemplate, ScrewLine};
+use crate::screw_port::WithScrewLine;
 use crate::session::{McuSession, SessionOptions};
 
 /// Default node name.
@@ -85,6 +87,33 @@ pub fn param_specs() -> Vec<ParamSpec> {
         )
         .range(0.01, 60.0),
         ParamSpec::new(
+            "screw_port",
+            ParamValue::String(String::new()),
+            "the screw's servo amplifier on an ASCII serial line (a tty or pseudo-terminal path); empty: the MCU drives the screw",
+        ),
+        ParamSpec::new(
+            "screw_port_baud",
+            ParamValue::Integer(9600),
+            "line speed of the screw's serial line",
+        )
+        .range(1200.0, 4e6),
+        ParamSpec::new(
+            "screw_port_framing",
+            ParamValue::String("8N1".into()),
+            "data bits (5-8), parity (N, E or O) and stop bits (1 or 2) of the screw's serial line",
+        ),
+        ParamSpec::new(
+            "screw_command_template",
+            ParamValue::String(crate::screw_line::DEFAULT_TEMPLATE.into()),
+            "one screw command line: {rpm}, {rpm:.N}, {millirpm}, {pin} or {pin:OPEN/CLOSED}; \\r \\n \\t \\xHH for control bytes",
+        ),
+        ParamSpec::new(
+            "screw_max_rate_hz",
+            ParamValue::Double(10.0),
+            "most screw command lines a second (machine time); each holds the exact average of the commanded rpm over its interval",
+        )
+        .range(0.01, 1000.0),
+        ParamSpec::new(
             "retransmit_timeout_s",
             ParamValue::Double(0.05),
             "an unacknowledged frame is sent again after this long (wall seconds)",
@@ -114,9 +143,76 @@ pub enum DeviceError {
     Blocked { device: String },
 }
 
+/// Character framing of a serial line: data bits, parity, stop bits (`8N1`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Framing {
+    pub data_bits: u8,
+    pub parity: Parity,
+    pub stop_bits: u8,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Parity {
+    None,
+    Even,
+    Odd,
+}
+
+impl Framing {
+    /// Eight data bits, no parity, one stop bit: the MCU's line.
+    pub const EIGHT_N_ONE: Framing = Framing {
+        data_bits: 8,
+        parity: Parity::None,
+        stop_bits: 1,
+    };
+}
+
+impl std::str::FromStr for Framing {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> anyhow::Result<Framing> {
+        let bad = || {
+            anyhow::anyhow!(
+                "serial framing {s:?}: want data bits 5-8, parity N, E or O, stop bits 1 or 2 (as 8N1 or 7E2)"
+            )
+        };
+        let b = s.as_bytes();
+        if b.len() != 3 {
+            return Err(bad());
+        }
+        let data_bits = match b[0] {
+            b'5'..=b'8' => b[0] - b'0',
+            _ => return Err(bad()),
+        };
+        let parity = match b[1].to_ascii_uppercase() {
+            b'N' => Parity::None,
+            b'E' => Parity::Even,
+            b'O' => Parity::Odd,
+            _ => return Err(bad()),
+        };
+        let stop_bits = match b[2] {
+            b'1' | b'2' => b[2] - b'0',
+            _ => return Err(bad()),
+        };
+        Ok(Framing {
+            data_bits,
+            parity,
+            stop_bits,
+        })
+    }
+}
+
 impl Device {
-    /// Open `spec`: `unix:/path` or the path of a tty, raw, at `baud`.
+    /// Open `spec`: `unix:/path` or the path of a tty, raw, at `baud`, 8N1.
     pub fn open(spec: &str, baud: u32) -> anyhow::Result<(Device, String)> {
+        Device::open_framed(spec, baud, Framing::EIGHT_N_ONE)
+    }
+
+    /// Open `spec` as [`Device::open`] does, with the tty's characters framed as `framing`.
+    pub fn open_framed(
+        spec: &str,
+        baud: u32,
+        framing: Framing,
+    ) -> anyhow::Result<(Device, String)> {
         if let Some(path) = spec.strip_prefix("unix:") {
             let stream = UnixStream::connect(path)
                 .with_context(|| format!("connecting to the MCU's socket {path}"))?;
@@ -133,6 +229,22 @@ impl Device {
         let mut termios = tcgetattr(file.as_fd()).with_context(|| format!("{spec}: not a tty"))?;
         cfmakeraw(&mut termios);
         cfsetspeed(&mut termios, baud_rate(baud)?)?;
+        use nix::sys::termios::ControlFlags as C;
+        termios.control_flags &= !(C::CSIZE | C::PARENB | C::PARODD | C::CSTOPB);
+        termios.control_flags |= match framing.data_bits {
+            5 => C::CS5,
+            6 => C::CS6,
+            7 => C::CS7,
+            _ => C::CS8,
+        };
+        match framing.parity {
+            Parity::None => {}
+            Parity::Even => termios.control_flags |= C::PARENB,
+            Parity::Odd => termios.control_flags |= C::PARENB | C::PARODD,
+        }
+        if framing.stop_bits == 2 {
+            termios.control_flags |= C::CSTOPB;
+        }
         tcsetattr(file.as_fd(), SetArg::TCSANOW, &termios)?;
         Ok((Device::Tty(file), spec.to_string()))
     }
@@ -240,6 +352,14 @@ impl McuLink for SerialLink {
     }
 }
 
+/// The screw's amplifier on a serial line: each command written whole.
+impl crate::screw_port::LinePort for SerialLink {
+    type Error = DeviceError;
+    fn send(&mut self, now_ns: i64, text: &str) -> Result<(), DeviceError> {
+        McuLink::write(self, now_ns, text.as_bytes())
+    }
+}
+
 /// The session the parameters describe, its timeouts in machine time at `params.speed`.
 pub fn session_options(node: &CellNode, params: &MachineParams) -> SessionOptions {
     let p = &node.params;
@@ -311,8 +431,42 @@ pub async fn run(
     cell_runtime::cell_log!(node, LogLevel::Info, "MCU on {name}");
     let session = McuSession::new(session_options(node, &params), session_nonce());
     let link = SerialLink::new(device, name);
-    let mut machine = McuMachine::new(session, link, params.queue_capacity, params.horizon_s);
+    let machine = McuMachine::new(session, link, params.queue_capacity, params.horizon_s);
+    let Some(port) = screw_port(node, &params)? else {
+        let mut machine = machine;
+        return cell_machine::node::run(node, &mut machine, &params, commands, status).await;
+    };
+    let mut machine = WithScrewLine::new(machine, port.1, port.0, params.queue_capacity);
     cell_machine::node::run(node, &mut machine, &params, commands, status).await
+}
+
+/// The screw's serial line and its commands, if parameter `screw_port` names one.
+fn screw_port(
+    node: &CellNode,
+    params: &MachineParams,
+) -> anyhow::Result<Option<(SerialLink, ScrewLine)>> {
+    let p = &node.params;
+    let spec = p.string("screw_port");
+    if spec.is_empty() {
+        return Ok(None);
+    }
+    let template = CommandTemplate::parse(p.string("screw_command_template"))
+        .context("parameter screw_command_template")?;
+    let framing: Framing = p
+        .string("screw_port_framing")
+        .parse()
+        .context("parameter screw_port_framing")?;
+    let (device, name) = Device::open_framed(spec, p.i64("screw_port_baud") as u32, framing)
+        .context("parameter screw_port")?;
+    let rate_hz = p.f64("screw_max_rate_hz");
+    cell_runtime::cell_log!(
+        node,
+        LogLevel::Info,
+        "screw on {name}: at most {rate_hz} commands/s, as {:?}",
+        p.string("screw_command_template")
+    );
+    let line = ScrewLine::new(template, rate_hz, params.screw_hold);
+    Ok(Some((SerialLink::new(device, name), line)))
 }
 
 /// Run the node from its own command line until SIGINT/SIGTERM.

@@ -490,3 +490,104 @@ fn rosout_names_the_namespaced_logger_and_the_calling_code() {
         );
     }
 }
+
+/// The screw on its servo amplifier's own serial line (seed 000 §6.3; a pseudo-terminal
+/// here, read by this test): a print on the MCU emulator tells it at most ten times a
+/// second of machine time, as `RPM r PIN p` lines; the screw turns with the pin open while
+/// printing and ends stopped with the pin closed; the bag's screw joint turns at the rpm the
+/// line told it, and the MCU's own screw output stays idle.
+#[test]
+fn a_print_on_the_mcu_tells_the_screw_amplifier_on_its_own_serial_line() {
+    use polar_cell_msgs::JointState;
+    let dir = scratch_dir("screw-line");
+    let gcode = dir.join("start.gcode");
+    let source = std::fs::read_to_string(fixture("polartest.gcode")).unwrap();
+    let start: Vec<&str> = source.lines().take(400).collect();
+    std::fs::write(&gcode, start.join("\n") + "\n").unwrap();
+    let (mut master, mut slave) = (0, 0);
+    // SAFETY: openpty writes two descriptors; no name, termios or window size asked for.
+    let opened = unsafe {
+        libc::openpty(
+            &mut master,
+            &mut slave,
+            std::ptr::null_mut(),
+            std::ptr::null(),
+            std::ptr::null(),
+        )
+    };
+    assert_eq!(opened, 0);
+    // SAFETY: `slave` is an open descriptor; ttyname's buffer is read before another call.
+    let port = unsafe { std::ffi::CStr::from_ptr(libc::ttyname(slave)) }
+        .to_str()
+        .unwrap()
+        .to_string();
+    let reader = std::thread::spawn(move || {
+        use std::io::Read;
+        use std::os::fd::FromRawFd;
+        // SAFETY: the master descriptor is this thread's alone from here on.
+        let mut file = unsafe { std::fs::File::from_raw_fd(master) };
+        let mut bytes = Vec::new();
+        let mut buf = [0u8; 4096];
+        loop {
+            match file.read(&mut buf) {
+                Ok(0) => break,
+                Ok(n) => bytes.extend_from_slice(&buf[..n]),
+                // Every slave descriptor closed: all written has been read.
+                Err(e) if e.raw_os_error() == Some(libc::EIO) => break,
+                Err(e) => panic!("{e}"),
+            }
+        }
+        String::from_utf8(bytes).unwrap()
+    });
+    let bag = dir.join("screw-line.mcap");
+    let screw_port = format!("mcu_bridge:screw_port:={port}");
+    let stderr = print(
+        71,
+        &gcode,
+        &bag,
+        &[
+            "--speed",
+            "10",
+            "--device",
+            "emulator",
+            "--ros-args",
+            "-p",
+            &screw_port,
+            "-p",
+            "mcu_bridge:horizon_s:=6.0",
+        ],
+    );
+    // SAFETY: the test's own copy of the slave side, open since openpty.
+    unsafe { libc::close(slave) };
+    let text = reader.join().unwrap();
+    assert!(stderr.contains(", 0 underruns"), "{stderr}");
+    let told: Vec<(f64, bool)> = text
+        .strip_suffix("\r\n")
+        .unwrap_or_else(|| panic!("{text:?}"))
+        .split("\r\n")
+        .map(|line| match line.split(' ').collect::<Vec<_>>()[..] {
+            ["RPM", rpm, "PIN", pin] => (rpm.parse().unwrap(), pin == "1"),
+            _ => panic!("{line:?}"),
+        })
+        .collect();
+    let printing = told.iter().filter(|(rpm, pin)| *rpm > 1.0 && *pin).count();
+    assert!(printing > 50, "{printing} of {} lines feed", told.len());
+    assert_eq!(told.last(), Some(&(0.0, false)));
+    // The bag's screw joint turns at what the line said (rad/s of rpm), nothing else.
+    let states: Vec<JointState> = topic_messages(&bag, "/joint_states");
+    let told_rad_s: Vec<f64> = told
+        .iter()
+        .map(|(rpm, _)| rpm / 60.0 * std::f64::consts::TAU)
+        .collect();
+    let mut turning = 0;
+    for s in &states {
+        let v = s.velocity[3];
+        assert!(
+            v == 0.0 || told_rad_s.iter().any(|t| (t - v).abs() < 1e-9),
+            "screw at {v} rad/s: never told"
+        );
+        turning += usize::from(v > 0.0);
+    }
+    assert!(turning * 2 > states.len(), "{turning} of {}", states.len());
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -276,7 +276,8 @@ struct Sent {
 pub struct LineClock {
     /// Machine time now (s): the rate limit is counted in it.
     pub machine_s: f64,
-    /// Plan time executed by now (s).
+    /// Plan time executed by now (s); infinite once the plan has ended (its clock stops
+    /// there, and the lines due after its end are due now).
     pub plan_s: f64,
     /// The feed scale σ the screw is scaled with (1 running, 0 held or idle).
     pub feed: f64,
@@ -441,7 +442,7 @@ impl ScrewLine {
         let new_line = self.sent.as_ref().is_none_or(|s| s.line_id != line.id);
         // A scheduled line was due at its start; one the poll found late is not the next
         // one's excuse to be later still (the schedule spaces starts a period apart).
-        let late_s = if new_line {
+        let late_s = if new_line && clock.plan_s.is_finite() {
             (clock.plan_s - line.start_s).max(0.0)
         } else {
             0.0

@@ -46,6 +46,7 @@ pub struct WithScrewLine<M: Machine, P: LinePort> {
     last_tick_ns: Option<i64>,
     angle_rad: f64,
     port_error: Option<String>,
+    input_finished: bool,
 }
 
 impl<M: Machine, P: LinePort> WithScrewLine<M, P> {
@@ -61,6 +62,7 @@ impl<M: Machine, P: LinePort> WithScrewLine<M, P> {
             last_tick_ns: None,
             angle_rad: 0.0,
             port_error: None,
+            input_finished: false,
         }
     }
 
@@ -97,6 +99,7 @@ impl<M: Machine, P: LinePort> WithScrewLine<M, P> {
     fn stop_screw(&mut self, now_ns: i64) -> Result<(), String> {
         self.early.clear();
         self.epoch_ns = None;
+        self.input_finished = false;
         let stop = self.line.stop_now(now_ns as f64 * 1e-9);
         self.send(now_ns, stop)
     }
@@ -147,6 +150,7 @@ impl<M: Machine, P: LinePort> Machine for WithScrewLine<M, P> {
 
     fn finish_input(&mut self) {
         self.inner.finish_input();
+        self.input_finished = true;
     }
 
     fn on_tick(&mut self, now_ns: i64) -> Result<(), Self::Error> {
@@ -165,9 +169,16 @@ impl<M: Machine, P: LinePort> Machine for WithScrewLine<M, P> {
             return result.map_err(WithScrewLineError::Machine);
         }
         let running = matches!(state.state, PlayerState::Running | PlayerState::Held);
+        // The plan clock stops where the plan ends; lines the rate put after that instant
+        // are due all the same.
+        let plan_s = if self.input_finished && self.inner.is_drained() {
+            f64::INFINITY
+        } else {
+            state.plan_time_s
+        };
         let clock = LineClock {
             machine_s: now_ns as f64 * 1e-9,
-            plan_s: state.plan_time_s,
+            plan_s,
             feed: if running { state.feed } else { 0.0 },
             pin_allowed: running && state.hold.is_none() && state.feed >= 1.0 - 1e-9,
         };

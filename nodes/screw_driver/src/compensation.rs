@@ -628,6 +628,25 @@ pub fn material_per_move(
         crate::screw::RpmModel::PolarSpeed { e_per_rev_m } => e_per_rev_m,
         crate::screw::RpmModel::Radius { .. } => return Vec::new(),
     };
+    material_of_commands(
+        moves,
+        &commands,
+        model,
+        options.pin_open_delay_s,
+        e_per_rev_m,
+    )
+}
+
+/// What held `commands` (a screw's commands as it received them: each held to the next)
+/// deliver through `model` to each extruding move of `moves`, against what the move wants
+/// (`e_per_rev_m` of filament-equivalent per revolution).
+pub fn material_of_commands(
+    moves: &[crate::screw::TimedMove],
+    commands: &[Command],
+    model: &FlowModel,
+    pin_open_delay_s: f64,
+    e_per_rev_m: f64,
+) -> Vec<MoveMaterial> {
     let mut windows = Vec::new();
     let mut which = Vec::new();
     for (k, m) in moves.iter().enumerate() {
@@ -645,7 +664,7 @@ pub fn material_per_move(
         windows.push((t0, end));
         which.push(k);
     }
-    let delivered = delivered_in_windows(&commands, model, options.pin_open_delay_s, &windows);
+    let delivered = delivered_in_windows(commands, model, pin_open_delay_s, &windows);
     which
         .iter()
         .zip(delivered)

@@ -204,7 +204,7 @@ impl std::str::FromStr for Framing {
 impl Device {
     /// Open `spec`: `unix:/path` or the path of a tty, raw, at `baud`, 8N1.
     pub fn open(spec: &str, baud: u32) -> anyhow::Result<(Device, String)> {
-        Device::open_framed(spec, baud, Framing::EIGHT_N_ONE)
+        Device::open_framed(spec, baud, Framing::EIGHT_N_ONE).context("the MCU's line")
     }
 
     /// Open `spec` as [`Device::open`] does, with the tty's characters framed as `framing`.
@@ -215,7 +215,7 @@ impl Device {
     ) -> anyhow::Result<(Device, String)> {
         if let Some(path) = spec.strip_prefix("unix:") {
             let stream = UnixStream::connect(path)
-                .with_context(|| format!("connecting to the MCU's socket {path}"))?;
+                .with_context(|| format!("connecting to the socket {path}"))?;
             stream.set_nonblocking(true)?;
             return Ok((Device::Socket(stream), spec.to_string()));
         }
@@ -224,7 +224,7 @@ impl Device {
             .write(true)
             .custom_flags(nix::libc::O_NOCTTY | nix::libc::O_NONBLOCK)
             .open(spec)
-            .with_context(|| format!("opening the MCU's serial line {spec}"))?;
+            .with_context(|| format!("opening the serial line {spec}"))?;
         // Raw: binary frames, no echo, no line discipline.
         let mut termios = tcgetattr(file.as_fd()).with_context(|| format!("{spec}: not a tty"))?;
         cfmakeraw(&mut termios);
@@ -457,7 +457,7 @@ fn screw_port(
         .parse()
         .context("parameter screw_port_framing")?;
     let (device, name) = Device::open_framed(spec, p.i64("screw_port_baud") as u32, framing)
-        .context("parameter screw_port")?;
+        .context("parameter screw_port (the screw amplifier's line)")?;
     let rate_hz = p.f64("screw_max_rate_hz");
     cell_runtime::cell_log!(
         node,

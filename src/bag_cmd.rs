@@ -1,4 +1,4 @@
-//! `polar-cell bag info|play`.
+//! `polar-cell bag info|recover|play`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -46,6 +46,49 @@ pub fn info(path: &Path) -> anyhow::Result<()> {
             t.name, t.type_name, t.message_count, qos
         );
     }
+    Ok(())
+}
+
+pub fn recover(input: &Path, output: &Path) -> anyhow::Result<()> {
+    let (file_path, bytes) = map_bag(input)?;
+    if output.exists() {
+        bail!("{} exists already: give a new path", output.display());
+    }
+    let file =
+        std::fs::File::create(output).with_context(|| format!("creating {}", output.display()))?;
+    let mut sink = std::io::BufWriter::new(file);
+    let r = cell_bag::recover(&bytes, &mut sink, &cell_bag::WriterOptions::default())
+        .with_context(|| format!("recovering {}", file_path.display()))?;
+    use std::io::Write as _;
+    sink.flush()
+        .with_context(|| format!("writing {}", output.display()))?;
+    let end = match &r.end {
+        cell_bag::RecoveryEnd::Complete => "the data section was complete".to_string(),
+        cell_bag::RecoveryEnd::Truncated { at } => format!(
+            "the file stops inside the record at byte {at}; {} bytes after it were not usable",
+            bytes.len() as u64 - at
+        ),
+        cell_bag::RecoveryEnd::Damaged { at, what } => {
+            format!("the record at byte {at} is damaged ({what}); nothing after it was read")
+        }
+    };
+    eprintln!(
+        "{}: {} messages recovered into {} ({} whole chunks, {} messages from a chunk cut \
+         short{}); {end}",
+        file_path.display(),
+        r.messages,
+        output.display(),
+        r.complete_chunks,
+        r.partial_chunk_messages,
+        if r.orphan_messages > 0 {
+            format!(
+                ", {} messages of channels never declared dropped",
+                r.orphan_messages
+            )
+        } else {
+            String::new()
+        }
+    );
     Ok(())
 }
 

@@ -115,6 +115,14 @@ enum Command {
 enum BagCommand {
     /// Topics, types, message counts and duration of a bag (file or directory).
     Info { bag: PathBuf },
+    /// Salvage a bag whose recorder was killed: every message of every complete chunk and
+    /// what is intact of the last, into a new, finished bag.
+    Recover {
+        /// The unfinished bag (file, or rosbag2 directory).
+        input: PathBuf,
+        /// The new bag (an MCAP file).
+        output: PathBuf,
+    },
     /// Republish a bag's messages over DDS with their original timing.
     Play {
         bag: PathBuf,
@@ -239,6 +247,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Screw { command } => screw_cmd::run(command),
         Command::Bag { command } => match command {
             BagCommand::Info { bag } => bag_cmd::info(&bag),
+            BagCommand::Recover { input, output } => bag_cmd::recover(&input, &output),
             BagCommand::Play {
                 bag,
                 rate,

@@ -14,11 +14,13 @@
 mod meta;
 mod qos;
 mod reader;
+mod recover;
 mod writer;
 
 pub use meta::{metadata_yaml, RecordedTopic, TopicStats};
 pub use qos::{Durability, QosRecord, Reliability};
 pub use reader::{read_bag, BagContents, BagInfo, BagMessage, TopicInfo};
+pub use recover::{is_finished, recover, Recovery, RecoveryEnd};
 pub use writer::{BagWriter, ChannelId, Compression, WriterOptions};
 
 /// Anything that can go wrong writing or reading a bag.
@@ -45,6 +47,12 @@ pub enum BagError {
     NotRos2(String),
     #[error("bag has no summary section (was finish() called?)")]
     NoSummary,
+    #[error(
+        "the bag was not finished: it ends after {len} bytes without its summary and closing \
+         magic (its writer stopped before closing it, killed or crashed); `polar-cell bag \
+         recover IN OUT` salvages its messages"
+    )]
+    Unfinished { len: usize },
     /// The `mcap` crate (0.26) panics on some malformed records instead of returning an
     /// error (found by fuzzing, `tests/fuzz`); the reader turns that into this error.
     #[error("malformed MCAP while {while_doing}: {detail}")]

@@ -78,6 +78,12 @@ pub fn param_specs() -> Vec<ParamSpec> {
         )
         .range(1024.0, 1e9),
         ParamSpec::new(
+            "flush_period_s",
+            ParamValue::Double(1.0),
+            "close the chunk and flush the file at least this often: a killed recorder loses at most this much (and what its queue holds)",
+        )
+        .range(0.01, 3600.0),
+        ParamSpec::new(
             "acknowledge_moves",
             ParamValue::Bool(true),
             "act as a flow-control consumer of /gcode/moves",
@@ -93,7 +99,13 @@ pub struct RecordSummary {
     pub messages: u64,
 }
 
-type Item = (ChannelId, u64, u64, Vec<u8>);
+/// What the bag writer thread is handed.
+enum Item {
+    /// A message: its channel, log and publish times (ns), CDR.
+    Message(ChannelId, u64, u64, Vec<u8>),
+    /// Close the chunk and flush the file: what was written survives a kill.
+    Flush,
+}
 
 /// Messages queued for the bag writer thread at most.
 const WRITER_QUEUE: usize = 4096;
@@ -175,7 +187,12 @@ async fn forward<T: RosMessage>(
     let log_time = now_ns();
     match cdr::encode(message) {
         Ok(bytes) => tx
-            .send((channel, log_time, publish_time(info, log_time), bytes))
+            .send(Item::Message(
+                channel,
+                log_time,
+                publish_time(info, log_time),
+                bytes,
+            ))
             .await
             .is_ok(),
         Err(e) => {
@@ -371,6 +388,21 @@ impl Recorder {
                 stop_rx.clone(),
             )?);
         }
+        // A chunk is written only when it is closed: close one every flush period, so a
+        // recorder killed mid-print loses at most that much of the print.
+        let flush_period = Duration::from_secs_f64(params.f64("flush_period_s"));
+        let flusher = tx.clone();
+        let mut flush_stop = stop_rx.clone();
+        taps.push(tokio::spawn(async move {
+            let mut tick = tokio::time::interval(flush_period);
+            tick.tick().await;
+            loop {
+                tokio::select! {
+                    _ = tick.tick() => if flusher.send(Item::Flush).await.is_err() { return },
+                    _ = flush_stop.changed() => return,
+                }
+            }
+        }));
         drop(tx);
         cell_runtime::cell_log!(
             node,
@@ -385,7 +417,11 @@ impl Recorder {
         let writer = std::thread::Builder::new()
             .name("bag writer".into())
             .spawn(move || -> anyhow::Result<RecordSummary> {
-                while let Some((channel, log_time, publish_time, bytes)) = rx.blocking_recv() {
+                while let Some(item) = rx.blocking_recv() {
+                    let Item::Message(channel, log_time, publish_time, bytes) = item else {
+                        bag.flush()?;
+                        continue;
+                    };
                     bag.write(channel, log_time, publish_time, &bytes)?;
                     if Some(channel) != ack_channel {
                         written_by_writer.fetch_add(1, std::sync::atomic::Ordering::Relaxed);

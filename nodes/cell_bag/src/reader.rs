@@ -55,7 +55,7 @@ pub struct BagContents<'a> {
 /// Run `read`, a call into the `mcap` crate on untrusted bytes, turning a panic of that crate
 /// into [`BagError::Malformed`]. (`polar-cell` keeps such a panic off the terminal: the error
 /// says it.)
-fn guarded<T>(
+pub(crate) fn guarded<T>(
     while_doing: &'static str,
     read: impl FnOnce() -> Result<T, BagError>,
 ) -> Result<T, BagError> {
@@ -79,6 +79,9 @@ pub fn read_bag(bytes: &[u8]) -> Result<BagContents<'_>, BagError> {
 
 fn read_summary(bytes: &[u8]) -> Result<BagContents<'_>, BagError> {
     let header_profile = read_profile(bytes)?;
+    if !crate::is_finished(bytes) {
+        return Err(BagError::Unfinished { len: bytes.len() });
+    }
     if header_profile != "ros2" {
         return Err(BagError::NotRos2(format!(
             "header profile is `{header_profile}`, not `ros2`"

@@ -173,6 +173,13 @@ impl<W: Write + Seek> BagWriter<W> {
         self.write(channel, log_time_ns, log_time_ns, &cdr)
     }
 
+    /// Close the current chunk and flush the sink: everything written so far can be read
+    /// back (by `bag recover`) should the process die before [`BagWriter::finish`].
+    pub fn flush(&mut self) -> Result<(), BagError> {
+        self.inner.flush()?;
+        Ok(())
+    }
+
     /// Messages written so far.
     pub fn message_count(&self) -> u64 {
         self.channels.values().map(|c| c.stats.message_count).sum()

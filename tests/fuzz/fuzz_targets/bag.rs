@@ -1,8 +1,9 @@
 //! Any bytes as a bag: `read_bag` and its message iterator answer with contents or an error,
-//! and each recorded message decodes as its type or fails to.
+//! and each recorded message decodes as its type or fails to; `recover` salvages the bytes
+//! into a bag that reads, with the count it reports.
 #![no_main]
 
-use cell_bag::read_bag;
+use cell_bag::{read_bag, recover, WriterOptions};
 use libfuzzer_sys::fuzz_target;
 use polar_cell_msgs::{cdr, GcodeMove, JointState, JointTrajectory, ScrewCommand};
 
@@ -19,6 +20,12 @@ fuzz_target!(
         }));
     },
     |bytes: &[u8]| {
+    let mut out = std::io::Cursor::new(Vec::new());
+    if let Ok(recovery) = recover(bytes, &mut out, &WriterOptions::default()) {
+        let out = out.into_inner();
+        let info = read_bag(&out).expect("a recovered bag reads").info;
+        assert_eq!(info.message_count, recovery.messages);
+    }
     let Ok(contents) = read_bag(bytes) else {
         return;
     };

@@ -146,3 +146,40 @@ def test_malformed_gcode_is_a_precise_error_not_a_crash(polar_cell, tmp_path):
     assert proc.returncode == 1
     assert "bad.gcode:2:8: expected a number after `Y`" in proc.stderr
     assert "panicked" not in proc.stderr
+
+
+def test_the_bag_says_the_qos_its_publishers_offer(printed_bags):
+    """metadata.yaml and the MCAP channels carry the QoS the nodes publish with (README,
+    Topics), not ROS's default depth 10 — read here with PyYAML and the mcap library."""
+    import yaml
+
+    _, directory = printed_bags["finger.gcode"]
+    info = yaml.safe_load((directory / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    offered = {
+        t["topic_metadata"]["name"]: yaml.safe_load(t["topic_metadata"]["offered_qos_profiles"])
+        for t in info["topics_with_message_count"]
+    }
+    _, _, summary = read_with_mcap_ros2(mcap_file(directory))
+    for channel in summary.channels.values():
+        assert yaml.safe_load(channel.metadata["offered_qos_profiles"]) == offered[channel.topic]
+    # rosbag2's enums: reliability 1 reliable; durability 1 transient local, 2 volatile.
+    expected = {
+        "/gcode/moves": (4096, 2),
+        "/gcode/ack": (1000, 2),
+        "/polar/steps": (10_000, 2),
+        "/polar/trajectory": (10_000, 2),
+        "/screw/command": (100_000, 2),
+        "/joint_states": (10_000, 2),
+        "/tf": (10_000, 2),
+        "/diagnostics": (10, 2),
+        "/robot_description": (1, 1),
+        "/tf_static": (1, 1),
+        "/rosout": (1, 1),
+    }
+    for topic, (depth, durability) in expected.items():
+        [profile] = offered[topic]
+        assert (profile["depth"], profile["durability"], profile["reliability"]) == (
+            depth,
+            durability,
+            1,
+        ), topic

@@ -13,6 +13,7 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context as _};
 use cell_runtime::flow::{AckTracker, Verdict};
+use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
     now_ns, reliable_qos, transient_local_qos, CellNode, LogLevel, ParamSpec, ParamValue,
 };
@@ -27,26 +28,6 @@ use crate::{metadata_yaml, BagWriter, ChannelId, Compression, QosRecord, WriterO
 
 /// Default node name.
 pub const NODE_NAME: &str = "bag_recorder";
-
-/// The suite's topics, their types, and the QoS their publishers offer.
-pub const SUITE_TOPICS: &[(&str, &str)] = &[
-    ("/gcode/moves", "polar_cell_msgs/msg/GcodeMove"),
-    ("/gcode/progress", "polar_cell_msgs/msg/GcodeProgress"),
-    ("/gcode/ack", "polar_cell_msgs/msg/GcodeAck"),
-    ("/polar/trajectory", "trajectory_msgs/msg/JointTrajectory"),
-    ("/polar/steps", "polar_cell_msgs/msg/StepSegment"),
-    ("/joint_states", "sensor_msgs/msg/JointState"),
-    ("/polar/planned_joint_states", "sensor_msgs/msg/JointState"),
-    ("/tf", "tf2_msgs/msg/TFMessage"),
-    ("/tf_static", "tf2_msgs/msg/TFMessage"),
-    ("/cell/plan_credit", "polar_cell_msgs/msg/PlanCredit"),
-    ("/screw/command", "polar_cell_msgs/msg/ScrewCommand"),
-    ("/mechanism/joint_states", "sensor_msgs/msg/JointState"),
-    ("/mechanism/tool_pose", "geometry_msgs/msg/PoseStamped"),
-    ("/robot_description", "std_msgs/msg/String"),
-    ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
-    ("/rosout", "rcl_interfaces/msg/Log"),
-];
 
 /// The node's parameters.
 pub fn param_specs() -> Vec<ParamSpec> {
@@ -63,7 +44,12 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ),
         ParamSpec::new(
             "topics",
-            ParamValue::StringArray(SUITE_TOPICS.iter().map(|t| t.0.to_string()).collect()),
+            ParamValue::StringArray(
+                cell_runtime::topics::SUITE_TOPICS
+                    .iter()
+                    .map(|t| t.name.to_string())
+                    .collect(),
+            ),
             "topics to record: a suite topic name, or `name:package/msg/Type`",
         ),
         ParamSpec::new(
@@ -121,28 +107,34 @@ pub struct Recorder {
     _node: CellNode,
 }
 
+/// The reader's profile for `topic`, and what its publishers offer (for the bag's metadata):
+/// the suite's table for a suite topic, ROS's default for another.
 fn qos_for(topic: &str) -> (QosProfile, QosRecord) {
-    if topic == "/robot_description" || topic == "/tf_static" {
-        let q = QosRecord {
-            reliability: crate::Reliability::Reliable,
-            durability: crate::Durability::TransientLocal,
-            depth: 1,
-        };
-        return (transient_local_qos(1), q);
+    let offered = cell_runtime::topics::suite_topic(topic)
+        .map_or(cell_runtime::topics::TopicQos::reliable(10), |t| t.qos);
+    let record = QosRecord {
+        reliability: crate::Reliability::Reliable,
+        durability: if offered.transient_local {
+            crate::Durability::TransientLocal
+        } else {
+            crate::Durability::Volatile
+        },
+        depth: offered.depth as u32,
+    };
+    if offered.transient_local {
+        return (transient_local_qos(offered.depth), record);
     }
     // Deep reader histories: a keep-last reader drops its oldest samples when the recorder
     // lags (its writer queue full), and only flow-controlled topics are resent.
-    (reliable_qos(100_000), QosRecord::ROS_DEFAULT)
+    (reliable_qos(100_000), record)
 }
 
 fn parse_topic(entry: &str) -> anyhow::Result<(String, String)> {
     if let Some((name, type_name)) = entry.split_once(':') {
         return Ok((name.to_string(), type_name.to_string()));
     }
-    SUITE_TOPICS
-        .iter()
-        .find(|t| t.0 == entry)
-        .map(|t| (t.0.to_string(), t.1.to_string()))
+    cell_runtime::topics::suite_topic(entry)
+        .map(|t| (t.name.to_string(), t.type_name.to_string()))
         .ok_or_else(|| {
             anyhow!("topic {entry}: not a suite topic; give its type as `{entry}:package/msg/Type`")
         })
@@ -244,7 +236,7 @@ fn spawn_moves_consumer(
     let moves: Subscription<GcodeMove> = node.subscription("/gcode/moves", &moves_qos)?;
     let progress: Subscription<GcodeProgress> =
         node.subscription("/gcode/progress", &reliable_qos(1000))?;
-    let acks = node.publisher::<GcodeAck>("/gcode/ack", &reliable_qos(1000))?;
+    let acks = node.publisher::<GcodeAck>("/gcode/ack", &publisher_qos("/gcode/ack"))?;
     let mut tracker = AckTracker::new(node.fully_qualified_name(), 64);
     Ok(tokio::spawn(async move {
         let mut tick = tokio::time::interval(Duration::from_millis(20));

@@ -17,9 +17,10 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
+use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
-    now_ns, parse_service_mapping, reliable_qos, transient_local_qos, CellNode, LogLevel,
-    ParamSpec, ParamValue, Params, Wire,
+    now_ns, parse_service_mapping, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
+    Wire,
 };
 use polar_cell_msgs::{
     DiagnosticStatus, GcodeProgress, Header, Hold, JointState, PlanCredit, ScrewCommand,
@@ -30,11 +31,6 @@ use tokio::sync::{mpsc, watch};
 
 use crate::tf::TfTree;
 use crate::{HoldReason, Machine, PlayerState};
-
-/// History kept by the `/joint_states` and `/tf` writers for reliable readers that fall
-/// behind: 10,000 samples, 200 s at 50 Hz, 5 s at `--speed 40`. With 100 a recorder delayed
-/// by 50 ms of a loaded machine at 40× lost samples its bag should have (CI, 15 of 8,935).
-const LIVE_STATE_HISTORY: usize = 10_000;
 
 /// The cell's URDF (the default of `urdf_file`).
 pub const POLAR_CELL_URDF: &str = include_str!("../../../urdf/polar_cell.urdf");
@@ -267,11 +263,13 @@ pub async fn run<M: Machine>(
     let progress_sub =
         node.subscription::<GcodeProgress>("/gcode/progress", &reliable_qos(1000))?;
     let joint_states =
-        node.publisher::<JointState>("/joint_states", &reliable_qos(LIVE_STATE_HISTORY))?;
-    let tf = node.publisher::<TFMessage>("/tf", &reliable_qos(LIVE_STATE_HISTORY))?;
-    let tf_static = node.publisher::<TFMessage>("/tf_static", &transient_local_qos(1))?;
-    let description = node.publisher::<StringMsg>("/robot_description", &transient_local_qos(1))?;
-    let credit_pub = node.publisher::<PlanCredit>("/cell/plan_credit", &reliable_qos(10))?;
+        node.publisher::<JointState>("/joint_states", &publisher_qos("/joint_states"))?;
+    let tf = node.publisher::<TFMessage>("/tf", &publisher_qos("/tf"))?;
+    let tf_static = node.publisher::<TFMessage>("/tf_static", &publisher_qos("/tf_static"))?;
+    let description =
+        node.publisher::<StringMsg>("/robot_description", &publisher_qos("/robot_description"))?;
+    let credit_pub =
+        node.publisher::<PlanCredit>("/cell/plan_credit", &publisher_qos("/cell/plan_credit"))?;
     let mut servers = Vec::new();
     for (name, command) in SERVICES {
         let server = node.service::<TriggerRequest, TriggerResponse>(

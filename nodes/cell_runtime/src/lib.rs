@@ -11,6 +11,7 @@ pub mod dds;
 pub mod flow;
 pub mod names;
 pub mod params;
+pub mod topics;
 
 pub use args::{ArgsError, RosArgs};
 pub use dds::{

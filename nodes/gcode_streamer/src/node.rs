@@ -9,6 +9,7 @@ use std::sync::mpsc::{sync_channel, Receiver, TryRecvError};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context as _};
+use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
     now_ns, publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, RosArgs,
     PUBLISH_PATIENCE,
@@ -170,7 +171,8 @@ pub async fn stream(
     let consumer_timeout = params.f64("consumer_timeout_s");
     let moves_pub =
         node.publisher::<GcodeMove>("/gcode/moves", &reliable_qos(window_size.max(10)))?;
-    let progress_pub = node.publisher::<GcodeProgress>("/gcode/progress", &reliable_qos(10))?;
+    let progress_pub =
+        node.publisher::<GcodeProgress>("/gcode/progress", &publisher_qos("/gcode/progress"))?;
     let acks = node.subscription::<GcodeAck>("/gcode/ack", &reliable_qos(1000))?;
     let parsed = spawn_parser(input, file_label.to_string(), interpreter_options(&params)?);
     let mut window = SendWindow::new(options, &consumers);

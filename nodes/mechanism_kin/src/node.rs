@@ -8,7 +8,8 @@
 //! joint state.
 
 use anyhow::{anyhow, Context};
-use cell_runtime::{reliable_qos, transient_local_qos, CellNode, LogLevel, ParamSpec, ParamValue};
+use cell_runtime::topics::publisher_qos;
+use cell_runtime::{reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue};
 use nalgebra::Vector3;
 use polar_cell_msgs::{Header, JointState, Point, Pose, PoseStamped, Quaternion, StringMsg, Time};
 
@@ -139,12 +140,16 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             }
         )
     })?;
-    let description = node.publisher::<StringMsg>("/robot_description", &transient_local_qos(1))?;
+    let description =
+        node.publisher::<StringMsg>("/robot_description", &publisher_qos("/robot_description"))?;
     description
         .publish(StringMsg { data: text })
         .map_err(|e| anyhow!("/robot_description: {e:?}"))?;
     node.keep(description);
-    let states = node.publisher::<JointState>("/mechanism/joint_states", &reliable_qos(100))?;
+    let states = node.publisher::<JointState>(
+        "/mechanism/joint_states",
+        &publisher_qos("/mechanism/joint_states"),
+    )?;
     let poses = node.subscription::<PoseStamped>("/mechanism/tool_pose", &reliable_qos(100))?;
     let mut fk = ForwardSolver::default();
     cell_runtime::cell_log!(

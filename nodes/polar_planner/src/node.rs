@@ -22,6 +22,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
 use cell_runtime::flow::Intake;
+use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
     now_ns, publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
     PUBLISH_PATIENCE,
@@ -184,12 +185,15 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let moves_sub = node.subscription::<GcodeMove>("/gcode/moves", &reliable_qos(10_000))?;
     let progress_sub =
         node.subscription::<GcodeProgress>("/gcode/progress", &reliable_qos(1000))?;
-    let acks = node.publisher::<GcodeAck>("/gcode/ack", &reliable_qos(1000))?;
-    let trajectory_pub =
-        node.publisher::<JointTrajectory>("/polar/trajectory", &reliable_qos(10_000))?;
-    let steps_pub = node.publisher::<StepSegment>("/polar/steps", &reliable_qos(10_000))?;
-    let joint_states_pub =
-        node.publisher::<JointState>("/polar/planned_joint_states", &reliable_qos(10_000))?;
+    let acks = node.publisher::<GcodeAck>("/gcode/ack", &publisher_qos("/gcode/ack"))?;
+    let trajectory_pub = node
+        .publisher::<JointTrajectory>("/polar/trajectory", &publisher_qos("/polar/trajectory"))?;
+    let steps_pub =
+        node.publisher::<StepSegment>("/polar/steps", &publisher_qos("/polar/steps"))?;
+    let joint_states_pub = node.publisher::<JointState>(
+        "/polar/planned_joint_states",
+        &publisher_qos("/polar/planned_joint_states"),
+    )?;
     let follow_execution = params.bool("follow_execution");
     let credit_sub = node.subscription::<PlanCredit>("/cell/plan_credit", &reliable_qos(10))?;
     let mut credit: Option<PlanCredit> = None;

@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _};
 use cell_runtime::flow::Intake;
+use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
     publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, PUBLISH_PATIENCE,
 };
@@ -181,14 +182,15 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         node.subscription::<JointTrajectory>("/polar/trajectory", &reliable_qos(100_000))?;
     let progress_sub =
         node.subscription::<GcodeProgress>("/gcode/progress", &reliable_qos(1000))?;
-    let acks = node.publisher::<GcodeAck>("/gcode/ack", &reliable_qos(1000))?;
+    let acks = node.publisher::<GcodeAck>("/gcode/ack", &publisher_qos("/gcode/ack"))?;
     let commands_pub = std::sync::Arc::new(
-        node.publisher::<ScrewCommand>("/screw/command", &reliable_qos(100_000))?,
+        node.publisher::<ScrewCommand>("/screw/command", &publisher_qos("/screw/command"))?,
     );
     node.keep(commands_pub.clone());
-    let joint_states_pub = std::sync::Arc::new(
-        node.publisher::<JointState>("/polar/planned_joint_states", &reliable_qos(10_000))?,
-    );
+    let joint_states_pub = std::sync::Arc::new(node.publisher::<JointState>(
+        "/polar/planned_joint_states",
+        &publisher_qos("/polar/planned_joint_states"),
+    )?);
     node.keep(joint_states_pub.clone());
     let joint_state_period_s = params.f64("joint_state_period_s");
     let mut angle = (joint_state_period_s > 0.0).then(|| {

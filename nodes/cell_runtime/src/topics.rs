@@ -1,0 +1,185 @@
+//! The suite's topics: name, message type, and the QoS their publishers offer — one table, so
+//! that what a node publishes with and what a bag says it was published with cannot differ.
+//!
+//! Every topic is reliable. Live state keeps a deep history (a recorder or a viewer a moment
+//! behind still gets every sample); flow-controlled links keep as much as their window; latched
+//! topics (`/robot_description`, `/tf_static`) are transient-local with depth 1. `/rosout` is
+//! as ros2-client publishes it (rclcpp's own is transient-local too).
+
+use ros2_client::QosProfile;
+
+use crate::dds::{reliable_qos, transient_local_qos};
+
+/// What a topic's publishers offer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TopicQos {
+    /// Late joiners get the last `depth` samples (transient-local), or nothing (volatile).
+    pub transient_local: bool,
+    /// Keep-last depth.
+    pub depth: usize,
+}
+
+impl TopicQos {
+    pub const fn reliable(depth: usize) -> TopicQos {
+        TopicQos {
+            transient_local: false,
+            depth,
+        }
+    }
+
+    pub const fn latched(depth: usize) -> TopicQos {
+        TopicQos {
+            transient_local: true,
+            depth,
+        }
+    }
+
+    /// The DDS profile.
+    pub fn profile(&self) -> QosProfile {
+        if self.transient_local {
+            transient_local_qos(self.depth)
+        } else {
+            reliable_qos(self.depth)
+        }
+    }
+}
+
+/// One topic of the suite.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SuiteTopic {
+    pub name: &'static str,
+    pub type_name: &'static str,
+    pub qos: TopicQos,
+}
+
+/// The streamer's default send window: the depth of `/gcode/moves` (its publisher keeps as
+/// many moves as may be unacknowledged; a changed `window` changes it).
+pub const DEFAULT_MOVE_WINDOW: usize = 4096;
+
+/// History kept by the `/joint_states` and `/tf` writers for reliable readers that fall
+/// behind: 200 s at 50 Hz, 5 s at `--speed 40`. With 100 a recorder delayed by 50 ms of a
+/// loaded machine at 40× lost samples its bag should have (CI, 15 of 8,935).
+pub const LIVE_STATE_HISTORY: usize = 10_000;
+
+const fn topic(name: &'static str, type_name: &'static str, qos: TopicQos) -> SuiteTopic {
+    SuiteTopic {
+        name,
+        type_name,
+        qos,
+    }
+}
+
+/// Every topic the suite publishes (or, for `/mechanism/tool_pose`, takes: its publishers are
+/// the user's, at ROS's default depth).
+pub const SUITE_TOPICS: &[SuiteTopic] = &[
+    topic(
+        "/gcode/moves",
+        "polar_cell_msgs/msg/GcodeMove",
+        TopicQos::reliable(DEFAULT_MOVE_WINDOW),
+    ),
+    topic(
+        "/gcode/progress",
+        "polar_cell_msgs/msg/GcodeProgress",
+        TopicQos::reliable(10),
+    ),
+    topic(
+        "/gcode/ack",
+        "polar_cell_msgs/msg/GcodeAck",
+        TopicQos::reliable(1000),
+    ),
+    topic(
+        "/polar/trajectory",
+        "trajectory_msgs/msg/JointTrajectory",
+        TopicQos::reliable(10_000),
+    ),
+    topic(
+        "/polar/steps",
+        "polar_cell_msgs/msg/StepSegment",
+        TopicQos::reliable(10_000),
+    ),
+    topic(
+        "/joint_states",
+        "sensor_msgs/msg/JointState",
+        TopicQos::reliable(LIVE_STATE_HISTORY),
+    ),
+    topic(
+        "/polar/planned_joint_states",
+        "sensor_msgs/msg/JointState",
+        TopicQos::reliable(10_000),
+    ),
+    topic(
+        "/tf",
+        "tf2_msgs/msg/TFMessage",
+        TopicQos::reliable(LIVE_STATE_HISTORY),
+    ),
+    topic("/tf_static", "tf2_msgs/msg/TFMessage", TopicQos::latched(1)),
+    topic(
+        "/cell/plan_credit",
+        "polar_cell_msgs/msg/PlanCredit",
+        TopicQos::reliable(10),
+    ),
+    topic(
+        "/screw/command",
+        "polar_cell_msgs/msg/ScrewCommand",
+        TopicQos::reliable(100_000),
+    ),
+    topic(
+        "/mechanism/joint_states",
+        "sensor_msgs/msg/JointState",
+        TopicQos::reliable(100),
+    ),
+    topic(
+        "/mechanism/tool_pose",
+        "geometry_msgs/msg/PoseStamped",
+        TopicQos::reliable(10),
+    ),
+    topic(
+        "/robot_description",
+        "std_msgs/msg/String",
+        TopicQos::latched(1),
+    ),
+    topic(
+        "/diagnostics",
+        "diagnostic_msgs/msg/DiagnosticArray",
+        TopicQos::reliable(10),
+    ),
+    topic("/rosout", "rcl_interfaces/msg/Log", TopicQos::latched(1)),
+];
+
+/// The suite topic called `name`.
+pub fn suite_topic(name: &str) -> Option<&'static SuiteTopic> {
+    SUITE_TOPICS.iter().find(|t| t.name == name)
+}
+
+/// The profile the suite publishes `name` with.
+///
+/// # Panics
+/// If `name` is not in [`SUITE_TOPICS`]: a node publishing a topic the table does not know
+/// is a programming error, caught by its first test.
+pub fn publisher_qos(name: &str) -> QosProfile {
+    suite_topic(name)
+        .unwrap_or_else(|| panic!("{name} is not in cell_runtime::topics::SUITE_TOPICS"))
+        .qos
+        .profile()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_topic_is_listed_once_with_a_depth() {
+        for (i, t) in SUITE_TOPICS.iter().enumerate() {
+            assert!(t.qos.depth >= 1, "{}", t.name);
+            assert!(t.name.starts_with('/') && t.type_name.contains("/msg/"));
+            assert!(
+                SUITE_TOPICS[i + 1..].iter().all(|u| u.name != t.name),
+                "{} twice",
+                t.name
+            );
+        }
+        assert_eq!(suite_topic("/joint_states").unwrap().qos.depth, 10_000);
+        assert!(suite_topic("/tf_static").unwrap().qos.transient_local);
+        assert!(suite_topic("/nope").is_none());
+    }
+}

@@ -77,6 +77,22 @@ pub fn end_steps(segments: &[StepSegment]) -> [i64; 3] {
 /// node builds it: the planner's steps and accelerations, a 0.25 s pin delay, 64 places, a
 /// 2 s horizon.
 pub fn mcu_machine(emulator: EmulatorOptions) -> McuMachine<InProcess> {
+    mcu_machine_with_crystal(
+        Crystal {
+            timer_hz: 1e6,
+            offset_ticks: 123_456_789,
+            rate_ppm: 80.0,
+            drift_ppm_per_s: 0.0,
+        },
+        emulator,
+    )
+}
+
+/// [`mcu_machine`] with the MCU's crystal as given.
+pub fn mcu_machine_with_crystal(
+    crystal: Crystal,
+    emulator: EmulatorOptions,
+) -> McuMachine<InProcess> {
     let options = SessionOptions::new(
         StepOptions::default().steps_per_unit,
         std::array::from_fn(|j| PlannerOptions::default().joints[j].acceleration),
@@ -84,12 +100,7 @@ pub fn mcu_machine(emulator: EmulatorOptions) -> McuMachine<InProcess> {
     );
     let link = InProcess {
         mcu: Emulator::new(EmulatorOptions {
-            crystal: Crystal {
-                timer_hz: 1e6,
-                offset_ticks: 123_456_789,
-                rate_ppm: 80.0,
-                drift_ppm_per_s: 0.0,
-            },
+            crystal,
             ..emulator
         }),
         edges: Vec::new(),

@@ -271,8 +271,10 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 if self.fault == FaultCode::None {
                     let refused = self.screw.push(command, self.plan_clock());
                     match refused {
-                        Ok(()) => {}
-                        Err(ScrewRefusal::Late) => self.latch(FaultCode::LateSegment, 0),
+                        Ok(late) => {
+                            // Started at arrival (see `Screw::push`), counted with the late.
+                            self.counters.late_segments += u32::from(late);
+                        }
                         Err(ScrewRefusal::OutOfOrder) => self.latch(FaultCode::BadSegment, 0),
                         Err(ScrewRefusal::Full) => self.latch(FaultCode::QueueOverflow, 0),
                     }

@@ -12,8 +12,6 @@ use heapless::Deque;
 /// Why a screw command was refused.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ScrewRefusal {
-    /// It starts before the plan clock already played.
-    Late,
     /// It starts before a command queued ahead of it.
     OutOfOrder,
     Full,
@@ -58,11 +56,12 @@ impl<const S: usize> Screw<S> {
         }
     }
 
-    /// Queue a command; `plan_now` is the plan tick already played.
-    pub fn push(&mut self, command: ScrewRamp, plan_now: u64) -> Result<(), ScrewRefusal> {
-        if command.start_clock < plan_now {
-            return Err(ScrewRefusal::Late);
-        }
+    /// Queue a command; `plan_now` is the plan tick already played. A command that starts
+    /// before `plan_now` arrived late (a frame resent on a damaged line takes longer than the
+    /// host's margin): it starts now and still ends where it would have, and `Ok(true)` says
+    /// so. Unlike a step segment, a screw ramp started late loses no position — only a few
+    /// ms of material — so it is not a fault.
+    pub fn push(&mut self, mut command: ScrewRamp, plan_now: u64) -> Result<bool, ScrewRefusal> {
         if self
             .queue
             .back()
@@ -70,9 +69,16 @@ impl<const S: usize> Screw<S> {
         {
             return Err(ScrewRefusal::OutOfOrder);
         }
+        let late = command.start_clock < plan_now;
+        if late {
+            let end = command.start_clock + command.ramp_ticks as u64;
+            command.ramp_ticks = end.saturating_sub(plan_now).min(u32::MAX as u64) as u32;
+            command.start_clock = plan_now;
+        }
         self.queue
             .push_back(command)
-            .map_err(|_| ScrewRefusal::Full)
+            .map_err(|_| ScrewRefusal::Full)?;
+        Ok(late)
     }
 
     /// Speed of the ramp in force at plan tick `t` (≥ its start).
@@ -207,11 +213,27 @@ mod tests {
         assert_eq!(screw.millirpm(), 2_500);
     }
 
+    /// 0 → 10,000 millirpm over ticks 0..1000, arriving at tick 400: it starts there, from
+    /// the speed then (0), and still reaches 10,000 at tick 1000.
     #[test]
-    fn late_out_of_order_and_full_are_refused() {
+    fn a_late_command_starts_now_and_ends_where_it_would_have() {
         let mut screw = Screw::<2>::new();
-        assert_eq!(screw.push(ramp(5, 0, 1, true), 10), Err(ScrewRefusal::Late));
-        screw.push(ramp(20, 0, 1, true), 10).unwrap();
+        screw.advance_to(400);
+        assert_eq!(screw.push(ramp(0, 1000, 10_000, true), 400), Ok(true));
+        screw.advance_to(700);
+        assert_eq!(screw.millirpm(), 5_000);
+        screw.advance_to(1000);
+        assert_eq!((screw.millirpm(), screw.pin_open()), (10_000, true));
+        // A step change (no ramp) that is late: at once.
+        assert_eq!(screw.push(ramp(900, 0, 2_000, false), 1000), Ok(true));
+        screw.advance_to(1001);
+        assert_eq!((screw.millirpm(), screw.pin_open()), (2_000, false));
+    }
+
+    #[test]
+    fn out_of_order_and_full_are_refused() {
+        let mut screw = Screw::<2>::new();
+        assert_eq!(screw.push(ramp(20, 0, 1, true), 10), Ok(false));
         assert_eq!(
             screw.push(ramp(15, 0, 1, true), 10),
             Err(ScrewRefusal::OutOfOrder)

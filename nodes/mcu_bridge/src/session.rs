@@ -148,8 +148,8 @@ pub struct McuSession {
 /// start: the MCU's generator runs ahead of its timer (2 ms on the RP2040) and a frame takes
 /// a few ms to arrive, more when it is resent. A command that would start sooner — the
 /// screw driver's, say, for a pin opening before the plan's first move — starts this far
-/// ahead instead: late material, reported, rather than a LATE_SEGMENT fault that stops the
-/// print.
+/// ahead instead: late material, reported. One that still arrives late (resent on a damaged
+/// line) the MCU starts at arrival (PROTOCOL.md, SCREW).
 pub const SCREW_MARGIN_S: f64 = 0.02;
 
 /// Clock samples the fit keeps: 51 s of them at the default query period. A long window

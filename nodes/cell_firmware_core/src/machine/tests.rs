@@ -236,6 +236,29 @@ fn a_silent_host_stops_the_pulses_at_its_deadline_not_after() {
     );
 }
 
+/// A screw command that arrives after its start (a resent frame) is no fault: the screw
+/// starts at arrival and it is counted with the late.
+#[test]
+fn a_late_screw_command_starts_at_arrival_without_a_fault() {
+    let mut m = machine();
+    queue(&mut m, cruise(0, 100, 100, 0, 1));
+    run(&mut m, 1000);
+    m.handle(
+        &HostMessage::Screw(ScrewRamp {
+            start_clock: 500,
+            ramp_ticks: 0,
+            target_millirpm: 30_000,
+            pin_open: true,
+        }),
+        1000,
+    );
+    run(&mut m, 1010);
+    assert_eq!(m.mode(), Mode::Running);
+    assert_eq!(m.fault(), FaultCode::None);
+    assert_eq!((m.screw_millirpm(), m.pin_open()), (30_000, true));
+    assert_eq!(m.counters().late_segments, 1);
+}
+
 #[test]
 fn an_emergency_stop_stops_at_once_and_holds_until_reset() {
     let mut m = machine();

@@ -11,7 +11,18 @@
 //! mean error (ME) is kept. The seed measures ME against its simulator's truth, which a real
 //! user does not have: here ME is the leave-one-out prediction error, from the hat matrix.
 //! Corrected legs solve the three surfaces Z, θ1, θ2 = target by Newton (eq. 6.4); the table
-//! absorbs the x, y surfaces. Targets outside the fitted region are refused.
+//! absorbs the x, y surfaces.
+//!
+//! A quadratic answers anywhere, but is only right near its data. A target is refused when
+//! the legs it needs are farther from the measured legs than any measurement is from the
+//! rest: its leverage `h(x) = t(x)ᵀ(XᵀX)⁻¹t(x)` (the prediction variance in units of σ²)
+//! above the largest `h_ii` of the fit — the boundary of the data's ellipsoid, which finds
+//! the hidden extrapolation a box around the data's poses does not (Montgomery, *Design and
+//! Analysis of Experiments*, on regressor-variable hulls). Within it, an answer is given
+//! only if its standard error — the surfaces' residual σ (what a quadratic misses of this
+//! machine over the measured poses) times √(1 + h) — is within a tolerance (0.02 mm and
+//! 0.005°, the seed's result): surfaces fitted over too wide a region answer nothing rather
+//! than answer a few tenths of a millimetre off.
 
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use statrs::distribution::{ContinuousCDF, StudentsT};
@@ -94,6 +105,9 @@ pub struct Surface {
     pub adjusted_r2: f64,
     /// Mean absolute leave-one-out error of the kept model.
     pub mean_error: f64,
+    /// Residual standard deviation of the kept model (what the surface misses at its data).
+    #[serde(default)]
+    pub sigma: f64,
     /// Mean error of the other candidate (full if reduced was kept, reduced otherwise).
     pub other_mean_error: f64,
     /// Whether the t-test-reduced model was kept.
@@ -122,6 +136,8 @@ impl Surface {
 
 struct Fit {
     coefficients: Vec<f64>,
+    /// Residual standard deviation, √(SSE / (n − p)).
+    sigma: f64,
     t_values: Vec<f64>,
     r2: f64,
     adjusted_r2: f64,
@@ -166,6 +182,7 @@ fn fit(xs: &[Vector3<f64>], y: &DVector<f64>, kept: &[usize]) -> Result<Fit, Cal
     let r2 = if syy > 0.0 { 1.0 - sse / syy } else { 1.0 };
     Ok(Fit {
         coefficients: b.iter().copied().collect(),
+        sigma: sigma2.sqrt(),
         t_values,
         r2,
         adjusted_r2: 1.0 - (sse / dof) / (syy / (n as f64 - 1.0)).max(1e-300),
@@ -185,6 +202,54 @@ pub struct ResponseSurfaces {
     pub significance: f64,
     /// θ1 is unwrapped to within 180° of this direction, deg.
     pub theta1_reference_deg: f64,
+    /// Where the data is (files written before it existed: the box `region` only).
+    #[serde(default)]
+    pub leverage: Option<LeverageLimit>,
+}
+
+/// How far from its data the full quadratic may be asked.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct LeverageLimit {
+    /// (XᵀX)⁻¹ of the full quadratic over the measured legs (scaled), row-major.
+    pub moment_inverse: Vec<f64>,
+    /// The largest leverage of a measurement.
+    pub max_measured: f64,
+    /// How well an answer must be predicted to be given: the tool tip (mm) and the tilt
+    /// (deg), as the standard error of a prediction, σ·√(1 + h).
+    pub tolerance_mm: f64,
+    pub tolerance_deg: f64,
+}
+
+/// The default tolerances: the seed's response surface reached 0.0205 mm and 0.0045° at its
+/// example pose.
+pub const DEFAULT_TOLERANCE_MM: f64 = 0.02;
+pub const DEFAULT_TOLERANCE_DEG: f64 = 0.005;
+
+impl LeverageLimit {
+    fn of(xs: &[Vector3<f64>]) -> Option<LeverageLimit> {
+        let x = DMatrix::from_fn(xs.len(), TERMS, |i, j| terms(&xs[i])[j]);
+        let inverse = (x.transpose() * &x).try_inverse()?;
+        let mut limit = LeverageLimit {
+            moment_inverse: inverse.transpose().iter().copied().collect(),
+            max_measured: 0.0,
+            tolerance_mm: DEFAULT_TOLERANCE_MM,
+            tolerance_deg: DEFAULT_TOLERANCE_DEG,
+        };
+        limit.max_measured = xs.iter().map(|x| limit.at(x)).fold(0.0, f64::max);
+        Some(limit)
+    }
+
+    /// The leverage of scaled legs `x`.
+    pub fn at(&self, x: &Vector3<f64>) -> f64 {
+        let t = terms(x);
+        let mut h = 0.0;
+        for (i, ti) in t.iter().enumerate() {
+            for (j, tj) in t.iter().enumerate() {
+                h += ti * self.moment_inverse[i * TERMS + j] * tj;
+            }
+        }
+        h
+    }
 }
 
 /// (θ1, θ2) in degrees with θ2 ≥ 0 and θ1 unwrapped to within 180° of `reference_deg`: the
@@ -294,6 +359,7 @@ pub fn fit_surfaces(
                 r2: red.r2,
                 adjusted_r2: red.adjusted_r2,
                 mean_error: red.loo_mean_error,
+                sigma: red.sigma,
                 other_mean_error: full.loo_mean_error,
                 reduced: true,
             },
@@ -304,6 +370,7 @@ pub fn fit_surfaces(
                 r2: full.r2,
                 adjusted_r2: full.adjusted_r2,
                 mean_error: full.loo_mean_error,
+                sigma: full.sigma,
                 other_mean_error: other.map_or(full.loo_mean_error, |f| f.loo_mean_error),
                 reduced: false,
             },
@@ -317,6 +384,7 @@ pub fn fit_surfaces(
         region,
         significance,
         theta1_reference_deg: reference,
+        leverage: LeverageLimit::of(&xs),
     })
 }
 
@@ -365,8 +433,11 @@ impl ResponseSurfaces {
             ("θ1 (deg)", t1, self.region.theta1_deg),
             ("θ2 (deg)", t2, self.region.theta2_deg),
         ];
+        // With the data's leverage known, distance from the data decides (below); a file
+        // without it keeps the box of the measured poses.
+        let box_check = checked && self.leverage.is_none();
         for (what, value, range) in checks {
-            if checked && value < range[0] - 1e-9 || value > range[1] + 1e-9 {
+            if box_check && (value < range[0] - 1e-9 || value > range[1] + 1e-9) {
                 return Err(CalibError::OutsideRegion {
                     what: what.into(),
                     value,
@@ -407,9 +478,10 @@ impl ResponseSurfaces {
             ))?;
             x -= step;
         }
-        // The legs must stay where the surfaces were fitted (5 % slack for the Newton answer).
+        // Without the leverage, the legs must stay in the box of the measured legs (5 %
+        // slack for the Newton answer).
         for k in 0..3 {
-            if checked && x[k].abs() > 1.05 {
+            if box_check && x[k].abs() > 1.05 {
                 return Err(CalibError::OutsideRegion {
                     what: format!("leg L{} (scaled)", k + 1),
                     value: x[k],
@@ -419,6 +491,36 @@ impl ResponseSurfaces {
             }
         }
         let legs_mm = self.legs(&x);
+        if let (true, Some(limit)) = (checked, &self.leverage) {
+            let leverage = limit.at(&x);
+            if leverage > limit.max_measured * (1.0 + 1e-9) {
+                return Err(CalibError::Extrapolating {
+                    legs_mm,
+                    leverage,
+                    max_measured: limit.max_measured,
+                });
+            }
+            // The standard error of the answer: what the surfaces miss at their data,
+            // grown by the distance from it.
+            let spread = |rs: std::ops::Range<usize>| {
+                self.surfaces[rs]
+                    .iter()
+                    .map(|s| s.sigma * s.sigma)
+                    .sum::<f64>()
+                    .sqrt()
+                    * (1.0 + leverage).sqrt()
+            };
+            let (tip_mm, tilt_deg) = (spread(0..3), spread(3..5));
+            if tip_mm > limit.tolerance_mm || tilt_deg > limit.tolerance_deg {
+                return Err(CalibError::Imprecise {
+                    tip_mm,
+                    tilt_deg,
+                    tolerance_mm: limit.tolerance_mm,
+                    tolerance_deg: limit.tolerance_deg,
+                    leverage,
+                });
+            }
+        }
         let (tip, _) = self.predict(legs_mm);
         Ok(CorrectedCommand {
             legs_mm,

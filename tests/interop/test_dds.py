@@ -282,3 +282,43 @@ def test_print_nodes_appear_under_their_default_names(polar_cell, tmp_path):
     assert_readable_by_independent_readers(tmp_path / "x.mcap")
     assert ("/", "gcode_streamer") in nodes, sorted(nodes)
     assert ("/", "bag_recorder") in nodes, sorted(nodes)
+
+
+def test_forged_acknowledgements_from_a_foreign_participant_change_nothing(polar_cell, tmp_path):
+    """A Cyclone participant on the domain acknowledges 10^9 moves in the name of each of the
+    print's consumers, every 5 ms, for the whole print. The streamer refuses what was never
+    sent and says so on /rosout; the print finishes with every move in the bag."""
+    name = "polartest.gcode"
+    bag = tmp_path / "forged.mcap"
+    participant = DomainParticipant(0)
+    forger = DataWriter(participant, Topic(participant, "rt/gcode/ack", GcodeAck), qos=ros_qos())
+    proc = subprocess.Popen(
+        [str(polar_cell), "print", str(FIXTURES / name), "--bag", str(bag), "--no-progress", "--dry-run"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    forged = 0
+    try:
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and time.monotonic() < deadline:
+            for consumer in ("/bag_recorder", "/polar_planner", "/screw_driver"):
+                forger.write(GcodeAck(consumer, 10**9, False))
+                forged += 1
+            time.sleep(0.005)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert forged > 100, forged
+    import re
+
+    moves = int(re.search(r"(\d+) moves from \d+ lines", err).group(1))
+    assert moves == 1766, err  # `polar-cell check` on the fixture says 1766
+    with open(bag, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        counts = reader.get_summary().statistics.channel_message_counts
+        topics = {c.id: c.topic for c in reader.get_summary().channels.values()}
+        by_topic = {topics[k]: v for k, v in counts.items()}
+        logs = [m.msg for _, _, _, m in reader.iter_decoded_messages(topics=["/rosout"])]
+    assert by_topic["/gcode/moves"] == moves, (by_topic["/gcode/moves"], moves)
+    assert by_topic["/gcode/moves"] == by_topic["/polar/trajectory"]
+    assert any("ignored an impossible /gcode/ack" in m for m in logs), logs

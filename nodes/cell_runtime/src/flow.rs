@@ -58,6 +58,22 @@ impl From<Ack> for GcodeAck {
     }
 }
 
+/// What became of an acknowledgement ([`SendWindow::on_ack`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum AckOutcome {
+    Applied,
+    /// From a node that is not one of the consumers: ignored, so a stray node can neither
+    /// stall the stream nor speed it up.
+    UnknownConsumer,
+    /// It acknowledges messages never sent (`next_expected` beyond `sent`): ignored. Taken
+    /// at its word, one forged acknowledgement would drain the window and end the stream
+    /// "finished" with messages no consumer ever received.
+    Impossible {
+        next_expected: u64,
+        sent: u64,
+    },
+}
+
 /// Options of a producer's window.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WindowOptions {
@@ -95,6 +111,8 @@ pub struct SendWindow<T> {
     /// Sequence number of `buffer[0]`.
     base: u64,
     next_to_send: u64,
+    /// One past the highest sequence number ever published (going back does not lower it).
+    sent_end: u64,
     consumers: Vec<ConsumerState>,
     last_progress: Duration,
     resends: u64,
@@ -110,6 +128,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
             buffer: VecDeque::new(),
             base: 0,
             next_to_send: 0,
+            sent_end: 0,
             consumers: consumers
                 .iter()
                 .map(|name| ConsumerState {
@@ -151,6 +170,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
     pub fn mark_sent(&mut self) {
         if self.peek_next().is_some() {
             self.next_to_send += 1;
+            self.sent_end = self.sent_end.max(self.next_to_send);
         }
     }
 
@@ -158,6 +178,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
     pub fn next_to_send(&mut self) -> Option<T> {
         let m = self.peek_next()?.clone();
         self.next_to_send += 1;
+        self.sent_end = self.sent_end.max(self.next_to_send);
         Some(m)
     }
 
@@ -166,13 +187,18 @@ impl<T: Sequenced + Clone> SendWindow<T> {
         self.next_to_send - self.base
     }
 
-    /// Apply an acknowledgement received at monotonic time `now`. Unknown consumers are
-    /// ignored (returns false) so a stray node cannot stall or speed up the stream.
-    pub fn on_ack(&mut self, ack: &Ack, now: Duration) -> bool {
+    /// Apply an acknowledgement received at monotonic time `now`; one from an unknown
+    /// consumer or for messages never sent is ignored (and said so).
+    pub fn on_ack(&mut self, ack: &Ack, now: Duration) -> AckOutcome {
         let Some(c) = self.consumers.iter_mut().find(|c| c.name == ack.consumer) else {
-            return false;
+            return AckOutcome::UnknownConsumer;
         };
-        let sent_end = self.base + self.buffer.len() as u64;
+        if !ack.resume && ack.next_expected > self.sent_end {
+            return AckOutcome::Impossible {
+                next_expected: ack.next_expected,
+                sent: self.sent_end,
+            };
+        }
         if ack.resume {
             c.present = true;
             c.ready = false;
@@ -182,7 +208,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
         } else {
             c.ready |= c.present;
             if ack.next_expected > c.next_expected {
-                c.next_expected = ack.next_expected.min(sent_end);
+                c.next_expected = ack.next_expected;
                 self.last_progress = now;
                 self.stalled_resends = 0;
             }
@@ -198,7 +224,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
             self.base += 1;
         }
         self.next_to_send = self.next_to_send.max(self.base);
-        true
+        AckOutcome::Applied
     }
 
     /// Call periodically: goes back to the oldest unacknowledged move when acknowledgements
@@ -582,7 +608,10 @@ mod tests {
         w.on_ack(&ack("/b", 2), ms(2));
         assert_eq!(w.acknowledged(), 2);
         assert!(w.has_room());
-        assert!(!w.on_ack(&ack("/stranger", 4), ms(3)));
+        assert_eq!(
+            w.on_ack(&ack("/stranger", 4), ms(3)),
+            AckOutcome::UnknownConsumer
+        );
         assert_eq!(w.acknowledged(), 2);
         // No progress for resend_after: go back to 2.
         assert!(!w.on_tick(ms(50)));
@@ -651,5 +680,39 @@ mod tests {
             15,
             "never goes back"
         );
+    }
+
+    /// A forged acknowledgement (next_expected 10⁹ for a real consumer) acknowledges nothing:
+    /// the window keeps every message until the consumer itself has them.
+    #[test]
+    fn an_acknowledgement_of_messages_never_sent_is_refused() {
+        let ack = |name: &str, n| Ack {
+            consumer: name.into(),
+            next_expected: n,
+            resume: false,
+        };
+        let mut w: SendWindow<GcodeMove> =
+            SendWindow::new(WindowOptions::default(), &["/a".to_string()]);
+        w.on_ack(&AckTracker::new("/a", 1).hello(), ms(0));
+        w.on_ack(&ack("/a", 0), ms(0));
+        for k in 0..10 {
+            w.push(mv(k));
+        }
+        for _ in 0..4 {
+            w.next_to_send().unwrap();
+        }
+        assert_eq!(
+            w.on_ack(&ack("/a", 1_000_000_000), ms(1)),
+            AckOutcome::Impossible {
+                next_expected: 1_000_000_000,
+                sent: 4
+            }
+        );
+        assert_eq!(w.acknowledged(), 0);
+        assert!(!w.is_drained());
+        // What was sent can be acknowledged; a go-back does not lower what counts as sent.
+        assert_eq!(w.on_ack(&ack("/a", 4), ms(2)), AckOutcome::Applied);
+        assert_eq!(w.acknowledged(), 4);
+        assert_eq!(w.on_ack(&ack("/b", 4), ms(2)), AckOutcome::UnknownConsumer);
     }
 }

@@ -17,7 +17,7 @@ use cell_runtime::{
 use polar_cell_msgs::{DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, Time};
 
 use crate::{Event, GcodeError, GcodeReader, InterpreterOptions};
-use cell_runtime::flow::{SendWindow, WindowOptions};
+use cell_runtime::flow::{AckOutcome, SendWindow, WindowOptions};
 
 /// Default node name.
 pub const NODE_NAME: &str = "gcode_streamer";
@@ -195,9 +195,10 @@ pub async fn stream(
     loop {
         let now = start.elapsed();
         // Acknowledgements.
-        while let Some((ack, _)) = acks.take().context("reading /gcode/ack")? {
+        while let Some((ack, info)) = acks.take().context("reading /gcode/ack")? {
             progress_due |= ack.resume;
-            window.on_ack(&(&ack).into(), now);
+            let outcome = window.on_ack(&(&ack).into(), now);
+            refuse_impossible(node, &ack, &info, outcome);
         }
         // Parser output into the window.
         while window.has_room() && !eof {
@@ -307,13 +308,38 @@ pub async fn stream(
             let patience = if window.has_room() && !eof { 2 } else { 20 };
             let wait =
                 tokio::time::timeout(Duration::from_millis(patience), acks.async_take()).await;
-            if let Ok(Ok((ack, _))) = wait {
+            if let Ok(Ok((ack, info))) = wait {
                 progress_due |= ack.resume;
-                window.on_ack(&(&ack).into(), start.elapsed());
+                let outcome = window.on_ack(&(&ack).into(), start.elapsed());
+                refuse_impossible(node, &ack, &info, outcome);
             }
         } else {
             tokio::task::yield_now().await;
         }
+    }
+}
+
+/// An acknowledgement of moves never sent is not applied (a forged or corrupted one would
+/// end the stream "finished"); say so, naming its sender.
+fn refuse_impossible(
+    node: &CellNode,
+    ack: &GcodeAck,
+    info: &cell_runtime::MessageInfo,
+    outcome: AckOutcome,
+) {
+    if let AckOutcome::Impossible {
+        next_expected,
+        sent,
+    } = outcome
+    {
+        cell_runtime::cell_log!(
+            node,
+            LogLevel::Error,
+            "ignored an impossible /gcode/ack from publisher {:?} in the name of {}: next \
+             expected {next_expected}, but only {sent} moves were sent",
+            info.publisher_gid(),
+            ack.consumer
+        );
     }
 }
 

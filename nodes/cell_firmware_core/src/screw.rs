@@ -62,10 +62,11 @@ impl<const S: usize> Screw<S> {
     /// so. Unlike a step segment, a screw ramp started late loses no position — only a few
     /// ms of material — so it is not a fault.
     pub fn push(&mut self, mut command: ScrewRamp, plan_now: u64) -> Result<bool, ScrewRefusal> {
+        // Two late commands in one batch: the first was moved to `plan_now` already.
         if self
             .queue
             .back()
-            .is_some_and(|last| command.start_clock < last.start_clock)
+            .is_some_and(|last| command.start_clock.max(plan_now) < last.start_clock)
         {
             return Err(ScrewRefusal::OutOfOrder);
         }
@@ -224,6 +225,11 @@ mod tests {
         assert_eq!(screw.millirpm(), 5_000);
         screw.advance_to(1000);
         assert_eq!((screw.millirpm(), screw.pin_open()), (10_000, true));
+        // Two late commands before the next advance (one read of a resent batch): both kept.
+        assert_eq!(screw.push(ramp(1100, 0, 3_000, true), 1200), Ok(true));
+        assert_eq!(screw.push(ramp(1150, 0, 4_000, true), 1200), Ok(true));
+        screw.advance_to(1201);
+        assert_eq!(screw.millirpm(), 4_000);
         // A step change (no ramp) that is late: at once.
         assert_eq!(screw.push(ramp(900, 0, 2_000, false), 1000), Ok(true));
         screw.advance_to(1001);

@@ -252,6 +252,9 @@ impl Device {
 
 fn baud_rate(baud: u32) -> anyhow::Result<BaudRate> {
     Ok(match baud {
+        1200 => BaudRate::B1200,
+        2400 => BaudRate::B2400,
+        4800 => BaudRate::B4800,
         9600 => BaudRate::B9600,
         19200 => BaudRate::B19200,
         38400 => BaudRate::B38400,
@@ -263,7 +266,7 @@ fn baud_rate(baud: u32) -> anyhow::Result<BaudRate> {
         1_000_000 => BaudRate::B1000000,
         2_000_000 => BaudRate::B2000000,
         other => anyhow::bail!(
-            "parameter baud: {other} is not one of 9600, 19200, 38400, 57600, 115200, 230400, \
+            "baud {other} is not one of 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, \
              460800, 921600, 1000000, 2000000"
         ),
     })

@@ -456,7 +456,10 @@ impl ScrewLine {
         self.counters.lines_sent += 1;
         self.sent = Some(Sent {
             machine_s: clock.machine_s,
-            due_s: clock.machine_s - late_s,
+            // A line held back by the rate is due when the rate allowed it, not earlier.
+            due_s: self.sent.as_ref().map_or(clock.machine_s - late_s, |s| {
+                (clock.machine_s - late_s).max(s.due_s + self.min_period_s)
+            }),
             text: text.clone(),
             rpm,
             pin_open,

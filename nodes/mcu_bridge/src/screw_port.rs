@@ -74,6 +74,10 @@ impl<M: Machine, P: LinePort> WithScrewLine<M, P> {
         &self.port
     }
 
+    pub fn port_mut(&mut self) -> &mut P {
+        &mut self.port
+    }
+
     pub fn counters(&self) -> LineCounters {
         self.line.counters()
     }
@@ -88,11 +92,15 @@ impl<M: Machine, P: LinePort> WithScrewLine<M, P> {
         let Some(text) = text else {
             return Ok(());
         };
-        self.port.send(now_ns, &text).map_err(|e| {
-            let e = e.to_string();
-            self.port_error.get_or_insert(e.clone());
-            e
-        })
+        let sent = self.port.send(now_ns, &text).map_err(|e| e.to_string());
+        if let Err(e) = &sent {
+            // The screw is out of reach: the steppers stop too, at once.
+            if self.port_error.is_none() {
+                self.port_error = Some(e.clone());
+                self.inner.emergency_stop();
+            }
+        }
+        sent
     }
 
     /// The screw stops now (whatever the rate limit), and what was queued for it goes.
@@ -180,7 +188,9 @@ impl<M: Machine, P: LinePort> Machine for WithScrewLine<M, P> {
             machine_s: now_ns as f64 * 1e-9,
             plan_s,
             feed: if running { state.feed } else { 0.0 },
-            pin_allowed: running && state.hold.is_none() && state.feed >= 1.0 - 1e-9,
+            // The MCU reopens the pin when a resume is asked for (its delay at rest), before σ
+            // ramps up; a hold closes it.
+            pin_allowed: running && state.hold.is_none(),
         };
         let polled = self.line.poll(clock).map(|(text, _)| text);
         self.send(now_ns, polled).map_err(WithScrewLineError::Port)

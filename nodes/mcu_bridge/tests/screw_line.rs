@@ -27,11 +27,18 @@ use polar_cell_msgs::{Header, Hold, ScrewCommand, StepSegment, Time};
 struct Logged {
     port: SerialLink,
     sent: Vec<(i64, String)>,
+    /// Fail every send after this many (an adapter unplugged).
+    fail_after: Option<usize>,
 }
 
 impl LinePort for Logged {
     type Error = mcu_bridge::node::DeviceError;
     fn send(&mut self, now_ns: i64, text: &str) -> Result<(), Self::Error> {
+        if self.fail_after.is_some_and(|n| self.sent.len() >= n) {
+            return Err(mcu_bridge::node::DeviceError::Closed {
+                device: "the amplifier".into(),
+            });
+        }
         self.sent.push((now_ns, text.to_string()));
         self.port.send(now_ns, text)
     }
@@ -134,6 +141,7 @@ fn rig() -> (Rig, Arc<AtomicBool>, Peer) {
     let port = Logged {
         port: SerialLink::new(device, name),
         sent: Vec::new(),
+        fail_after: None,
     };
     let machine = WithScrewLine::new(mcu_machine(EmulatorOptions::default()), line, port, 64);
     // The slave side stays open in the bridge's device; this copy may go.
@@ -411,4 +419,57 @@ fn material_per_move_when_the_screw_is_told_at_most_n_times_a_second() {
     let at = |hz: f64| figures.iter().find(|f| f.0 == hz).unwrap();
     assert!(at(2.0).2 > at(50.0).2, "{figures:?}");
     assert!(at(50.0).1 >= d1, "{figures:?}");
+}
+
+/// The amplifier's line fails mid-print (an adapter unplugged): the machine stops, the
+/// MCU's steppers with it, at once.
+#[test]
+fn a_failed_screw_line_stops_the_steppers() {
+    let segments = finger_start(150);
+    let plan_end_s: f64 = segments.iter().map(|s| s.duration_s).sum();
+    let messages: Vec<ScrewCommand> = screw_commands(plan_end_s)
+        .into_iter()
+        .map(screw_message)
+        .collect();
+    let (mut machine, stop, reader) = rig();
+    let mut failed_at = None;
+    let (mut fed, mut fed_screw, mut now_ns) = (0, 0, 0i64);
+    while now_ns < 10_000_000_000 {
+        if now_ns == 3_000_000_000 {
+            machine_port_fails(&mut machine);
+        }
+        let (room, screw_room) = machine.free_slots();
+        for s in segments[fed..].iter().take(room) {
+            machine.on_segment(s).unwrap();
+            fed += 1;
+        }
+        for c in messages[fed_screw..].iter().take(screw_room) {
+            machine.on_screw(c).unwrap();
+            fed_screw += 1;
+        }
+        now_ns += 1_000_000;
+        if machine.on_tick(now_ns).is_err() && failed_at.is_none() {
+            failed_at = Some(now_ns);
+        }
+        if let Some(at) = failed_at {
+            if now_ns > at + 50_000_000 {
+                break;
+            }
+        }
+    }
+    let failed_at = failed_at.expect("the failed line is an error");
+    assert_eq!(machine.state().state, cell_machine::PlayerState::Stopped);
+    // The MCU itself was stopped, not left to play its horizon.
+    let inner = machine.inner().state();
+    assert_eq!(inner.state, cell_machine::PlayerState::Stopped);
+    assert!(inner.velocities[..3].iter().all(|v| *v == 0.0), "{inner:?}");
+    assert!(failed_at < 3_200_000_000, "{failed_at}");
+    drop(machine);
+    stop.store(true, Ordering::Relaxed);
+    reader.join().unwrap();
+}
+
+fn machine_port_fails(machine: &mut Rig) {
+    let sent = machine.port().sent.len();
+    machine.port_mut().fail_after = Some(sent);
 }

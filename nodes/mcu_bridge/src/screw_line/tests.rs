@@ -306,3 +306,37 @@ fn polled_on_time_the_material_is_exact() {
         .collect();
     assert_eq!(got, [(0.0, 39.0), (0.25, 20.0), (0.5, 0.0)]);
 }
+
+/// A line resent within its interval (the feed changed) and the next one held back by the
+/// rate: the one after that still keeps a period from it.
+#[test]
+fn a_held_back_line_does_not_let_the_next_one_follow_at_once() {
+    let mut line = ScrewLine::new(template("{rpm:.1} {pin}"), 10.0, Hold::ZeroOrder);
+    line.push(0.0, 50.0, true, 0).unwrap();
+    for k in 0..30 {
+        line.push(0.5 + 0.1 * k as f64 + 0.001, 10.0 + k as f64, true, 0)
+            .unwrap();
+    }
+    let mut sends = Vec::new();
+    for k in 0..=3000 {
+        let t = k as f64 / 1000.0;
+        // σ ramps back to 1 by t = 0.5: the line in force is resent at 0.5.
+        let feed = (t / 0.5).min(1.0);
+        if line
+            .poll(LineClock {
+                machine_s: t,
+                plan_s: t,
+                feed,
+                pin_allowed: true,
+            })
+            .is_some()
+        {
+            sends.push(t);
+        }
+    }
+    // A period apart, less the 1 ms poll's lateness of the earlier line.
+    assert!(sends.len() > 20);
+    for w in sends.windows(2) {
+        assert!(w[1] - w[0] >= 0.099 - 1e-9, "{:?}", w);
+    }
+}

@@ -494,7 +494,7 @@ impl ResponseSurfaces {
         if let (true, Some(limit)) = (checked, &self.leverage) {
             let leverage = limit.at(&x);
             // (Written so that a diverged Newton answer, NaN, is refused too.)
-            if !(leverage <= limit.max_measured * (1.0 + 1e-9)) {
+            if leverage.is_nan() || leverage > limit.max_measured * (1.0 + 1e-9) {
                 return Err(CalibError::Extrapolating {
                     legs_mm,
                     leverage,
@@ -512,7 +512,11 @@ impl ResponseSurfaces {
                     * (1.0 + leverage).sqrt()
             };
             let (tip_mm, tilt_deg) = (spread(0..3), spread(3..5));
-            if !(tip_mm <= limit.tolerance_mm && tilt_deg <= limit.tolerance_deg) {
+            if tip_mm.is_nan()
+                || tilt_deg.is_nan()
+                || tip_mm > limit.tolerance_mm
+                || tilt_deg > limit.tolerance_deg
+            {
                 return Err(CalibError::Imprecise {
                     tip_mm,
                     tilt_deg,

@@ -17,7 +17,7 @@ use std::io::{Read, Seek, Write};
 
 use mcap::records::{op, MessageHeader, Record};
 
-use crate::writer::{Compression, WriterOptions};
+use crate::writer::WriterOptions;
 use crate::BagError;
 
 /// How the salvage ended.
@@ -212,24 +212,12 @@ pub fn recover<W: Write + Seek>(
         },
         _ => return Err(BagError::NotRos2("no MCAP header record".into())),
     };
-    let compression = match options.compression {
-        Compression::Zstd => mcap::Compression::Zstd,
-        Compression::Lz4 => mcap::Compression::Lz4,
-    };
-    let writer = mcap::WriteOptions::new()
-        .profile(&profile)
-        .library(concat!(
-            "polar-cell ",
-            env!("CARGO_PKG_VERSION"),
-            " (recovered)"
-        ))
-        .compression(Some(compression))
-        .chunk_size(Some(options.chunk_size_bytes))
-        .emit_statistics(true)
-        .emit_message_indexes(true)
-        .emit_chunk_indexes(true)
-        .emit_summary_offsets(true)
-        .create(out)?;
+    let writer = crate::writer::mcap_options(
+        options,
+        &profile,
+        concat!("polar-cell ", env!("CARGO_PKG_VERSION"), " (recovered)"),
+    )
+    .create(out)?;
     let mut copier = Copier {
         out: writer,
         schemas: HashMap::new(),

@@ -55,22 +55,36 @@ pub struct BagWriter<W: Write + Seek> {
     by_topic: HashMap<String, u16>,
 }
 
+/// How every bag of ours is written (`profile`, `library` in its header): chunked as
+/// `options` say, with the statistics and indexes rosbag2 readers need.
+pub(crate) fn mcap_options(
+    options: &WriterOptions,
+    profile: &str,
+    library: &str,
+) -> mcap::WriteOptions {
+    let compression = match options.compression {
+        Compression::Zstd => mcap::Compression::Zstd,
+        Compression::Lz4 => mcap::Compression::Lz4,
+    };
+    mcap::WriteOptions::new()
+        .profile(profile)
+        .library(library)
+        .compression(Some(compression))
+        .chunk_size(Some(options.chunk_size_bytes))
+        .emit_statistics(true)
+        .emit_message_indexes(true)
+        .emit_chunk_indexes(true)
+        .emit_summary_offsets(true)
+}
+
 impl<W: Write + Seek> BagWriter<W> {
     pub fn new(sink: W, options: &WriterOptions) -> Result<Self, BagError> {
-        let compression = match options.compression {
-            Compression::Zstd => mcap::Compression::Zstd,
-            Compression::Lz4 => mcap::Compression::Lz4,
-        };
-        let inner = mcap::WriteOptions::new()
-            .profile("ros2")
-            .library(concat!("polar-cell ", env!("CARGO_PKG_VERSION")))
-            .compression(Some(compression))
-            .chunk_size(Some(options.chunk_size_bytes))
-            .emit_statistics(true)
-            .emit_message_indexes(true)
-            .emit_chunk_indexes(true)
-            .emit_summary_offsets(true)
-            .create(sink)?;
+        let inner = mcap_options(
+            options,
+            "ros2",
+            concat!("polar-cell ", env!("CARGO_PKG_VERSION")),
+        )
+        .create(sink)?;
         Ok(BagWriter {
             inner,
             schemas: HashMap::new(),

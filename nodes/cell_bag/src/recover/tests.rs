@@ -1,5 +1,5 @@
 use super::*;
-use crate::{read_bag, BagWriter, QosRecord};
+use crate::{read_bag, BagWriter, Compression, QosRecord};
 use polar_cell_msgs::{GcodeProgress, Header, JointState, RosMessage, StringMsg, Time};
 use proptest::prelude::*;
 

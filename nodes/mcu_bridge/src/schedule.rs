@@ -28,6 +28,17 @@ pub enum ScheduleError {
     },
 }
 
+/// A screw command's plan time, following the previous command's (if any): stamps are whole
+/// nanoseconds, so one a rounding (under 1 µs) earlier is the same instant; one earlier
+/// still is out of order, `Err(previous_s)`.
+pub(crate) fn screw_time_after(plan_s: f64, previous_s: Option<f64>) -> Result<f64, f64> {
+    match previous_s {
+        Some(previous_s) if plan_s < previous_s && previous_s - plan_s < 1e-6 => Ok(previous_s),
+        Some(previous_s) if plan_s < previous_s => Err(previous_s),
+        _ => Ok(plan_s),
+    }
+}
+
 /// A screw command waiting for its successor (first-order hold).
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct PendingScrew {
@@ -114,22 +125,14 @@ impl Schedule {
                 rpm: cmd.rpm,
             });
         }
-        // Stamps are whole nanoseconds: two commands at one instant may differ by a rounding.
-        let plan_s = match self.last_screw {
-            Some(previous) if plan_s < previous.plan_s && previous.plan_s - plan_s < 1e-6 => {
-                previous.plan_s
-            }
-            _ => plan_s,
-        };
-        if let Some(previous) = self.last_screw {
-            if plan_s < previous.plan_s {
-                return Err(ScheduleError::ScrewOutOfOrder {
+        let plan_s =
+            screw_time_after(plan_s, self.last_screw.map(|p| p.plan_s)).map_err(|previous_s| {
+                ScheduleError::ScrewOutOfOrder {
                     source_line: cmd.source_line,
                     plan_s,
-                    previous_s: previous.plan_s,
-                });
-            }
-        }
+                    previous_s,
+                }
+            })?;
         let now = PendingScrew {
             clock: self.clock_at(plan_s),
             plan_s,

@@ -391,20 +391,13 @@ impl ScrewLine {
         if !(rpm.is_finite() && rpm >= 0.0) {
             return Err(ScrewLineError::BadRpm { source_line, rpm });
         }
-        let mut plan_s = plan_s;
-        if let Some(last) = self.points.back() {
-            // Stamps are whole nanoseconds: two commands at one instant may differ by one.
-            if plan_s < last.plan_s && last.plan_s - plan_s < 1e-6 {
-                plan_s = last.plan_s;
-            }
-            if plan_s < last.plan_s {
-                return Err(ScrewLineError::OutOfOrder {
+        let plan_s =
+            crate::schedule::screw_time_after(plan_s, self.points.back().map(|p| p.plan_s))
+                .map_err(|previous_s| ScrewLineError::OutOfOrder {
                     source_line,
                     plan_s,
-                    previous_s: last.plan_s,
-                });
-            }
-        }
+                    previous_s,
+                })?;
         self.points.push_back(Point {
             plan_s,
             rpm,

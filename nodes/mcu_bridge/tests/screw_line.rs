@@ -149,13 +149,21 @@ fn rig() -> (Rig, Arc<AtomicBool>, Peer) {
     (machine, stop, reader)
 }
 
-/// Feed what there is room for and tick every millisecond until `done` (given whether all
-/// was fed) says so; the plan time at each tick.
+/// What `run` tells its `done` after each tick.
+struct Tick {
+    now_ns: i64,
+    all_fed: bool,
+    /// The tick's answer (an error once the machine failed).
+    ok: bool,
+}
+
+/// Feed what there is room for and tick every millisecond until `done` says so; the plan
+/// time at each tick.
 fn run(
     machine: &mut Rig,
     segments: &[StepSegment],
     screw: &[ScrewCommand],
-    mut done: impl FnMut(&mut Rig, i64, bool) -> bool,
+    mut done: impl FnMut(&mut Rig, Tick) -> bool,
 ) -> Vec<(i64, f64)> {
     let (mut fed, mut fed_screw, mut now_ns) = (0, 0, 0i64);
     let mut plan_times = Vec::new();
@@ -173,12 +181,19 @@ fn run(
             machine.finish_input();
         }
         now_ns += 1_000_000;
-        machine.on_tick(now_ns).unwrap();
+        let ok = machine.on_tick(now_ns).is_ok();
         plan_times.push((now_ns, machine.state().plan_time_s));
         // The MCU's own screw output stays idle: the amplifier has the screw.
         assert_eq!(machine.inner().state().screw_rpm, 0.0);
         let all_fed = fed == segments.len() && fed_screw == screw.len();
-        if done(machine, now_ns, all_fed) {
+        if done(
+            machine,
+            Tick {
+                now_ns,
+                all_fed,
+                ok,
+            },
+        ) {
             return plan_times;
         }
         assert!(
@@ -205,8 +220,9 @@ fn a_print_tells_a_pseudo_terminal_peer_its_screw_at_most_ten_times_a_second() {
     let commands = screw_commands(plan_end_s);
     let messages: Vec<ScrewCommand> = commands.iter().copied().map(screw_message).collect();
     let (mut machine, stop, reader) = rig();
-    let plan_times = run(&mut machine, &segments, &messages, |m, _, all_fed| {
-        all_fed && m.is_drained()
+    let plan_times = run(&mut machine, &segments, &messages, |m, tick| {
+        assert!(tick.ok);
+        tick.all_fed && m.is_drained()
     });
     let sent = machine.port().sent.clone();
     drop(machine);
@@ -281,7 +297,9 @@ fn an_emergency_stop_reaches_the_amplifier_at_once() {
         .collect();
     let (mut machine, stop, reader) = rig();
     let mut stopped_at = None;
-    run(&mut machine, &segments, &messages, |m, now_ns, _| {
+    run(&mut machine, &segments, &messages, |m, tick| {
+        assert!(tick.ok);
+        let now_ns = tick.now_ns;
         if now_ns == 5_000_000_000 {
             // A line went out at most 1 ms ago if the grid just passed: stop anyway.
             m.emergency_stop();
@@ -433,30 +451,15 @@ fn a_failed_screw_line_stops_the_steppers() {
         .collect();
     let (mut machine, stop, reader) = rig();
     let mut failed_at = None;
-    let (mut fed, mut fed_screw, mut now_ns) = (0, 0, 0i64);
-    while now_ns < 10_000_000_000 {
-        if now_ns == 3_000_000_000 {
-            machine_port_fails(&mut machine);
+    run(&mut machine, &segments, &messages, |m, tick| {
+        if tick.now_ns == 3_000_000_000 {
+            machine_port_fails(m);
         }
-        let (room, screw_room) = machine.free_slots();
-        for s in segments[fed..].iter().take(room) {
-            machine.on_segment(s).unwrap();
-            fed += 1;
+        if !tick.ok {
+            failed_at.get_or_insert(tick.now_ns);
         }
-        for c in messages[fed_screw..].iter().take(screw_room) {
-            machine.on_screw(c).unwrap();
-            fed_screw += 1;
-        }
-        now_ns += 1_000_000;
-        if machine.on_tick(now_ns).is_err() && failed_at.is_none() {
-            failed_at = Some(now_ns);
-        }
-        if let Some(at) = failed_at {
-            if now_ns > at + 50_000_000 {
-                break;
-            }
-        }
-    }
+        failed_at.is_some_and(|at| tick.now_ns > at + 50_000_000) || tick.now_ns >= 10_000_000_000
+    });
     let failed_at = failed_at.expect("the failed line is an error");
     assert_eq!(machine.state().state, cell_machine::PlayerState::Stopped);
     // The MCU itself was stopped, not left to play its horizon.

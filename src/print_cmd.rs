@@ -365,7 +365,11 @@ pub async fn run_job(
     let status = status_tx.subscribe();
     // The MCU emulator of `--device emulator` lives as long as the job.
     let mut _emulator = None;
-    let mut executor = match (options.execution, options.device.as_deref()) {
+    // The machine node (`None`: a dry run). Its task ends on `end_machine` and hands the node
+    // back, its live-state writers still alive: a sample lost on the way to the recorder is
+    // repaired only while its writer exists.
+    let (end_machine, machine_ended) = tokio::sync::oneshot::channel::<()>();
+    let machine_node = match (options.execution, options.device.as_deref()) {
         (Some(speed), Some(device)) => {
             let device = match device {
                 "emulator" => {
@@ -378,31 +382,40 @@ pub async fn run_job(
             };
             let mut overrides = executor_overrides;
             overrides.push(param("device", format!("{device:?}")));
-            let mut node = start_node(
+            let node = start_node(
                 mcu_bridge::node::NODE_NAME,
                 &executor_specs,
                 ros_args,
                 overrides,
             )?;
-            Some(tokio::spawn(async move {
-                let result = mcu_bridge::node::run(&mut node, command_rx, status_tx).await;
-                (node, result)
-            }))
+            Some((node, true))
         }
         (Some(_), None) => {
-            let mut node = start_node(
+            let node = start_node(
                 cell_executor::node::NODE_NAME,
                 &executor_specs,
                 ros_args,
                 executor_overrides,
             )?;
-            Some(tokio::spawn(async move {
-                let result = cell_executor::node::run(&mut node, command_rx, status_tx).await;
-                (node, result)
-            }))
+            Some((node, false))
         }
         (None, _) => None,
     };
+    let mut executor = machine_node.map(|(mut node, on_mcu)| {
+        tokio::spawn(async move {
+            let run = async {
+                match on_mcu {
+                    true => mcu_bridge::node::run(&mut node, command_rx, status_tx).await,
+                    false => cell_executor::node::run(&mut node, command_rx, status_tx).await,
+                }
+            };
+            let result = tokio::select! {
+                result = run => result,
+                _ = machine_ended => Ok(()),
+            };
+            (node, result)
+        })
+    });
     let machine_name = match options.device {
         Some(_) => mcu_bridge::node::NODE_NAME,
         None => cell_executor::node::NODE_NAME,
@@ -494,18 +507,21 @@ pub async fn run_job(
     }
     planner.abort();
     screw.abort();
+    // The machine stops publishing; its node stays until the bag is closed. (A task that
+    // ended by itself was awaited above, its node dropped: not again.)
+    let _ = end_machine.send(());
+    let mut _machine_node = None;
     if let Some(task) = executor.take() {
-        task.abort();
-        // Its last /joint_states and /tf went out together; once the task is gone, nothing
-        // follows them. (A finished task may have been awaited already: not twice.)
         if !task.is_finished() {
-            let _ = task.await;
+            _machine_node = task.await.ok().map(|(node, _)| node);
         }
     }
-    // What the nodes published just before they stopped is still on its way to the
-    // recorder's readers: a bag closed now could hold a /joint_states without its /tf.
+    // What the nodes published last is still on its way to the recorder's readers, and a
+    // sample lost on loopback is resent only after the writer's next heartbeat: a bag closed
+    // now could hold a /joint_states without its /tf. Quiet for longer than RustDDS's slow
+    // heartbeat period (1 s) means no repair is still due.
     recorder
-        .wait_quiet(Duration::from_millis(100), Duration::from_secs(2))
+        .wait_quiet(Duration::from_millis(1200), Duration::from_secs(5))
         .await;
     let recorded = recorder.stop().await.context("finishing the bag")?;
     match outcome {

@@ -304,7 +304,27 @@ fn an_executed_print_records_the_executed_joints_at_50_hz() {
         assert_eq!(last.velocity[k], 0.0);
     }
     let tf: Vec<TFMessage> = topic_messages(&bag, "/tf");
-    assert_eq!(tf.len(), states.len());
+    // Every sample's transforms, stamped as its joints: the same stamps in the same order.
+    let state_stamps: Vec<i64> = states.iter().map(|s| s.header.stamp.as_nanos()).collect();
+    let tf_stamps: Vec<i64> = (tf.iter())
+        .map(|t| t.transforms[0].header.stamp.as_nanos())
+        .collect();
+    if tf_stamps != state_stamps {
+        let first_difference = state_stamps
+            .iter()
+            .zip(&tf_stamps)
+            .position(|(a, b)| a != b);
+        panic!(
+            "{} /joint_states, {} /tf; first difference at {first_difference:?}; \
+             /joint_states {:?}..{:?}, /tf {:?}..{:?}",
+            state_stamps.len(),
+            tf_stamps.len(),
+            state_stamps.first(),
+            state_stamps.last(),
+            tf_stamps.first(),
+            tf_stamps.last()
+        );
+    }
     assert_eq!(tf[0].transforms.len(), 4);
     assert_eq!(topic_messages::<TFMessage>(&bag, "/tf_static").len(), 1);
     let description: Vec<StringMsg> = topic_messages(&bag, "/robot_description");

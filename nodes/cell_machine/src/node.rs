@@ -14,6 +14,7 @@
 //! messages and the time, and publishes what it says.
 
 use std::collections::VecDeque;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
@@ -263,13 +264,19 @@ pub async fn run<M: Machine>(
     let progress_sub =
         node.subscription::<GcodeProgress>("/gcode/progress", &reliable_qos(1000))?;
     let joint_states =
-        node.publisher::<JointState>("/joint_states", &publisher_qos("/joint_states"))?;
-    let tf = node.publisher::<TFMessage>("/tf", &publisher_qos("/tf"))?;
+        Arc::new(node.publisher::<JointState>("/joint_states", &publisher_qos("/joint_states"))?);
+    let tf = Arc::new(node.publisher::<TFMessage>("/tf", &publisher_qos("/tf"))?);
     let tf_static = node.publisher::<TFMessage>("/tf_static", &publisher_qos("/tf_static"))?;
     let description =
         node.publisher::<StringMsg>("/robot_description", &publisher_qos("/robot_description"))?;
-    let credit_pub =
-        node.publisher::<PlanCredit>("/cell/plan_credit", &publisher_qos("/cell/plan_credit"))?;
+    let credit_pub = Arc::new(
+        node.publisher::<PlanCredit>("/cell/plan_credit", &publisher_qos("/cell/plan_credit"))?,
+    );
+    // The node outlives this function's writers' last samples: a caller that ends the machine
+    // and keeps its node (a print closing its bag) still has them repaired if lost.
+    node.keep(joint_states.clone());
+    node.keep(tf.clone());
+    node.keep(credit_pub.clone());
     let mut servers = Vec::new();
     for (name, command) in SERVICES {
         let server = node.service::<TriggerRequest, TriggerResponse>(

@@ -336,10 +336,20 @@ pub async fn run_job(
         cell_bag::node::NODE_NAME,
         &recorder_specs,
         ros_args,
-        vec![
-            param("output", format!("{:?}", options.bag.display().to_string())),
-            param("bag_directory", options.bag_dir.to_string()),
-        ],
+        [
+            vec![
+                param("output", format!("{:?}", options.bag.display().to_string())),
+                param("bag_directory", options.bag_dir.to_string()),
+            ],
+            // At machine pace the topics' rates are bounded: a shallower history, less memory.
+            (options.execution.iter())
+                .map(|&speed| {
+                    let depth = cell_bag::node::executed_reader_depth(speed);
+                    param("reader_depth", depth.to_string())
+                })
+                .collect(),
+        ]
+        .concat(),
     )?;
     let recorder = Recorder::start(recorder_node)?;
     let (executor_overrides, planner_extra, screw_extra) = match options.execution {
@@ -565,6 +575,10 @@ pub async fn run_job(
                 );
             }
             print_summary(&recorded);
+            // A print is a success only with its whole record.
+            if let Some(loss) = recorded.loss() {
+                bail!(loss);
+            }
             Ok(JobReport {
                 ending: Ending::Finished,
                 summary: Some(s),

@@ -13,7 +13,9 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context as _};
 use cell_runtime::flow::{AckTracker, Verdict};
-use cell_runtime::topics::publisher_qos;
+
+use crate::gaps::SequenceGaps;
+use cell_runtime::topics::{publisher_qos, DEFAULT_MOVE_WINDOW};
 use cell_runtime::{
     now_ns, reliable_qos, transient_local_qos, CellNode, LogLevel, ParamSpec, ParamValue,
 };
@@ -25,6 +27,22 @@ use ros2_client::{QosProfile, Subscription};
 use tokio::sync::{mpsc, watch};
 
 use crate::{metadata_yaml, BagWriter, ChannelId, Compression, QosRecord, WriterOptions};
+
+/// Default depth of the recorder's readers: what a dry run needs (planning as fast as the
+/// CPU allows, the recorder falls behind by tens of thousands of samples; at 4096 a
+/// million-move dry run lost 1.4M). RustDDS keeps the last `depth` samples of a topic in its
+/// participant's cache even after the reader took them, so the depth is also memory held for
+/// the whole print: a print at machine pace sets it by its rate ([`executed_reader_depth`]).
+/// A recorder that falls further behind loses samples, and says so
+/// ([`RecordSummary::missed`]).
+pub const DEFAULT_READER_DEPTH: usize = 100_000;
+
+/// The reader depth for a print executed at `speed` times machine pace: the busiest topic
+/// (`/screw/command`, 500 per second of machine time) for about 8 s of wall time — far
+/// more than a recorder falls behind at a bounded rate — and never more than a dry run's.
+pub fn executed_reader_depth(speed: f64) -> usize {
+    ((WRITER_QUEUE as f64 * speed.max(1.0)).ceil() as usize).min(DEFAULT_READER_DEPTH)
+}
 
 /// Default node name.
 pub const NODE_NAME: &str = "bag_recorder";
@@ -70,6 +88,12 @@ pub fn param_specs() -> Vec<ParamSpec> {
         )
         .range(0.01, 3600.0),
         ParamSpec::new(
+            "reader_depth",
+            ParamValue::Integer(DEFAULT_READER_DEPTH as i64),
+            "keep-last depth of the readers of volatile topics: samples the recorder may fall behind by before it loses some (and reports them); RustDDS keeps this many after they are taken, so it is the recorder's memory",
+        )
+        .range(16.0, 1e7),
+        ParamSpec::new(
             "acknowledge_moves",
             ParamValue::Bool(true),
             "act as a flow-control consumer of /gcode/moves",
@@ -83,7 +107,15 @@ pub struct RecordSummary {
     pub path: PathBuf,
     pub topics: Vec<(String, String, u64)>,
     pub messages: u64,
+    /// Topics whose writers numbered samples the recorder never took, with how many: the
+    /// bag is missing them (empty: nothing was lost on the way in).
+    pub missed: Vec<(String, u64)>,
 }
+
+/// What a tap tells when it ends: its topic and the samples it never took (see
+/// [`crate::gaps`]); `None` for taps that account for loss themselves (the flow-controlled
+/// moves) or record nothing.
+type TapReport = Option<(String, u64)>;
 
 /// What the bag writer thread is handed.
 enum Item {
@@ -100,7 +132,7 @@ const WRITER_QUEUE: usize = 4096;
 pub struct Recorder {
     stop: watch::Sender<bool>,
     stream_finished: watch::Receiver<bool>,
-    taps: Vec<tokio::task::JoinHandle<()>>,
+    taps: Vec<tokio::task::JoinHandle<TapReport>>,
     writer: std::thread::JoinHandle<anyhow::Result<RecordSummary>>,
     /// Messages written so far (by the writer thread), `/gcode/ack` not counted.
     written: std::sync::Arc<std::sync::atomic::AtomicU64>,
@@ -109,7 +141,7 @@ pub struct Recorder {
 
 /// The reader's profile for `topic`, and what its publishers offer (for the bag's metadata):
 /// the suite's table for a suite topic, ROS's default for another.
-fn qos_for(topic: &str) -> (QosProfile, QosRecord) {
+fn qos_for(topic: &str, reader_depth: usize) -> (QosProfile, QosRecord) {
     let offered = cell_runtime::topics::suite_topic(topic)
         .map_or(cell_runtime::topics::TopicQos::reliable(10), |t| t.qos);
     let record = QosRecord {
@@ -124,9 +156,7 @@ fn qos_for(topic: &str) -> (QosProfile, QosRecord) {
     if offered.transient_local {
         return (transient_local_qos(offered.depth), record);
     }
-    // Deep reader histories: a keep-last reader drops its oldest samples when the recorder
-    // lags (its writer queue full), and only flow-controlled topics are resent.
-    (reliable_qos(100_000), record)
+    (reliable_qos(reader_depth), record)
 }
 
 fn parse_topic(entry: &str) -> anyhow::Result<(String, String)> {
@@ -201,23 +231,36 @@ fn spawn_tap<T: RosMessage>(
     channel: ChannelId,
     tx: mpsc::Sender<Item>,
     mut stop: watch::Receiver<bool>,
-) -> anyhow::Result<tokio::task::JoinHandle<()>> {
+) -> anyhow::Result<tokio::task::JoinHandle<TapReport>> {
     let sub: Subscription<T> = node.subscription(topic, qos)?;
+    let topic = topic.to_string();
     Ok(tokio::spawn(async move {
+        let mut gaps = SequenceGaps::default();
         loop {
             tokio::select! {
                 taken = sub.async_take() => match taken {
-                    Ok((m, info)) => if !forward(&tx, channel, &m, &info).await { return },
+                    Ok((m, info)) => {
+                        gaps.observe(info.publisher_gid(), info.sequence_number());
+                        if !forward(&tx, channel, &m, &info).await { break }
+                    }
                     Err(e) => tracing::warn!("recorder: read error: {e:?}"),
                 },
                 _ = stop.changed() => {
                     while let Ok(Some((m, info))) = sub.take() {
+                        gaps.observe(info.publisher_gid(), info.sequence_number());
                         forward(&tx, channel, &m, &info).await;
                     }
-                    return;
+                    break;
                 }
             }
         }
+        if gaps.out_of_order() > 0 {
+            tracing::warn!(
+                "recorder: {topic}: {} samples arrived again or out of order",
+                gaps.out_of_order()
+            );
+        }
+        Some((topic, gaps.missed()))
     }))
 }
 
@@ -231,8 +274,9 @@ fn spawn_moves_consumer(
     tx: mpsc::Sender<Item>,
     mut stop: watch::Receiver<bool>,
     stream_finished: watch::Sender<bool>,
-) -> anyhow::Result<tokio::task::JoinHandle<()>> {
-    let (moves_qos, _) = qos_for("/gcode/moves");
+) -> anyhow::Result<tokio::task::JoinHandle<TapReport>> {
+    // The streamer sends at most its window beyond the slowest consumer: the move depth.
+    let (moves_qos, _) = qos_for("/gcode/moves", DEFAULT_MOVE_WINDOW);
     let moves: Subscription<GcodeMove> = node.subscription("/gcode/moves", &moves_qos)?;
     let progress: Subscription<GcodeProgress> =
         node.subscription("/gcode/progress", &reliable_qos(1000))?;
@@ -249,7 +293,7 @@ fn spawn_moves_consumer(
                         if tracker.accept(m.sequence) == Verdict::Process
                             && !forward(&tx, moves_channel, &m, &info).await
                         {
-                            return;
+                            return None;
                         }
                         if let Some(ack) = tracker.ack_due(false) {
                             let _ = acks.publish(GcodeAck::from(ack));
@@ -288,7 +332,7 @@ fn spawn_moves_consumer(
                             forward(&tx, channel, &p, &info).await;
                         }
                     }
-                    return;
+                    return None;
                 }
             }
         }
@@ -333,6 +377,7 @@ impl Recorder {
             .map(|t| parse_topic(t))
             .collect::<anyhow::Result<_>>()?;
         let acknowledge_moves = params.bool("acknowledge_moves");
+        let reader_depth = params.i64("reader_depth") as usize;
         let (tx, mut rx) = mpsc::channel::<Item>(WRITER_QUEUE);
         let (stop, stop_rx) = watch::channel(false);
         let (finished_tx, stream_finished) = watch::channel(false);
@@ -344,7 +389,7 @@ impl Recorder {
         for (topic, type_name) in &topics {
             let msg_type = polar_cell_msgs::find(type_name)
                 .ok_or_else(|| anyhow!("topic {topic}: unknown message type {type_name}"))?;
-            let (qos, record) = qos_for(topic);
+            let (qos, record) = qos_for(topic, reader_depth);
             let channel = bag.add_topic(topic, msg_type, record)?;
             if topic == "/gcode/ack" {
                 ack_channel = Some(channel);
@@ -390,8 +435,8 @@ impl Recorder {
             tick.tick().await;
             loop {
                 tokio::select! {
-                    _ = tick.tick() => if flusher.send(Item::Flush).await.is_err() { return },
-                    _ = flush_stop.changed() => return,
+                    _ = tick.tick() => if flusher.send(Item::Flush).await.is_err() { return None },
+                    _ = flush_stop.changed() => return None,
                 }
             }
         }));
@@ -443,6 +488,7 @@ impl Recorder {
                         .map(|t| (t.topic, t.type_name, t.stats.message_count))
                         .collect(),
                     messages,
+                    missed: Vec::new(),
                 })
             })?;
         Ok(Recorder {
@@ -494,12 +540,19 @@ impl Recorder {
     /// Stop recording: take what the readers still hold, finish the bag, report.
     pub async fn stop(self) -> anyhow::Result<RecordSummary> {
         let _ = self.stop.send(true);
+        let mut missed = Vec::new();
         for tap in self.taps {
-            tap.await.context("recorder task")?;
+            if let Some((topic, count)) = tap.await.context("recorder task")? {
+                if count > 0 {
+                    missed.push((topic, count));
+                }
+            }
         }
-        tokio::task::spawn_blocking(move || self.writer.join())
+        let mut summary = tokio::task::spawn_blocking(move || self.writer.join())
             .await?
-            .map_err(|_| anyhow!("bag writer thread panicked"))?
+            .map_err(|_| anyhow!("bag writer thread panicked"))??;
+        summary.missed = missed;
+        Ok(summary)
     }
 }
 
@@ -514,6 +567,9 @@ pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
     cell_runtime::shutdown_signal().await;
     let summary = recorder.stop().await?;
     print_summary(&summary);
+    if let Some(loss) = summary.loss() {
+        bail!(loss);
+    }
     Ok(())
 }
 
@@ -526,6 +582,27 @@ pub fn print_summary(summary: &RecordSummary) {
     );
     for (topic, type_name, count) in &summary.topics {
         eprintln!("  {topic:<28} {type_name:<40} {count}");
+    }
+    for (topic, count) in &summary.missed {
+        eprintln!("  {topic}: {count} samples published but never received (the bag lacks them)");
+    }
+}
+
+impl RecordSummary {
+    /// What the bag lacks, in one line (`None`: nothing was lost on the way in).
+    pub fn loss(&self) -> Option<String> {
+        if self.missed.is_empty() {
+            return None;
+        }
+        let total: u64 = self.missed.iter().map(|(_, n)| n).sum();
+        let topics: Vec<String> = (self.missed.iter())
+            .map(|(topic, n)| format!("{topic} {n}"))
+            .collect();
+        Some(format!(
+            "the bag lacks {total} samples its writers published ({}): the recorder fell \
+             behind their keep-last history",
+            topics.join(", ")
+        ))
     }
 }
 
@@ -599,4 +676,20 @@ pub fn cdr_publisher(
     qos: &QosProfile,
 ) -> anyhow::Result<Box<dyn CdrPublisher>> {
     with_message_type!(type_name, make_typed_publisher(node, topic, qos))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// At machine pace the depth covers 8 s of 500 screw commands a second of machine time,
+    /// scaled with the speed, and a fast simulation gets no more than a dry run.
+    #[test]
+    fn an_executed_print_keeps_seconds_of_its_busiest_topic() {
+        assert_eq!(executed_reader_depth(1.0), 4096);
+        assert!(executed_reader_depth(1.0) as f64 / 500.0 > 8.0);
+        assert_eq!(executed_reader_depth(0.1), 4096, "slower: no shallower");
+        assert_eq!(executed_reader_depth(10.0), 40_960);
+        assert_eq!(executed_reader_depth(40.0), DEFAULT_READER_DEPTH);
+    }
 }

@@ -56,10 +56,12 @@ pub struct SuiteTopic {
 /// many moves as may be unacknowledged; a changed `window` changes it).
 pub const DEFAULT_MOVE_WINDOW: usize = 4096;
 
-/// History kept by the `/joint_states` and `/tf` writers for reliable readers that fall
-/// behind: 200 s at 50 Hz, 5 s at `--speed 40`. With 100 a recorder delayed by 50 ms of a
-/// loaded machine at 40× lost samples its bag should have (CI, 15 of 8,935).
-pub const LIVE_STATE_HISTORY: usize = 10_000;
+/// Depth of the live-state writers (`/joint_states`, `/tf`, the planned joint states): tf2's
+/// own. For a volatile topic RustDDS 0.15 keeps this many samples *after* every reader
+/// acknowledged them (nobody can ask for them again) and keeps unacknowledged ones anyway,
+/// up to its 8192-sample send window. So the depth is memory, not reliability: at 10,000
+/// these writers grew a print's memory for its first 160 s at machine pace.
+pub const LIVE_STATE_HISTORY: usize = 100;
 
 const fn topic(name: &'static str, type_name: &'static str, qos: TopicQos) -> SuiteTopic {
     SuiteTopic {
@@ -105,7 +107,7 @@ pub const SUITE_TOPICS: &[SuiteTopic] = &[
     topic(
         "/polar/planned_joint_states",
         "sensor_msgs/msg/JointState",
-        TopicQos::reliable(10_000),
+        TopicQos::reliable(LIVE_STATE_HISTORY),
     ),
     topic(
         "/tf",
@@ -178,7 +180,7 @@ mod tests {
                 t.name
             );
         }
-        assert_eq!(suite_topic("/joint_states").unwrap().qos.depth, 10_000);
+        assert_eq!(suite_topic("/joint_states").unwrap().qos.depth, 100);
         assert!(suite_topic("/tf_static").unwrap().qos.transient_local);
         assert!(suite_topic("/nope").is_none());
     }

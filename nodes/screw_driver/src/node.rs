@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _};
 use cell_runtime::flow::Intake;
-use cell_runtime::topics::publisher_qos;
+use cell_runtime::topics::{publisher_qos, DEFAULT_MOVE_WINDOW};
 use cell_runtime::{
     publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, PUBLISH_PATIENCE,
 };
@@ -177,9 +177,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let idle_flush = Duration::from_secs_f64(params.f64("idle_flush_s"));
     let max_buffer_s = params.f64("max_buffer_s");
     let command_period_s = params.f64("command_period_s");
-    let moves_sub = node.subscription::<GcodeMove>("/gcode/moves", &reliable_qos(100_000))?;
+    // Neither input runs more than the streamer's window ahead of this node's acknowledgements
+    // (the planner plans only moves the streamer sent). RustDDS keeps `depth` samples after
+    // they are taken, so a deeper history is memory that grows with the print, not safety.
+    let depth = 2 * DEFAULT_MOVE_WINDOW;
+    let moves_sub = node.subscription::<GcodeMove>("/gcode/moves", &reliable_qos(depth))?;
     let trajectories =
-        node.subscription::<JointTrajectory>("/polar/trajectory", &reliable_qos(100_000))?;
+        node.subscription::<JointTrajectory>("/polar/trajectory", &reliable_qos(depth))?;
     let progress_sub =
         node.subscription::<GcodeProgress>("/gcode/progress", &reliable_qos(1000))?;
     let acks = node.publisher::<GcodeAck>("/gcode/ack", &publisher_qos("/gcode/ack"))?;

@@ -342,12 +342,21 @@ pub async fn run_job(
                 param("bag_directory", options.bag_dir.to_string()),
             ],
             // At machine pace the topics' rates are bounded: a shallower history, less memory.
-            (options.execution.iter())
-                .map(|&speed| {
-                    let depth = cell_bag::node::executed_reader_depth(speed);
-                    param("reader_depth", depth.to_string())
-                })
-                .collect(),
+            match options.execution {
+                Some(speed) => {
+                    // The machine that runs: the bridge's horizon with a device.
+                    let name = match options.device {
+                        Some(_) => mcu_bridge::node::NODE_NAME,
+                        None => cell_executor::node::NODE_NAME,
+                    };
+                    let args = args_for(ros_args, name, &executor_specs, vec![]);
+                    let (_, machine) = cell_runtime::resolve_node(name, &executor_specs, &args)?;
+                    let horizon_s = machine.f64("horizon_s");
+                    let depth = cell_bag::node::executed_reader_depth(speed, horizon_s);
+                    vec![param("reader_depth", depth.to_string())]
+                }
+                None => vec![],
+            },
         ]
         .concat(),
     )?;

@@ -37,11 +37,16 @@ use crate::{metadata_yaml, BagWriter, ChannelId, Compression, QosRecord, WriterO
 /// ([`RecordSummary::missed`]).
 pub const DEFAULT_READER_DEPTH: usize = 100_000;
 
-/// The reader depth for a print executed at `speed` times machine pace: the busiest topic
-/// (`/screw/command`, 500 per second of machine time) for about 8 s of wall time — far
-/// more than a recorder falls behind at a bounded rate — and never more than a dry run's.
-pub fn executed_reader_depth(speed: f64) -> usize {
-    ((WRITER_QUEUE as f64 * speed.max(1.0)).ceil() as usize).min(DEFAULT_READER_DEPTH)
+/// The reader depth for a print executed at `speed` times machine pace with producers
+/// `horizon_s` of machine time ahead: the busiest topic (`/screw/command`, 500 per second of
+/// machine time) for about 8 s of wall time — far more than a recorder falls behind at a
+/// bounded rate — plus twice that rate over the horizon, which the producers may publish at
+/// once (a bench rig's 8 s horizon lost 191 screw commands without it); never more than a
+/// dry run's.
+pub fn executed_reader_depth(speed: f64, horizon_s: f64) -> usize {
+    let lag = WRITER_QUEUE as f64 * speed.max(1.0);
+    let burst = 1000.0 * horizon_s.max(0.0);
+    ((lag + burst).ceil() as usize).min(DEFAULT_READER_DEPTH)
 }
 
 /// Default node name.
@@ -154,7 +159,9 @@ fn qos_for(topic: &str, reader_depth: usize) -> (QosProfile, QosRecord) {
         depth: offered.depth as u32,
     };
     if offered.transient_local {
-        return (transient_local_qos(offered.depth), record);
+        // Its writers offer late joiners their last `depth`; live samples come as fast as on
+        // any topic (a burst of /rosout lines, depth 1), so the reader keeps as many as others.
+        return (transient_local_qos(offered.depth.max(reader_depth)), record);
     }
     (reliable_qos(reader_depth), record)
 }
@@ -683,13 +690,23 @@ mod tests {
     use super::*;
 
     /// At machine pace the depth covers 8 s of 500 screw commands a second of machine time,
-    /// scaled with the speed, and a fast simulation gets no more than a dry run.
+    /// scaled with the speed, plus a burst of the horizon at twice that rate; a fast
+    /// simulation gets no more than a dry run.
     #[test]
     fn an_executed_print_keeps_seconds_of_its_busiest_topic() {
-        assert_eq!(executed_reader_depth(1.0), 4096);
-        assert!(executed_reader_depth(1.0) as f64 / 500.0 > 8.0);
-        assert_eq!(executed_reader_depth(0.1), 4096, "slower: no shallower");
-        assert_eq!(executed_reader_depth(10.0), 40_960);
-        assert_eq!(executed_reader_depth(40.0), DEFAULT_READER_DEPTH);
+        assert_eq!(executed_reader_depth(1.0, 0.0), 4096);
+        assert!(executed_reader_depth(1.0, 0.0) as f64 / 500.0 > 8.0);
+        assert_eq!(
+            executed_reader_depth(0.1, 2.0),
+            6096,
+            "slower: no shallower"
+        );
+        assert_eq!(
+            executed_reader_depth(1.0, 8.0),
+            12_096,
+            "the bench rig's horizon"
+        );
+        assert_eq!(executed_reader_depth(10.0, 2.0), 42_960);
+        assert_eq!(executed_reader_depth(40.0, 2.0), DEFAULT_READER_DEPTH);
     }
 }

@@ -2,7 +2,7 @@
 //!
 //! Pure parts (unit-tested without DDS): [`args`] (the ROS command line), [`params`] (typed,
 //! validated parameters from files and overrides), [`names`] (expansion and remapping),
-//! [`flow`] (lossless flow control of a pipeline link).
+//! [`flow`] (lossless flow control of a pipeline link), [`throttle`] (repeated log lines).
 //! DDS parts: [`dds`] (participant on loopback, ROS-default QoS, node with declared parameters,
 //! diagnostics, rosout, shutdown on SIGINT/SIGTERM).
 
@@ -11,6 +11,7 @@ pub mod dds;
 pub mod flow;
 pub mod names;
 pub mod params;
+pub mod throttle;
 pub mod topics;
 
 pub use args::{ArgsError, RosArgs};

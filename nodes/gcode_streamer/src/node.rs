@@ -6,6 +6,7 @@
 
 use std::io::BufRead;
 use std::sync::mpsc::{sync_channel, Receiver, TryRecvError};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context as _};
@@ -18,6 +19,7 @@ use polar_cell_msgs::{DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Head
 
 use crate::{Event, GcodeError, GcodeReader, InterpreterOptions};
 use cell_runtime::flow::{AckOutcome, SendWindow, WindowOptions};
+use cell_runtime::throttle::LogThrottle;
 
 /// Default node name.
 pub const NODE_NAME: &str = "gcode_streamer";
@@ -170,9 +172,15 @@ pub async fn stream(
     let progress_period = Duration::from_secs_f64(params.f64("progress_period_s"));
     let consumer_timeout = params.f64("consumer_timeout_s");
     let moves_pub =
-        node.publisher::<GcodeMove>("/gcode/moves", &reliable_qos(window_size.max(10)))?;
-    let progress_pub =
-        node.publisher::<GcodeProgress>("/gcode/progress", &publisher_qos("/gcode/progress"))?;
+        Arc::new(node.publisher::<GcodeMove>("/gcode/moves", &reliable_qos(window_size.max(10)))?);
+    let progress_pub = Arc::new(
+        node.publisher::<GcodeProgress>("/gcode/progress", &publisher_qos("/gcode/progress"))?,
+    );
+    // The writers outlive the stream with the node: a last progress lost on the way to a
+    // reader is repaired only while its writer exists (a caller that keeps the node, as
+    // `print` does until its bag is closed, lets every reader have it).
+    node.keep(moves_pub.clone());
+    node.keep(progress_pub.clone());
     let acks = node.subscription::<GcodeAck>("/gcode/ack", &reliable_qos(1000))?;
     let parsed = spawn_parser(input, file_label.to_string(), interpreter_options(&params)?);
     let mut window = SendWindow::new(options, &consumers);
@@ -187,6 +195,7 @@ pub async fn stream(
     let mut consumers_announced = consumers.is_empty();
     // A consumer that (re)announces itself needs its resume point from /gcode/progress now.
     let mut progress_due = false;
+    let mut impossible_acks = LogThrottle::new(Duration::from_secs(1));
     cell_runtime::cell_log!(
         node,
         LogLevel::Info,
@@ -198,7 +207,7 @@ pub async fn stream(
         while let Some((ack, info)) = acks.take().context("reading /gcode/ack")? {
             progress_due |= ack.resume;
             let outcome = window.on_ack(&(&ack).into(), now);
-            refuse_impossible(node, &ack, &info, outcome);
+            refuse_impossible(node, &mut impossible_acks, &ack, &info, outcome, now);
         }
         // Parser output into the window.
         while window.has_room() && !eof {
@@ -310,8 +319,9 @@ pub async fn stream(
                 tokio::time::timeout(Duration::from_millis(patience), acks.async_take()).await;
             if let Ok(Ok((ack, info))) = wait {
                 progress_due |= ack.resume;
-                let outcome = window.on_ack(&(&ack).into(), start.elapsed());
-                refuse_impossible(node, &ack, &info, outcome);
+                let now = start.elapsed();
+                let outcome = window.on_ack(&(&ack).into(), now);
+                refuse_impossible(node, &mut impossible_acks, &ack, &info, outcome, now);
             }
         } else {
             tokio::task::yield_now().await;
@@ -320,24 +330,34 @@ pub async fn stream(
 }
 
 /// An acknowledgement of moves never sent is not applied (a forged or corrupted one would
-/// end the stream "finished"); say so, naming its sender.
+/// end the stream "finished"); say so, naming its sender, at most once a second per sender
+/// (a sender repeating it must not flood /rosout).
 fn refuse_impossible(
     node: &CellNode,
+    throttle: &mut LogThrottle<String>,
     ack: &GcodeAck,
     info: &cell_runtime::MessageInfo,
     outcome: AckOutcome,
+    now: Duration,
 ) {
     if let AckOutcome::Impossible {
         next_expected,
         sent,
     } = outcome
     {
+        let sender = format!("{:?}", info.publisher_gid());
+        let Some(held_back) = throttle.admit(sender.clone(), now) else {
+            return;
+        };
+        let more = match held_back {
+            0 => String::new(),
+            n => format!(" ({n} more from it since the last report)"),
+        };
         cell_runtime::cell_log!(
             node,
             LogLevel::Error,
-            "ignored an impossible /gcode/ack from publisher {:?} in the name of {}: next \
-             expected {next_expected}, but only {sent} moves were sent",
-            info.publisher_gid(),
+            "ignored an impossible /gcode/ack from publisher {sender} in the name of {}: next \
+             expected {next_expected}, but only {sent} moves were sent{more}",
             ack.consumer
         );
     }

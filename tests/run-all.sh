@@ -17,6 +17,9 @@ if [[ "${POLAR_CELL_NETNS:-}" != "1" ]]; then
   fi
   .venv/bin/pip install --quiet --disable-pip-version-check -r tests/interop/requirements.txt
   cargo test --workspace --release --locked --no-run --quiet
+  # The patched RustDDS's own tests (patches/rustdds/PATCH.md), built with its dev-dependencies.
+  CARGO_TARGET_DIR=target/rustdds-patch cargo test --manifest-path patches/rustdds/Cargo.toml \
+    --locked --lib --no-run --quiet
   (cd firmware && cargo fetch --locked --quiet)
   tests/firmware/run.sh --build-only
   if cargo fuzz --version >/dev/null 2>&1; then
@@ -56,6 +59,9 @@ if grep -qE "FAILED|error(\[|:)" /tmp/polar-cell-cargo-test.log || ! grep -q "te
   awk '/^---- .* stdout ----$/ {show=1} /^failures:$/ && show {show=0} show' /tmp/polar-cell-cargo-test.log | tail -c 20000
   exit 1
 fi
+echo "== the patched RustDDS's writer tests (HEARTBEAT range, repair)"
+CARGO_TARGET_DIR=target/rustdds-patch cargo test --manifest-path patches/rustdds/Cargo.toml \
+  --locked --lib --quiet rtps::writer::tests::repair
 echo "== interop tests (Cyclone DDS, mcap-ros2-support, rosbags, Pinocchio, check_urdf)"
 cd tests/interop
 POLAR_CELL_BIN_DIR="$root/target/release" "$root/.venv/bin/python" -m pytest -q -p no:cacheprovider

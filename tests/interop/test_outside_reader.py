@@ -29,6 +29,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from conftest import FIXTURES
 from test_dds import GcodeAck, GcodeMove, GcodeProgress, Header, ros_qos, valid
+from test_mechanism import JointState
 
 # Prints per run of the suite; the README's figure is 20 (POLAR_CELL_OUTSIDE_READER_RUNS=20).
 RUNS = int(os.environ.get("POLAR_CELL_OUTSIDE_READER_RUNS", "8"))
@@ -57,16 +58,6 @@ class JointTrajectory(IdlStruct, typename="trajectory_msgs::msg::dds_::JointTraj
     header: Header
     joint_names: t.sequence[str]
     points: t.sequence[JointTrajectoryPoint]
-
-
-@dataclass
-@annotate.final
-class JointState(IdlStruct, typename="sensor_msgs::msg::dds_::JointState_"):
-    header: Header
-    name: t.sequence[str]
-    position: t.sequence[t.float64]
-    velocity: t.sequence[t.float64]
-    effort: t.sequence[t.float64]
 
 
 @dataclass

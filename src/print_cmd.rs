@@ -282,9 +282,13 @@ pub async fn run_job(
     let streamer_specs = gcode_streamer::node::param_specs();
     let planner_specs = polar_planner::node::param_specs();
     let screw_specs = screw_driver::node::param_specs();
-    let executor_specs = match options.device {
-        Some(_) => mcu_bridge::node::param_specs(),
-        None => cell_executor::node::param_specs(),
+    // The machine: the MCU bridge with a device, else the virtual executor.
+    let (machine_name, executor_specs) = match options.device {
+        Some(_) => (mcu_bridge::node::NODE_NAME, mcu_bridge::node::param_specs()),
+        None => (
+            cell_executor::node::NODE_NAME,
+            cell_executor::node::param_specs(),
+        ),
     };
     check_global_params(
         ros_args,
@@ -344,13 +348,10 @@ pub async fn run_job(
             // At machine pace the topics' rates are bounded: a shallower history, less memory.
             match options.execution {
                 Some(speed) => {
-                    // The machine that runs: the bridge's horizon with a device.
-                    let name = match options.device {
-                        Some(_) => mcu_bridge::node::NODE_NAME,
-                        None => cell_executor::node::NODE_NAME,
-                    };
-                    let args = args_for(ros_args, name, &executor_specs, vec![]);
-                    let (_, machine) = cell_runtime::resolve_node(name, &executor_specs, &args)?;
+                    // The horizon of the machine that runs (the bridge's with a device).
+                    let args = args_for(ros_args, machine_name, &executor_specs, vec![]);
+                    let (_, machine) =
+                        cell_runtime::resolve_node(machine_name, &executor_specs, &args)?;
                     let horizon_s = machine.f64("horizon_s");
                     let depth = cell_bag::node::executed_reader_depth(speed, horizon_s);
                     vec![param("reader_depth", depth.to_string())]
@@ -435,10 +436,6 @@ pub async fn run_job(
             (node, result)
         })
     });
-    let machine_name = match options.device {
-        Some(_) => mcu_bridge::node::NODE_NAME,
-        None => cell_executor::node::NODE_NAME,
-    };
     let consumers = format!(
         "[{:?}, {:?}, {:?}]",
         recorder.node_name(),

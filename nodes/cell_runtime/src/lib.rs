@@ -23,8 +23,8 @@ pub use dds::{
 pub use names::{NameError, NameResolver};
 pub use params::{ParamError, ParamSpec, ParamValue, Params};
 pub use ros2_client::ros2::LogLevel;
-/// What arrives with a message (its publisher among it), for nodes that name a sender.
-pub use ros2_client::MessageInfo;
+/// What arrives with a message (its publisher's [`Gid`] among it), for nodes that name a sender.
+pub use ros2_client::{Gid, MessageInfo};
 
 /// Log to stderr through `tracing`, filtered by `RUST_LOG` or else `default_filter`. RustDDS's
 /// own warnings are errors-only by default, and its multicast-join complaints on a loopback

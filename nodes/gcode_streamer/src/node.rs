@@ -205,9 +205,7 @@ pub async fn stream(
         let now = start.elapsed();
         // Acknowledgements.
         while let Some((ack, info)) = acks.take().context("reading /gcode/ack")? {
-            progress_due |= ack.resume;
-            let outcome = window.on_ack(&(&ack).into(), now);
-            refuse_impossible(node, &mut impossible_acks, &ack, &info, outcome, now);
+            progress_due |= apply_ack(node, &mut window, &mut impossible_acks, &ack, &info, now);
         }
         // Parser output into the window.
         while window.has_room() && !eof {
@@ -318,10 +316,9 @@ pub async fn stream(
             let wait =
                 tokio::time::timeout(Duration::from_millis(patience), acks.async_take()).await;
             if let Ok(Ok((ack, info))) = wait {
-                progress_due |= ack.resume;
                 let now = start.elapsed();
-                let outcome = window.on_ack(&(&ack).into(), now);
-                refuse_impossible(node, &mut impossible_acks, &ack, &info, outcome, now);
+                progress_due |=
+                    apply_ack(node, &mut window, &mut impossible_acks, &ack, &info, now);
             }
         } else {
             tokio::task::yield_now().await;
@@ -329,38 +326,39 @@ pub async fn stream(
     }
 }
 
-/// An acknowledgement of moves never sent is not applied (a forged or corrupted one would
-/// end the stream "finished"); say so, naming its sender, at most once a second per sender
-/// (a sender repeating it must not flood /rosout).
-fn refuse_impossible(
+/// Apply an acknowledgement to the window; `true` when it announces a consumer (which needs
+/// its resume point from /gcode/progress now). One of moves never sent is not applied (a
+/// forged or corrupted one would end the stream "finished"): say so, naming its sender, at
+/// most once a second per sender (a sender repeating it must not flood /rosout).
+fn apply_ack(
     node: &CellNode,
-    throttle: &mut LogThrottle<String>,
+    window: &mut SendWindow<GcodeMove>,
+    impossible_acks: &mut LogThrottle<cell_runtime::Gid>,
     ack: &GcodeAck,
     info: &cell_runtime::MessageInfo,
-    outcome: AckOutcome,
     now: Duration,
-) {
+) -> bool {
     if let AckOutcome::Impossible {
         next_expected,
         sent,
-    } = outcome
+    } = window.on_ack(&ack.into(), now)
     {
-        let sender = format!("{:?}", info.publisher_gid());
-        let Some(held_back) = throttle.admit(sender.clone(), now) else {
-            return;
-        };
-        let more = match held_back {
-            0 => String::new(),
-            n => format!(" ({n} more from it since the last report)"),
-        };
-        cell_runtime::cell_log!(
-            node,
-            LogLevel::Error,
-            "ignored an impossible /gcode/ack from publisher {sender} in the name of {}: next \
-             expected {next_expected}, but only {sent} moves were sent{more}",
-            ack.consumer
-        );
+        let sender = info.publisher_gid();
+        if let Some(held_back) = impossible_acks.admit(sender, now) {
+            let more = match held_back {
+                0 => String::new(),
+                n => format!(" ({n} more from it since the last report)"),
+            };
+            cell_runtime::cell_log!(
+                node,
+                LogLevel::Error,
+                "ignored an impossible /gcode/ack from publisher {sender:?} in the name of {}: \
+                 next expected {next_expected}, but only {sent} moves were sent{more}",
+                ack.consumer
+            );
+        }
     }
+    ack.resume
 }
 
 /// Parse the node's own command line and run it to completion or shutdown.

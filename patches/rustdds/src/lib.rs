@@ -224,6 +224,8 @@ pub use dds::{
   typedesc::TypeDesc,
   with_key::{datareader::SelectByKey, WriteOptions, WriteOptionsBuilder},
 };
+/// polar-cell patch: a DataWriter's acknowledgement state.
+pub use rtps::writer_send_buffer::Acknowledgments;
 /// Needed to specify serialized data representation in case it is other than
 /// CDR.
 pub use serialization::RepresentationIdentifier;

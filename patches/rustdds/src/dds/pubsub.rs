@@ -555,6 +555,13 @@ impl InnerPublisher {
       window_limit,
       backlog_limit,
       max_retain,
+      // polar-cell patch: a KEEP_LAST writer that must never wait
+      // (max_blocking_time 0) keeps its newest samples instead.
+      matches!(writer_qos.history(), Some(policy::History::KeepLast { .. }))
+        && matches!(
+          writer_qos.reliability(),
+          Some(policy::Reliability::Reliable { max_blocking_time }) if max_blocking_time == crate::Duration::ZERO
+        ),
     );
     // Doorbell: enqueue this writer's entity id and wake the participant poll.
     let doorbell = Doorbell::new(guid.entity_id, self.writer_ready.clone());

@@ -1350,6 +1350,13 @@ impl Writer {
       .filter(|rp| rp.qos().is_reliable())
       .map(RtpsReaderProxy::acked_up_to_before)
       .min();
+    self.send_buffer.set_reader_acks(
+      self
+        .readers
+        .values()
+        .filter(|rp| rp.qos().is_reliable())
+        .map(|rp| (rp.remote_reader_guid, rp.acked_up_to_before())),
+    );
     self.send_buffer.set_acked_frontier(frontier);
   }
 
@@ -2813,6 +2820,7 @@ mod tests {
           DEFAULT_WRITER_MAX_SAMPLES,
           DEFAULT_WRITER_MAX_SAMPLES,
           DEFAULT_WRITER_MAX_SAMPLES,
+          false,
         );
         for _ in 0..sample_count {
           let data = DDSData::new(SerializedPayload::new(
@@ -3059,6 +3067,89 @@ mod tests {
       assert_eq!(f.repair_round(), 5);
     }
 
+    // polar-cell patch: the acknowledgement handle names each reliable reader
+    // that lacks a sample, with the first sample it lacks, and waits for them.
+    #[test]
+    fn acknowledgments_name_the_readers_that_lack_samples() {
+      let mut f = Fixture::user(5, 8, None);
+      let acks = crate::Acknowledgments::new(f.writer.send_buffer.clone());
+      assert_eq!(acks.last_written(), SequenceNumber::new(5));
+      let guid = f.reader_guid;
+      // Matched, nothing acknowledged yet: it lacks sample 1.
+      assert_eq!(
+        acks.unacknowledged_readers(SequenceNumber::new(5)),
+        vec![(guid, SequenceNumber::new(1))]
+      );
+      assert!(!acks.wait_through(SequenceNumber::new(1), StdDuration::from_millis(10)));
+      // It acknowledges 1..=3.
+      let ack_before = |f: &mut Fixture, base: i64, count: i32| {
+        let ack_nack = AckNack {
+          reader_id: f.reader_guid.entity_id,
+          writer_id: f.writer.my_guid.entity_id,
+          reader_sn_state: SequenceNumberSet::new_empty(SequenceNumber::new(base)),
+          count,
+        };
+        f.writer
+          .handle_ack_nack(f.reader_guid.prefix, &AckSubmessage::AckNack(ack_nack));
+      };
+      ack_before(&mut f, 4, 1);
+      assert!(acks
+        .unacknowledged_readers(SequenceNumber::new(3))
+        .is_empty());
+      assert!(acks.wait_through(SequenceNumber::new(3), StdDuration::ZERO));
+      assert_eq!(
+        acks.unacknowledged_readers(SequenceNumber::new(5)),
+        vec![(guid, SequenceNumber::new(4))]
+      );
+      let started = Instant::now();
+      assert!(!acks.wait_through(SequenceNumber::new(5), StdDuration::from_millis(50)));
+      assert!(
+        started.elapsed() >= StdDuration::from_millis(50),
+        "gave up early"
+      );
+      // Everything acknowledged.
+      ack_before(&mut f, 6, 2);
+      assert!(acks
+        .unacknowledged_readers(SequenceNumber::new(5))
+        .is_empty());
+      assert!(acks.wait_through(SequenceNumber::new(5), StdDuration::ZERO));
+      // A sixth sample it lacks; then the reader goes away and owes nothing.
+      let data = DDSData::new(SerializedPayload::new(
+        RepresentationIdentifier::CDR_LE,
+        vec![0; 8],
+      ));
+      assert!(matches!(
+        f.writer
+          .send_buffer
+          .admit_blocking(WriteOptions::default(), data, Some(StdDuration::ZERO)),
+        Admission::Admitted(_)
+      ));
+      assert_eq!(acks.last_written(), SequenceNumber::new(6));
+      assert_eq!(
+        acks.unacknowledged_readers(SequenceNumber::new(6)),
+        vec![(guid, SequenceNumber::new(6))]
+      );
+      f.writer.reader_lost(guid);
+      assert!(acks
+        .unacknowledged_readers(SequenceNumber::new(6))
+        .is_empty());
+      assert!(acks.wait_through(SequenceNumber::new(6), StdDuration::ZERO));
+      // A writer that is gone owes nothing: a reader matched again, lacking all.
+      let qos = f.writer.qos();
+      f.writer
+        .update_reader_proxy(&RtpsReaderProxy::new(guid, qos.clone(), false), &qos);
+      assert!(!acks
+        .unacknowledged_readers(SequenceNumber::new(6))
+        .is_empty());
+      assert!(!acks.writer_gone());
+      f.writer.send_buffer.mark_writer_gone();
+      assert!(acks.writer_gone());
+      assert!(acks
+        .unacknowledged_readers(SequenceNumber::new(6))
+        .is_empty());
+      assert!(acks.wait_through(SequenceNumber::new(6), StdDuration::from_secs(5)));
+    }
+
     // A HEARTBEAT's range ends at the last sample sent, not at the last one
     // admitted: a reader that starts at its first HEARTBEAT (Cyclone DDS) would
     // take the unsent samples for a GAP and never receive them.
@@ -3066,7 +3157,10 @@ mod tests {
     fn heartbeat_announces_only_samples_sent() {
       let mut f = Fixture::user(5, 8, None);
       let nothing_sent = f.writer.heartbeat_range(f.writer.last_sent);
-      assert_eq!(nothing_sent, (SequenceNumber::new(1), SequenceNumber::zero()));
+      assert_eq!(
+        nothing_sent,
+        (SequenceNumber::new(1), SequenceNumber::zero())
+      );
       // A datagram that carries samples 1..=3 announces 1..=3.
       assert_eq!(
         f.writer.heartbeat_range(SequenceNumber::new(3)),

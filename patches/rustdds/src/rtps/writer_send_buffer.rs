@@ -46,6 +46,13 @@ struct Inner {
   // Maintained by the Writer (event loop) via `set_acked_frontier`.
   acked_before: SequenceNumber,
   reliable_readers_present: bool,
+  // polar-cell patch: each matched reliable reader's `all_acked_before`, so
+  // an application that waited in vain for acknowledgements can say who did
+  // not acknowledge. Maintained with `acked_before` by the Writer.
+  reader_acks: Vec<(GUID, SequenceNumber)>,
+  // polar-cell patch: the DataWriter was dropped; its RTPS Writer sends and
+  // repairs nothing more, so there is nothing to wait for.
+  writer_gone: bool,
 
   // nonblocking-transmit: the unsent backlog limit. The Writer advances
   // `sent_frontier` as it actually transmits samples; when the network socket
@@ -89,6 +96,13 @@ struct Shared {
   // (TRANSIENT_LOCAL / TRANSIENT / PERSISTENT) the writer must retain samples for
   // late-joining readers, so pre-match trimming is disabled.
   volatile: bool,
+  // polar-cell patch: the History is KEEP_LAST and `max_blocking_time` is 0:
+  // the writer must never wait. With reliable readers matched it then keeps
+  // the last `max_retain` samples it has sent instead of refusing a new one
+  // when a reader has not acknowledged the old ones, so a reader that stops
+  // acknowledging (a hung process) cannot stall it or starve its other
+  // readers; that reader is sent a GAP for what it lost.
+  never_wait: bool,
   topic_name: String,
 }
 
@@ -117,6 +131,7 @@ impl WriterSendBuffer {
     window_limit: usize,
     backlog_limit: usize,
     max_retain: usize,
+    never_wait: bool,
   ) -> Self {
     Self {
       shared: Arc::new(Shared {
@@ -127,6 +142,8 @@ impl WriterSendBuffer {
           window_limit: window_limit.max(1),
           acked_before: SequenceNumber::new(1),
           reliable_readers_present: false,
+          reader_acks: Vec::new(),
+          writer_gone: false,
           backlog_limit: backlog_limit.max(1),
           sent_frontier: SequenceNumber::new(0),
           max_retain: max_retain.max(1),
@@ -137,6 +154,7 @@ impl WriterSendBuffer {
         reliable_writer,
         is_builtin,
         volatile,
+        never_wait,
         topic_name,
       }),
     }
@@ -171,9 +189,10 @@ impl WriterSendBuffer {
       return false;
     }
 
-    if !shared.reliable_writer || !inner.reliable_readers_present {
+    if !shared.reliable_writer || !inner.reliable_readers_present || shared.never_wait {
       // Best-effort and "no reliable reader yet" writers have no acknowledgement
       // window to wait on; the backlog limit above is their only throttle.
+      // (polar-cell patch) Nor do writers that must never wait: see `never_wait`.
       return true;
     }
     // Number of unacknowledged samples in [acked_before, last_seq].
@@ -302,6 +321,20 @@ impl WriterSendBuffer {
         inner.first_seq = oldest.plus_1();
       }
     }
+    // polar-cell patch: a reliable writer that must never wait keeps its last
+    // `max_retain` samples; older ones go once they are on the wire (never
+    // before: a sample not yet sent would be lost to every reader), whether or
+    // not every reader has acknowledged them.
+    if shared.never_wait && shared.reliable_writer && !shared.is_builtin {
+      while inner.changes.len() > inner.max_retain {
+        let oldest = match inner.changes.keys().next().copied() {
+          Some(sn) if sn <= inner.sent_frontier => sn,
+          _ => break,
+        };
+        inner.changes.remove(&oldest);
+        inner.first_seq = oldest.plus_1();
+      }
+    }
     seq
   }
 
@@ -337,6 +370,24 @@ impl WriterSendBuffer {
     if advanced {
       Self::wake_all(&mut inner, &shared.progress);
     }
+  }
+
+  /// polar-cell patch: record each matched reliable reader's acknowledgement
+  /// frontier (`all_acked_before`), read by [`Acknowledgments`]. The vector's
+  /// allocation is reused: this runs on every ACKNACK.
+  pub fn set_reader_acks(&self, acks: impl Iterator<Item = (GUID, SequenceNumber)>) {
+    let mut inner = self.shared.inner.lock().unwrap();
+    inner.reader_acks.clear();
+    inner.reader_acks.extend(acks);
+  }
+
+  /// polar-cell patch: the DataWriter is gone (see `writer_gone`); wakes
+  /// whoever waits for acknowledgements.
+  pub fn mark_writer_gone(&self) {
+    let shared = &*self.shared;
+    let mut inner = shared.inner.lock().unwrap();
+    inner.writer_gone = true;
+    Self::wake_all(&mut inner, &shared.progress);
   }
 
   /// nonblocking-transmit: advance the "actually transmitted" frontier. Called
@@ -438,6 +489,75 @@ fn register_waker(wakers: &mut Vec<Waker>, waker: &Waker) {
   }
 }
 
+/// polar-cell patch: a handle on a DataWriter's acknowledgement state that
+/// outlives borrowing the writer, so an application can wait before it exits
+/// until its matched reliable readers have everything it wrote, and name the
+/// readers that do not acknowledge. Cloning it is cheap.
+#[derive(Clone)]
+pub struct Acknowledgments {
+  buffer: WriterSendBuffer,
+}
+
+impl Acknowledgments {
+  pub(crate) fn new(buffer: WriterSendBuffer) -> Self {
+    Self { buffer }
+  }
+
+  /// The GUID of the DataWriter.
+  pub fn writer_guid(&self) -> GUID {
+    self.buffer.shared.writer_guid
+  }
+
+  /// The sequence number of the last sample written so far (0 if none).
+  pub fn last_written(&self) -> SequenceNumber {
+    self.buffer.last_change_sequence_number()
+  }
+
+  /// Waits until every matched reliable reader has acknowledged every sample
+  /// up to and including `through`, or `max_wait` passes. True when they have
+  /// (or there is no reliable reader, or the DataWriter is gone).
+  pub fn wait_through(&self, through: SequenceNumber, max_wait: StdDuration) -> bool {
+    let shared = &*self.buffer.shared;
+    let mut inner = shared.inner.lock().unwrap();
+    let deadline = Instant::now() + max_wait;
+    loop {
+      if inner.writer_gone || !inner.reliable_readers_present || inner.acked_before > through {
+        return true;
+      }
+      let now = Instant::now();
+      if now >= deadline {
+        return false;
+      }
+      inner = shared
+        .progress
+        .wait_timeout(inner, deadline - now)
+        .unwrap()
+        .0;
+    }
+  }
+
+  /// Whether the DataWriter was dropped: it delivers nothing more, and this
+  /// handle no longer names readers or waits.
+  pub fn writer_gone(&self) -> bool {
+    self.buffer.shared.inner.lock().unwrap().writer_gone
+  }
+
+  /// The matched reliable readers that have not acknowledged every sample up
+  /// to and including `through`, with the first sample each still lacks.
+  pub fn unacknowledged_readers(&self, through: SequenceNumber) -> Vec<(GUID, SequenceNumber)> {
+    let inner = self.buffer.shared.inner.lock().unwrap();
+    if inner.writer_gone || !inner.reliable_readers_present {
+      return Vec::new();
+    }
+    inner
+      .reader_acks
+      .iter()
+      .map(|&(guid, acked_before)| (guid, max(acked_before, SequenceNumber::new(1))))
+      .filter(|&(_, acked_before)| acked_before <= through)
+      .collect()
+  }
+}
+
 #[cfg(test)]
 mod tests {
   use std::time::Duration as StdDuration;
@@ -485,6 +605,7 @@ mod tests {
       /* window_limit */ 1,
       /* backlog_limit */ 1000,
       /* max_retain */ 1,
+      false,
     );
     buf.set_acked_frontier(Some(SequenceNumber::zero()));
 
@@ -511,6 +632,7 @@ mod tests {
       /* window_limit */ 1000,
       /* backlog_limit */ 2,
       /* max_retain */ 1000,
+      false,
     );
 
     // Nothing sent yet: backlog fills after two admissions.
@@ -539,6 +661,7 @@ mod tests {
       /* window_limit */ 1000,
       /* backlog_limit */ 1,
       /* max_retain */ 1000,
+      false,
     );
     // Default WriteOptions => best_effort_may_block == false => never blocks.
     assert!(admit_now(&buf, WriteOptions::default()));
@@ -559,6 +682,7 @@ mod tests {
       1000,
       /* backlog_limit */ 1,
       /* max_retain */ 1000,
+      false,
     );
     assert!(admit_now(&buf, may_block_opts()));
     assert!(admit_now(&buf, may_block_opts()));
@@ -583,6 +707,7 @@ mod tests {
       /* window_limit */ 1000,
       /* backlog_limit */ 1000,
       max_retain,
+      false,
     );
 
     for _ in 0..100 {
@@ -618,6 +743,7 @@ mod tests {
       /* window_limit */ 1000,
       /* backlog_limit */ 1000,
       max_retain,
+      false,
     );
     // No reliable readers matched yet => admission not window-throttled.
     for _ in 0..10 {
@@ -646,6 +772,7 @@ mod tests {
       /* window_limit */ 1000,
       /* backlog_limit */ 1000,
       max_retain,
+      false,
     );
     // No reliable reader yet: admitted freely (backlog has room) but trimmed to
     // KeepLast so the buffer cannot balloon before discovery completes.
@@ -662,5 +789,64 @@ mod tests {
       assert!(admit_now(&buf, WriteOptions::default()));
     }
     assert_eq!(buf.retained_len(), max_retain + 10);
+  }
+
+  // polar-cell patch: a reliable KEEP_LAST writer that must never wait does
+  // not wait for a reader that does not acknowledge. It keeps its last
+  // `max_retain` samples once they are sent; a sample not yet sent is never
+  // dropped. Any other writer refuses new samples once its window is full.
+  #[test]
+  fn a_writer_that_must_never_wait_keeps_its_newest_samples() {
+    let new = |never_wait| {
+      let buf = WriterSendBuffer::new(
+        GUID::GUID_UNKNOWN,
+        "t".to_string(),
+        /* reliable_writer */ true,
+        /* is_builtin */ false,
+        /* volatile */ true,
+        /* window_limit */ 8,
+        /* backlog_limit */ 1000,
+        /* max_retain */ 4,
+        never_wait,
+      );
+      // A reliable reader matched that never acknowledges anything.
+      buf.set_acked_frontier(Some(SequenceNumber::zero()));
+      buf
+    };
+    let waits = new(false);
+    for _ in 0..8 {
+      assert!(admit_now(&waits, WriteOptions::default()));
+    }
+    waits.set_sent_frontier(SequenceNumber::new(8));
+    assert!(!admit_now(&waits, WriteOptions::default()), "window full");
+
+    let keep_last = new(true);
+    for sn in 1..=100 {
+      assert!(
+        admit_now(&keep_last, WriteOptions::default()),
+        "sample {sn}"
+      );
+      keep_last.set_sent_frontier(SequenceNumber::new(sn));
+    }
+    // The last 4 are kept.
+    assert_eq!(keep_last.retained_len(), 4);
+    assert_eq!(
+      keep_last.first_change_sequence_number(),
+      SequenceNumber::new(97)
+    );
+    // Samples not yet on the wire stay, however many.
+    for _ in 0..20 {
+      assert!(admit_now(&keep_last, WriteOptions::default()));
+    }
+    assert_eq!(keep_last.retained_len(), 20);
+    assert!(keep_last.get_by_sn(SequenceNumber::new(101)).is_some());
+    // Sent, they go down to the last 4 at the next write.
+    keep_last.set_sent_frontier(SequenceNumber::new(120));
+    assert!(admit_now(&keep_last, WriteOptions::default()));
+    assert_eq!(keep_last.retained_len(), 4);
+    assert_eq!(
+      keep_last.first_change_sequence_number(),
+      SequenceNumber::new(118)
+    );
   }
 }

@@ -126,6 +126,12 @@ where
   ///
   /// data_writer.wait_for_acknowledgments(Duration::from_millis(100));
   /// ```
+  /// polar-cell patch: this writer's acknowledgement state (see
+  /// [`crate::Acknowledgments`]).
+  pub fn acknowledgments(&self) -> crate::Acknowledgments {
+    self.keyed_datawriter.acknowledgments()
+  }
+
   pub fn wait_for_acknowledgments(&self, max_wait: Duration) -> WriteResult<bool, ()> {
     self.keyed_datawriter.wait_for_acknowledgments(max_wait)
   }

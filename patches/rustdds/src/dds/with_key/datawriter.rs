@@ -210,6 +210,9 @@ where
   SA: SerializerAdapter<D>,
 {
   fn drop(&mut self) {
+    // polar-cell patch: whoever waits for acknowledgements through an
+    // `Acknowledgments` handle stops waiting: nothing more can be delivered.
+    self.send_buffer.mark_writer_gone();
     // Tell Publisher to drop the corresponding RTPS Writer
     self.my_publisher.remove_writer(self.my_guid);
 
@@ -447,6 +450,12 @@ where
   /// data_writer.write(some_data, None).unwrap();
   /// data_writer.wait_for_acknowledgments(std::time::Duration::from_millis(100));
   /// ```
+  /// polar-cell patch: this writer's acknowledgement state, as a handle that
+  /// can be kept apart from the writer (see [`crate::Acknowledgments`]).
+  pub fn acknowledgments(&self) -> crate::Acknowledgments {
+    crate::Acknowledgments::new(self.send_buffer.clone())
+  }
+
   pub fn wait_for_acknowledgments(&self, max_wait: Duration) -> WriteResult<bool, ()> {
     match &self.qos_policy.reliability {
       None | Some(Reliability::BestEffort) => Ok(true),

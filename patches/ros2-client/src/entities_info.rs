@@ -84,6 +84,16 @@ impl NodeEntitiesInfo {
     self.name.fully_qualified_name()
   }
 
+  /// polar-cell patch: the GIDs of this node's readers, as announced.
+  pub fn reader_gids(&self) -> &[Gid] {
+    &self.reader_gid_seq
+  }
+
+  /// polar-cell patch: the GIDs of this node's writers, as announced.
+  pub fn writer_gids(&self) -> &[Gid] {
+    &self.writer_gid_seq
+  }
+
   pub fn add_writer(&mut self, gid: Gid) {
     if !self.writer_gid_seq.contains(&gid) {
       self.writer_gid_seq.push(gid);

@@ -848,6 +848,19 @@ impl Node {
     );
   }
 
+  /// polar-cell patch: the ROS nodes each other participant announced on
+  /// `ros_discovery_info`, by participant GID, as last received by this
+  /// node's Spinner: which node a remote reader or writer belongs to.
+  pub fn external_nodes(&self) -> Vec<(Gid, Vec<NodeEntitiesInfo>)> {
+    self
+      .external_nodes
+      .lock()
+      .unwrap()
+      .iter()
+      .map(|(gid, nodes)| (*gid, nodes.clone()))
+      .collect()
+  }
+
   // ///////////////////////////////////////////////////
 
   /// Get an async Receiver for discovery events.

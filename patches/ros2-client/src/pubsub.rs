@@ -45,6 +45,13 @@ impl<M: Serialize> Publisher<M> {
     self.datawriter.guid()
   }
 
+  /// polar-cell patch: the DataWriter's acknowledgement state, so a node can
+  /// wait before it exits until its matched reliable subscriptions have every
+  /// message it published, and name the ones that do not acknowledge.
+  pub fn acknowledgments(&self) -> rustdds::Acknowledgments {
+    self.datawriter.acknowledgments()
+  }
+
   pub fn gid(&self) -> Gid {
     self.guid().into()
   }

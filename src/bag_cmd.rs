@@ -92,16 +92,33 @@ pub fn recover(input: &Path, output: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-pub async fn play(
-    path: &Path,
-    rate: f64,
-    fast: bool,
-    only_topics: &[String],
-    wait_subscribers_s: f64,
-    ros_args: &RosArgs,
-) -> anyhow::Result<()> {
+/// How `bag play` plays.
+pub struct PlayOptions {
+    /// Speed factor on the recorded timing.
+    pub rate: f64,
+    /// As fast as subscribers take it (ignores `rate`).
+    pub fast: bool,
+    /// Only these topics (empty: all).
+    pub only_topics: Vec<String>,
+    /// Wait up to this long for every topic to have a subscriber before playing.
+    pub wait_subscribers_s: f64,
+    /// At the end, wait up to this long for every subscriber to acknowledge everything.
+    pub deliver_timeout_s: f64,
+}
+
+pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> anyhow::Result<()> {
+    let PlayOptions {
+        rate,
+        fast,
+        ref only_topics,
+        wait_subscribers_s,
+        deliver_timeout_s,
+    } = *options;
     if rate.is_nan() || rate <= 0.0 {
         bail!("--rate must be > 0, got {rate}");
+    }
+    if deliver_timeout_s.is_nan() || deliver_timeout_s < 0.0 {
+        bail!("--deliver-timeout-s must be >= 0, got {deliver_timeout_s}");
     }
     let (file_path, bytes) = map_bag(path)?;
     let bag = read_bag(&bytes).with_context(|| format!("reading {}", file_path.display()))?;
@@ -165,12 +182,26 @@ pub async fn play(
             .with_context(|| format!("{} message {}", message.topic, count))?;
         count += 1;
     }
-    // Give reliable retransmissions time to complete before the participant goes away.
-    tokio::time::sleep(Duration::from_millis(500)).await;
+    let played_s = start.elapsed().as_secs_f64();
+    // A message lost on the way is resent only while its writer exists: stay until every
+    // subscriber has acknowledged everything (bounded), and name those that have not.
+    let undelivered = node
+        .wait_delivered(Duration::from_secs_f64(deliver_timeout_s))
+        .await;
+    for u in &undelivered {
+        eprintln!("warning: after {deliver_timeout_s} s, {u}");
+    }
     eprintln!(
-        "played {count} messages from {} in {:.3} s",
+        "played {count} messages from {} in {played_s:.3} s; {}",
         file_path.display(),
-        start.elapsed().as_secs_f64()
+        if undelivered.is_empty() {
+            "every subscriber acknowledged them all".to_string()
+        } else {
+            format!(
+                "{} subscriptions had not acknowledged all",
+                undelivered.len()
+            )
+        }
     );
     Ok(())
 }

@@ -138,6 +138,10 @@ enum BagCommand {
         /// Wait up to this many seconds for every topic to have a subscriber before playing.
         #[arg(long, default_value_t = 0.0)]
         wait_subscribers_s: f64,
+        /// At the end, wait up to this many seconds for every subscriber to acknowledge the
+        /// last messages (a lost one is repaired only while the player runs).
+        #[arg(long, default_value_t = 10.0)]
+        deliver_timeout_s: f64,
     },
 }
 
@@ -254,7 +258,17 @@ async fn main() -> anyhow::Result<()> {
                 fast,
                 topics,
                 wait_subscribers_s,
-            } => bag_cmd::play(&bag, rate, fast, &topics, wait_subscribers_s, &ros_args).await,
+                deliver_timeout_s,
+            } => {
+                let options = bag_cmd::PlayOptions {
+                    rate,
+                    fast,
+                    only_topics: topics,
+                    wait_subscribers_s,
+                    deliver_timeout_s,
+                };
+                bag_cmd::play(&bag, &options, &ros_args).await
+            }
         },
     }
 }

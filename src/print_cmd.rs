@@ -272,6 +272,9 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
 }
 
 /// Run one print: the whole graph for `file`, until it is printed, interrupted or failed.
+/// How long a finished job waits for subscribers to acknowledge the nodes' last messages.
+const DELIVER_TIMEOUT: Duration = Duration::from_secs(5);
+
 pub async fn run_job(
     file: &str,
     options: &PrintOptions,
@@ -448,13 +451,28 @@ pub async fn run_job(
         ros_args,
         vec![param("consumers", consumers)],
     )?;
-    let mut screw = tokio::spawn(async move {
-        let result = screw_driver::node::run(&mut screw_node).await;
-        (screw_node, result)
+    // The planner and screw driver run until they fail or the job ends them; either way their
+    // task hands the node back, writers alive, for the final delivery.
+    let (end_pipeline, pipeline_ended) = tokio::sync::watch::channel(false);
+    let mut screw = tokio::spawn({
+        let mut ended = pipeline_ended.clone();
+        async move {
+            let result = tokio::select! {
+                result = screw_driver::node::run(&mut screw_node) => result,
+                _ = ended.wait_for(|&ended| ended) => Ok(()),
+            };
+            (screw_node, result)
+        }
     });
-    let mut planner = tokio::spawn(async move {
-        let result = polar_planner::node::run(&mut planner_node).await;
-        (planner_node, result)
+    let mut planner = tokio::spawn({
+        let mut ended = pipeline_ended;
+        async move {
+            let result = tokio::select! {
+                result = polar_planner::node::run(&mut planner_node) => result,
+                _ = ended.wait_for(|&ended| ended) => Ok(()),
+            };
+            (planner_node, result)
+        }
     });
 
     let bar = progress_bar(options, total_moves, machine_time_s);
@@ -521,16 +539,24 @@ pub async fn run_job(
         // The executor's last samples (at rest) reach the bag before it closes.
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
-    planner.abort();
-    screw.abort();
-    // The machine stops publishing; its node stays until the bag is closed. (A task that
-    // ended by itself was awaited above, its node dropped: not again.)
+    // Tasks finished by now ended by themselves and were awaited above (their nodes are
+    // gone): not again. The others are told to end and hand their nodes back; the machine
+    // stops publishing, and its node stays until the bag is closed. (Checked before the end
+    // is sent: a task that ends on it is finished a moment later, its node still to collect.)
+    let pipeline_tasks: Vec<_> = [planner, screw]
+        .into_iter()
+        .filter(|task| !task.is_finished())
+        .collect();
+    let machine_task = executor.take().filter(|task| !task.is_finished());
+    let _ = end_pipeline.send(true);
     let _ = end_machine.send(());
+    let mut pipeline_nodes = Vec::new();
+    for task in pipeline_tasks {
+        pipeline_nodes.extend(task.await.ok().map(|(node, _)| node));
+    }
     let mut _machine_node = None;
-    if let Some(task) = executor.take() {
-        if !task.is_finished() {
-            _machine_node = task.await.ok().map(|(node, _)| node);
-        }
+    if let Some(task) = machine_task {
+        _machine_node = task.await.ok().map(|(node, _)| node);
     }
     // What the nodes published last is still on its way to the recorder's readers, and a
     // sample lost on loopback is resent only after the writer's next heartbeat: a bag closed
@@ -539,6 +565,19 @@ pub async fn run_job(
     recorder
         .wait_quiet(Duration::from_millis(1200), Duration::from_secs(5))
         .await;
+    // Subscribers outside this process (a `ros2 topic echo`, RViz, a recorder) get what the
+    // nodes published last only while their writers exist: wait for their acknowledgements,
+    // bounded, and name the readers that did not give them.
+    let nodes: Vec<&CellNode> = std::iter::once(&streamer)
+        .chain(&pipeline_nodes)
+        .chain(&_machine_node)
+        .collect();
+    for undelivered in cell_runtime::wait_delivered(&nodes, DELIVER_TIMEOUT).await {
+        eprintln!(
+            "warning: after {} s, {undelivered}",
+            DELIVER_TIMEOUT.as_secs_f64()
+        );
+    }
     let recorded = recorder.stop().await.context("finishing the bag")?;
     match outcome {
         Err(Stop::Interrupted) => {

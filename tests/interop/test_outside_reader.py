@@ -27,7 +27,7 @@ from cyclonedds.topic import Topic
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from conftest import FIXTURES
+from conftest import CYCLONE_LOOPBACK, FIXTURES
 from test_dds import GcodeAck, GcodeMove, GcodeProgress, Header, ros_qos, valid
 from test_mechanism import JointState
 
@@ -197,3 +197,95 @@ def test_an_outside_reliable_reader_receives_every_sample_the_bag_records(polar_
                     f"{sorted(missing)[:3]}"
                 )
     assert not failures, "\n".join(failures)
+
+
+# A subscriber in its own process, so the test can freeze it (SIGSTOP) as a reader whose
+# host hung would be: it prints its reader's GUID, then the count of moves it took.
+FROZEN_READER = r"""
+import sys, time
+sys.path.insert(0, sys.argv[1])
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+from test_mechanism import JointState
+from test_dds import ros_qos
+participant = DomainParticipant(0)
+reader = DataReader(participant, Topic(participant, "rt/joint_states", JointState), qos=ros_qos(100_000))
+print("guid", reader.guid.bytes.hex(), flush=True)
+taken = 0
+while True:
+    taken += len(reader.take(N=1000))
+    print("taken", taken, flush=True)
+    time.sleep(0.01)
+"""
+
+
+def bag_joint_states(path):
+    with open(path, "rb") as f:
+        return sum(1 for _ in make_reader(f).iter_messages(topics=["/joint_states"]))
+
+
+def cyclone_guid_text(hex_bytes):
+    """A GUID as the print names it: four 32-bit words in hex (Cyclone's own notation)."""
+    raw = bytes.fromhex(hex_bytes)
+    return ":".join(f"{int.from_bytes(raw[i:i + 4], 'big'):x}" for i in range(0, 16, 4))
+
+
+def test_a_print_waits_for_outside_acknowledgements_and_names_a_reader_that_gives_none(
+    polar_cell, tmp_path
+):
+    """An outside subscriber that stops acknowledging (a `ros2 topic echo` suspended with
+    Ctrl-Z) changes nothing in the print: the machine keeps its pace (RustDDS's reliable
+    writers used to wait for it: 1,240 s of machine time for 168 s, with an underrun). At
+    the end the print does not drop its writers while a subscriber still lacks samples (a
+    loss is repaired only while the writer exists): it waits, bounded (5 s), and then names
+    the reader that did not acknowledge."""
+    import signal
+    import sys
+    from pathlib import Path
+
+    here = Path(__file__).resolve().parent
+    # A participant's lease (Cyclone's default 10 s) would end while it is frozen, and DDS
+    # would then rightly count its reader gone, owed nothing: this one's lasts a minute.
+    env = dict(os.environ, CYCLONEDDS_URI=CYCLONE_LOOPBACK.replace(
+        "</Discovery>", "<LeaseDuration>60 s</LeaseDuration></Discovery>"))
+    reader = subprocess.Popen([sys.executable, "-c", FROZEN_READER, str(here)],
+                              stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        kind, guid_hex = reader.stdout.readline().split()
+        assert kind == "guid"
+        bag = tmp_path / "frozen.mcap"
+        started = time.monotonic()
+        proc = subprocess.Popen(
+            [str(polar_cell), "print", str(FIXTURES / "finger.gcode"), "--speed", "20",
+             "--no-progress", "--bag", str(bag)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )
+        # Freeze the reader once it has the first joint states, as the print starts.
+        while True:
+            line = reader.stdout.readline()
+            assert line, "the outside reader died"
+            if int(line.split()[1]) > 0:
+                break
+        reader.send_signal(signal.SIGSTOP)
+        _, stderr = proc.communicate(timeout=120)
+        took_s = time.monotonic() - started
+    finally:
+        reader.send_signal(signal.SIGCONT)
+        reader.kill()
+        reader.wait()
+    assert proc.returncode == 0, stderr
+    guid = cyclone_guid_text(guid_hex)
+    named = [line for line in stderr.splitlines() if "not acknowledged by reader" in line]
+    assert len(named) == 1 and guid in named[0], stderr
+    assert named[0].startswith("warning: after 5 s, /joint_states: ")
+    assert named[0].endswith(f"not acknowledged by reader {guid} (not a ROS node)")
+    missing = int(named[0].split("/joint_states: ")[1].split()[0])
+    recorded = bag_joint_states(bag)
+    assert 0 < missing < recorded
+    # Bounded: finger at 20x is 8.4 s of machine time; the wait adds at most 5 s.
+    assert took_s < 8.4 + 5 + 10, took_s
+    # The print is whole all the same: at its planned pace, 50 Hz of its machine time.
+    executed = next(line for line in stderr.splitlines() if " executed " in line)
+    assert "(168.055 s; planned 168.055 s), 0 underruns" in executed, executed
+    assert recorded >= 168 * 50

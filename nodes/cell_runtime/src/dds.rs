@@ -19,6 +19,7 @@ use ros2_client::{
 };
 
 use crate::args::RosArgs;
+use crate::delivery::{PublishedTopic, Undelivered};
 use crate::names::NameResolver;
 use crate::params::{ParamSpec, ParamValue, Params};
 use crate::RuntimeError;
@@ -125,6 +126,8 @@ pub struct CellNode {
     /// Endpoints that must outlive the code that made them: a writer dropped right after its
     /// last sample cannot repair that sample's loss.
     kept: Vec<Box<dyn std::any::Any + Send>>,
+    /// Every writer this node made, for [`CellNode::wait_delivered`].
+    published: Vec<PublishedTopic>,
     diagnostics: Publisher<DiagnosticArray>,
     pub node: Node,
     /// Dropped after `node` (whose drop tells the spinner to stop) and before `_context`.
@@ -255,11 +258,16 @@ impl CellNode {
         let diagnostics = node
             .create_publisher(&diagnostics_topic, Some(ros_default_qos()))
             .map_err(|e| RuntimeError::Dds(format!("{e:?}")))?;
+        let published = vec![PublishedTopic::new(
+            names.resolve("/diagnostics")?,
+            diagnostics.acknowledgments(),
+        )];
         Ok(CellNode {
             node,
             names,
             params,
             diagnostics,
+            published,
             kept: Vec::new(),
             _spinner: SpinnerExit(exit),
             _context: context,
@@ -283,9 +291,22 @@ impl CellNode {
         qos: &QosProfile,
     ) -> Result<Publisher<T>, RuntimeError> {
         let t = create_topic::<T>(&mut self.node, &self.names, topic, qos)?;
-        self.node
+        let publisher = self
+            .node
             .create_publisher(&t, Some(qos.clone()))
-            .map_err(|e| RuntimeError::Dds(format!("publisher on {topic}: {e:?}")))
+            .map_err(|e| RuntimeError::Dds(format!("publisher on {topic}: {e:?}")))?;
+        self.published.push(PublishedTopic::new(
+            self.names.resolve(topic)?,
+            publisher.acknowledgments(),
+        ));
+        Ok(publisher)
+    }
+
+    /// Waits, at most `max_wait`, until the matched reliable subscribers of every topic this
+    /// node publishes have acknowledged everything it published so far; returns the readers
+    /// that had not, named (see [`crate::delivery`]). Call it before the node goes away.
+    pub async fn wait_delivered(&self, max_wait: std::time::Duration) -> Vec<Undelivered> {
+        wait_delivered(&[self], max_wait).await
     }
 
     /// A subscription on `topic` (expanded and remapped) with the given QoS.
@@ -376,6 +397,32 @@ impl CellNode {
             site.line,
         );
     }
+}
+
+/// [`CellNode::wait_delivered`] for several nodes at once, under one deadline.
+pub async fn wait_delivered(
+    nodes: &[&CellNode],
+    max_wait: std::time::Duration,
+) -> Vec<Undelivered> {
+    let Some(first) = nodes.first() else {
+        return Vec::new();
+    };
+    let published: Vec<PublishedTopic> = nodes
+        .iter()
+        .flat_map(|n| n.published.iter().cloned())
+        .collect();
+    let lagging = match tokio::task::spawn_blocking(move || {
+        crate::delivery::wait_acknowledged(&published, max_wait)
+    })
+    .await
+    {
+        Ok(lagging) => lagging,
+        Err(e) => {
+            tracing::warn!("waiting for acknowledgements failed: {e}");
+            return Vec::new();
+        }
+    };
+    crate::delivery::name_readers(&first.node, lagging)
 }
 
 /// Where a log call is written: what `/rosout`'s `file`, `line` and `function` carry.

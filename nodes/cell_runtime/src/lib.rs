@@ -8,6 +8,7 @@
 
 pub mod args;
 pub mod dds;
+pub mod delivery;
 pub mod flow;
 pub mod names;
 pub mod params;
@@ -17,9 +18,10 @@ pub mod topics;
 pub use args::{ArgsError, RosArgs};
 pub use dds::{
     now_ns, parse_service_mapping, publish, reliable_qos, resolve_node, ros_default_qos,
-    shutdown_signal, transient_local_qos, CellNode, Network, ServiceMapping, ShutdownSignals, Wire,
-    PUBLISH_PATIENCE,
+    shutdown_signal, transient_local_qos, wait_delivered, CellNode, Network, ServiceMapping,
+    ShutdownSignals, Wire, PUBLISH_PATIENCE,
 };
+pub use delivery::Undelivered;
 pub use names::{NameError, NameResolver};
 pub use params::{ParamError, ParamSpec, ParamValue, Params};
 pub use ros2_client::ros2::LogLevel;

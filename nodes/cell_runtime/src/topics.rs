@@ -1,10 +1,11 @@
 //! The suite's topics: name, message type, and the QoS their publishers offer — one table, so
 //! that what a node publishes with and what a bag says it was published with cannot differ.
 //!
-//! Every topic is reliable. Live state keeps a deep history (a recorder or a viewer a moment
-//! behind still gets every sample); flow-controlled links keep as much as their window; latched
-//! topics (`/robot_description`, `/tf_static`) are transient-local with depth 1. `/rosout` is
-//! as ros2-client publishes it (rclcpp's own is transient-local too).
+//! Every topic is reliable. The machine's live state never waits for a subscriber (a viewer
+//! that hangs must not hold up the machine) and keeps enough history that a recorder or a
+//! viewer a moment behind still gets every sample; flow-controlled links keep as much as their
+//! window; latched topics (`/robot_description`, `/tf_static`) are transient-local with depth
+//! 1. `/rosout` is as ros2-client publishes it (rclcpp's own is transient-local too).
 
 use ros2_client::QosProfile;
 
@@ -17,6 +18,12 @@ pub struct TopicQos {
     pub transient_local: bool,
     /// Keep-last depth.
     pub depth: usize,
+    /// The publisher never waits for a subscriber's acknowledgements: it keeps its newest
+    /// `depth` samples for repair, and a subscriber that fell further behind (or hangs) loses
+    /// the older ones. Without it, a subscriber that stops acknowledging holds the writer up
+    /// once 8192 samples are unacknowledged (RustDDS's send window), then every write waits
+    /// 100 ms (patches/rustdds/PATCH.md §4).
+    pub never_wait: bool,
 }
 
 impl TopicQos {
@@ -24,6 +31,16 @@ impl TopicQos {
         TopicQos {
             transient_local: false,
             depth,
+            never_wait: false,
+        }
+    }
+
+    /// Reliable, and the publisher never waits (see [`TopicQos::never_wait`]).
+    pub const fn live(depth: usize) -> TopicQos {
+        TopicQos {
+            transient_local: false,
+            depth,
+            never_wait: true,
         }
     }
 
@@ -31,15 +48,25 @@ impl TopicQos {
         TopicQos {
             transient_local: true,
             depth,
+            never_wait: false,
         }
     }
 
-    /// The DDS profile.
+    /// The DDS profile. Never waiting is a reliable writer's `max_blocking_time` of 0 with
+    /// keep-last history, which our RustDDS reads as "keep the newest".
     pub fn profile(&self) -> QosProfile {
-        if self.transient_local {
+        use ros2_client::qos::{Reliability, WhenFull};
+        let profile = if self.transient_local {
             transient_local_qos(self.depth)
         } else {
             reliable_qos(self.depth)
+        };
+        if self.never_wait {
+            profile.reliability(Reliability::Reliable {
+                when_full: WhenFull::Fail,
+            })
+        } else {
+            profile
         }
     }
 }
@@ -56,12 +83,12 @@ pub struct SuiteTopic {
 /// many moves as may be unacknowledged; a changed `window` changes it).
 pub const DEFAULT_MOVE_WINDOW: usize = 4096;
 
-/// Depth of the live-state writers (`/joint_states`, `/tf`, the planned joint states): tf2's
-/// own. For a volatile topic RustDDS 0.15 keeps this many samples *after* every reader
-/// acknowledged them (nobody can ask for them again) and keeps unacknowledged ones anyway,
-/// up to its 8192-sample send window. So the depth is memory, not reliability: at 10,000
-/// these writers grew a print's memory for its first 160 s at machine pace.
-pub const LIVE_STATE_HISTORY: usize = 100;
+/// Depth of the live-state writers (`/joint_states`, `/tf`, the planned joint states). The
+/// machine's state never waits for a subscriber, so this is what it can still repair: 20 s of
+/// 50 Hz at 1x, 0.5 s at 40x (a lost sample is asked for again within milliseconds, on the
+/// heartbeat that ends each datagram). RustDDS also keeps this many samples after every
+/// reader acknowledged them: about 0.5 MB for `/joint_states` and `/tf` together.
+pub const LIVE_STATE_HISTORY: usize = 1000;
 
 const fn topic(name: &'static str, type_name: &'static str, qos: TopicQos) -> SuiteTopic {
     SuiteTopic {
@@ -102,7 +129,7 @@ pub const SUITE_TOPICS: &[SuiteTopic] = &[
     topic(
         "/joint_states",
         "sensor_msgs/msg/JointState",
-        TopicQos::reliable(LIVE_STATE_HISTORY),
+        TopicQos::live(LIVE_STATE_HISTORY),
     ),
     topic(
         "/polar/planned_joint_states",
@@ -112,13 +139,13 @@ pub const SUITE_TOPICS: &[SuiteTopic] = &[
     topic(
         "/tf",
         "tf2_msgs/msg/TFMessage",
-        TopicQos::reliable(LIVE_STATE_HISTORY),
+        TopicQos::live(LIVE_STATE_HISTORY),
     ),
     topic("/tf_static", "tf2_msgs/msg/TFMessage", TopicQos::latched(1)),
     topic(
         "/cell/plan_credit",
         "polar_cell_msgs/msg/PlanCredit",
-        TopicQos::reliable(10),
+        TopicQos::live(100),
     ),
     topic(
         "/screw/command",
@@ -180,8 +207,29 @@ mod tests {
                 t.name
             );
         }
-        assert_eq!(suite_topic("/joint_states").unwrap().qos.depth, 100);
+        assert_eq!(suite_topic("/joint_states").unwrap().qos.depth, 1000);
+        assert!(suite_topic("/joint_states").unwrap().qos.never_wait);
+        assert!(!suite_topic("/polar/steps").unwrap().qos.never_wait);
         assert!(suite_topic("/tf_static").unwrap().qos.transient_local);
         assert!(suite_topic("/nope").is_none());
+    }
+
+    #[test]
+    fn live_state_publishers_never_wait_and_the_others_wait_100_ms() {
+        use ros2_client::qos::{Reliability, WhenFull};
+        let live = TopicQos::live(10).profile();
+        assert_eq!(
+            live.reliability,
+            Reliability::Reliable {
+                when_full: WhenFull::Fail
+            }
+        );
+        let waits = TopicQos::reliable(10).profile();
+        assert_eq!(
+            waits.reliability,
+            Reliability::Reliable {
+                when_full: WhenFull::DEFAULT
+            }
+        );
     }
 }

@@ -1,6 +1,6 @@
 use std::{
   cmp::max,
-  collections::{btree_map, BTreeMap, HashMap},
+  collections::{btree_map, BTreeMap, BTreeSet, HashMap},
   iter,
   ops::Bound::{Excluded, Included},
   sync::{Arc, Mutex},
@@ -154,6 +154,11 @@ pub(crate) struct TopicCache {
   // Therefore, data before the marker SN can be handed off to a Reliable DataReader.
   // Initially, we consider the marker for each Writer (GUID) to be SequenceNumber::new(1)
   received_reliably_before: BTreeMap<GUID, SequenceNumber>,
+
+  // polar-cell patch: Writers that went away while samples of theirs were still
+  // in the cache. Their marker stays (past their last sample) until those
+  // samples are gone, then it goes too.
+  forgotten_writers: BTreeSet<GUID>,
 }
 
 impl TopicCache {
@@ -170,6 +175,7 @@ impl TopicCache {
       last_added_instant: Timestamp::ZERO,
       sequence_numbers: BTreeMap::new(),
       received_reliably_before: BTreeMap::new(),
+      forgotten_writers: BTreeSet::new(),
     };
 
     new_self.update_keep_limits(topic_qos);
@@ -242,8 +248,28 @@ impl TopicCache {
   }
 
   // The Writer is gone, so samples it never completed are no longer awaited.
+  //
+  // polar-cell patch: and the samples it did complete can still be taken.
+  // Removing the marker reset it to sequence number 1, so a Reader could take
+  // nothing more of that Writer: a DataReader lost every sample it had received
+  // and not yet taken when their Writer left (a player that exits once its
+  // subscribers acknowledged everything, a node that publishes and quits). The
+  // marker now moves past the last sample present and is dropped with them.
   pub fn forget_reliable_writer(&mut self, writer: GUID) {
-    self.received_reliably_before.remove(&writer);
+    let last_present = self
+      .sequence_numbers
+      .get(&writer)
+      .and_then(|sn_map| sn_map.keys().next_back().copied());
+    match last_present {
+      Some(last) => {
+        let marker = self.received_reliably_before.entry(writer).or_default();
+        *marker = max(*marker, last.plus_1());
+        self.forgotten_writers.insert(writer);
+      }
+      None => {
+        self.received_reliably_before.remove(&writer);
+      }
+    }
   }
 
   // The oldest change that a Reliable DataReader cannot yet take, because an
@@ -476,6 +502,9 @@ impl TopicCache {
     });
     if emptied {
       self.sequence_numbers.remove(&cc.writer_guid);
+      if self.forgotten_writers.remove(&cc.writer_guid) {
+        self.received_reliably_before.remove(&cc.writer_guid);
+      }
     }
   }
 
@@ -802,6 +831,58 @@ mod tests {
       SequenceNumber::new(201)
     );
     assert!(topic_cache.changes.len() <= topic_cache.max_keep_samples as usize + 1);
+  }
+
+  // polar-cell patch: samples a Reliable Reader received from a Writer that has
+  // since gone away can still be taken, past a gap that will never be repaired;
+  // the Writer's marker goes with its last sample.
+  #[test]
+  fn a_lost_writers_samples_can_still_be_taken() {
+    let mut topic_cache = keep_all_topic_cache();
+    let writer = user_writer();
+    let add = |topic_cache: &mut TopicCache, sn: i64| {
+      topic_cache.add_change(
+        &Timestamp::now(),
+        CacheChange::new(
+          writer,
+          SequenceNumber::new(sn),
+          WriteOptions::default(),
+          DDSData::new(SerializedPayload::default()),
+        ),
+      );
+    };
+    // 1..=3 received in order, 5 and 6 after a gap at 4; the reader took 1.
+    for sn in [1, 2, 3, 5, 6] {
+      add(&mut topic_cache, sn);
+    }
+    topic_cache.mark_reliably_received_before(writer, SequenceNumber::new(4));
+    let last_read = BTreeMap::from([(writer, SequenceNumber::new(1))]);
+    let takeable = |topic_cache: &TopicCache| -> Vec<i64> {
+      topic_cache
+        .get_changes_in_range_reliable(&last_read)
+        .map(|(_, cc)| i64::from(cc.sequence_number))
+        .collect()
+    };
+    assert_eq!(takeable(&topic_cache), [2, 3]);
+    topic_cache.forget_reliable_writer(writer);
+    assert_eq!(takeable(&topic_cache), [2, 3, 5, 6]);
+    assert_eq!(topic_cache.reliable_before(writer), SequenceNumber::new(7));
+    // Once its samples are gone, so is the marker.
+    topic_cache.remove_changes_before(Timestamp::now());
+    topic_cache.changes.clear();
+    for sn in [1, 2, 3, 5, 6] {
+      topic_cache.remove_sn(&CacheChange::new(
+        writer,
+        SequenceNumber::new(sn),
+        WriteOptions::default(),
+        DDSData::new(SerializedPayload::default()),
+      ));
+    }
+    assert!(!topic_cache.received_reliably_before.contains_key(&writer));
+    assert!(topic_cache.forgotten_writers.is_empty());
+    // A Writer with nothing in the cache leaves nothing behind.
+    topic_cache.forget_reliable_writer(writer);
+    assert!(!topic_cache.received_reliably_before.contains_key(&writer));
   }
 
   #[test]

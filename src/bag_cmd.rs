@@ -102,6 +102,8 @@ pub struct PlayOptions {
     pub only_topics: Vec<String>,
     /// Wait up to this long for every topic to have a subscriber before playing.
     pub wait_subscribers_s: f64,
+    /// ... and, when named, a subscription of each of these nodes.
+    pub wait_for_nodes: Vec<String>,
     /// At the end, wait up to this long for every subscriber to acknowledge everything.
     pub deliver_timeout_s: f64,
 }
@@ -112,6 +114,7 @@ pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> any
         fast,
         ref only_topics,
         wait_subscribers_s,
+        ref wait_for_nodes,
         deliver_timeout_s,
     } = *options;
     if rate.is_nan() || rate <= 0.0 {
@@ -141,19 +144,31 @@ pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> any
         );
     }
     if wait_subscribers_s > 0.0 {
+        // What a topic still lacks: any subscriber, or one of each node named.
+        let lacking = |topic: &String, publisher: &dyn CdrPublisher| -> Option<String> {
+            if publisher.subscription_count(&node) == 0 {
+                return Some(format!("{topic} (no subscriber)"));
+            }
+            let absent: Vec<&str> = wait_for_nodes
+                .iter()
+                .filter(|n| !node.subscribed_by(topic, n))
+                .map(String::as_str)
+                .collect();
+            (!absent.is_empty()).then(|| format!("{topic} (not {})", absent.join(", ")))
+        };
         let deadline = Instant::now() + Duration::from_secs_f64(wait_subscribers_s);
-        while publishers
-            .values()
-            .any(|p| p.subscription_count(&node) == 0)
-        {
+        loop {
+            let missing: Vec<String> = publishers
+                .iter()
+                .filter_map(|(t, p)| lacking(t, p.as_ref()))
+                .collect();
+            if missing.is_empty() {
+                break;
+            }
             if Instant::now() > deadline {
-                let missing: Vec<&String> = publishers
-                    .iter()
-                    .filter(|(_, p)| p.subscription_count(&node) == 0)
-                    .map(|(t, _)| t)
-                    .collect();
                 eprintln!(
-                    "no subscriber after {wait_subscribers_s} s on {missing:?}; playing anyway"
+                    "after {wait_subscribers_s} s, still no subscription on {}; playing anyway",
+                    missing.join(", ")
                 );
                 break;
             }

@@ -138,6 +138,11 @@ enum BagCommand {
         /// Wait up to this many seconds for every topic to have a subscriber before playing.
         #[arg(long, default_value_t = 0.0)]
         wait_subscribers_s: f64,
+        /// Before playing, wait (up to --wait-subscribers-s) until every topic played has a
+        /// subscription of this node (fully qualified, e.g. /screw_driver; repeatable): any
+        /// other subscriber, a viewer left over say, does not count.
+        #[arg(long = "wait-for-node")]
+        wait_for_nodes: Vec<String>,
         /// At the end, wait up to this many seconds for every subscriber to acknowledge the
         /// last messages (a lost one is repaired only while the player runs).
         #[arg(long, default_value_t = 10.0)]
@@ -258,6 +263,7 @@ async fn main() -> anyhow::Result<()> {
                 fast,
                 topics,
                 wait_subscribers_s,
+                wait_for_nodes,
                 deliver_timeout_s,
             } => {
                 let options = bag_cmd::PlayOptions {
@@ -265,6 +271,7 @@ async fn main() -> anyhow::Result<()> {
                     fast,
                     only_topics: topics,
                     wait_subscribers_s,
+                    wait_for_nodes,
                     deliver_timeout_s,
                 };
                 bag_cmd::play(&bag, &options, &ros_args).await

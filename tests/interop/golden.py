@@ -53,7 +53,8 @@ def post_process_bowl(cl: Path, out: Path):
 def replay_mechanism(cl_bag: Path, out: Path):
     """Play the tool poses of `cl_bag` into a mechanism_kin node; record its joint states."""
     node = [BIN_DIR / "mechanism_kin", "--ros-args", "-p", "publish_home:=false"]
-    replay(node, [(cl_bag, "/mechanism/tool_pose")], out, "/mechanism/joint_states", 1.0)
+    from test_mechanism import JointState
+    replay(node, [(cl_bag, "/mechanism/tool_pose")], out, "/mechanism/joint_states", JointState, 1.0)
 
 
 def record_moves(out: Path):
@@ -62,10 +63,21 @@ def record_moves(out: Path):
          "--ros-args", "-p", "bag_recorder:topics:=[/gcode/moves]"])
 
 
-def replay(node: list, plays: list, out: Path, topic: str, settle_s: float):
-    """Start `node` (a command) and a recorder of `topic` into `out`, play each
-    `(bag, topic)` of `plays` as fast as subscribers take it, wait `settle_s` for the node to
-    finish its output, then stop both with SIGINT (which finishes the bag)."""
+def replay(node: list, plays: list, out: Path, topic: str, kind, settle_s: float):
+    """Start `node` (a command whose node is `node[0]`'s name) and a recorder of `topic` into
+    `out`, play each `(bag, topic)` of `plays` as fast as subscribers take it once the node
+    itself subscribes (a reader left over from an earlier test must not start the play before
+    the node has matched), wait until the node's output
+    (`kind` messages, watched by a Cyclone DDS reader beside the recorder) has been quiet for
+    `settle_s`, then stop both with SIGINT (which finishes the bag). A fixed wait instead
+    could stop a node still computing on a loaded machine."""
+    from cyclonedds.domain import DomainParticipant
+    from cyclonedds.sub import DataReader
+    from cyclonedds.topic import Topic
+    from test_dds import ros_qos
+
+    participant = DomainParticipant(0)
+    watcher = DataReader(participant, Topic(participant, "rt" + topic, kind), qos=ros_qos(100_000))
     processes = [
         subprocess.Popen([str(a) for a in node], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True),
         subprocess.Popen(
@@ -78,8 +90,17 @@ def replay(node: list, plays: list, out: Path, topic: str, settle_s: float):
         time.sleep(1.0)  # both subscribed before anything is played
         for bag, played in plays:
             run([BIN_DIR / "polar-cell", "bag", "play", bag, "--fast", "--wait-subscribers-s", "15",
-                 "--topics", played])
-        time.sleep(settle_s)
+                 "--wait-for-node", "/" + Path(node[0]).name, "--topics", played])
+        received, last = 0, time.monotonic()
+        deadline = last + 120
+        while time.monotonic() < deadline:
+            taken = len(watcher.take(N=10_000))
+            now = time.monotonic()
+            if taken:
+                received, last = received + taken, now
+            elif received and now - last >= settle_s:
+                break
+            time.sleep(0.05)
     finally:
         for proc in processes:
             proc.send_signal(signal.SIGINT)
@@ -93,10 +114,14 @@ def replay_plan(moves_bag: Path, out: Path):
     planner flushes its lookahead when input stops."""
     # The golden plan pins the planner without the screw's limits (which slow polartest's
     # primes); those are tested in Rust (polar_planner/tests/plan.rs) and by test_screw.py.
+    # Without flow control a pause in input is taken for the end of the file: 1 s, not the
+    # default 50 ms, so that a lost datagram's repair is not planned as a stop mid-file.
     planner = [BIN_DIR / "polar_planner", "--ros-args", "-p", "plan_epoch_ns:=0",
                "-p", "acknowledge_moves:=false", "-p", "publish_steps:=false",
-               "-p", "joint_state_period_s:=0.0", "-p", "screw_max_rpm:=0.0"]
-    replay(planner, [(moves_bag, "/gcode/moves")], out, "/polar/trajectory", 1.0)
+               "-p", "joint_state_period_s:=0.0", "-p", "screw_max_rpm:=0.0",
+               "-p", "idle_flush_s:=1.0"]
+    from test_outside_reader import JointTrajectory
+    replay(planner, [(moves_bag, "/gcode/moves")], out, "/polar/trajectory", JointTrajectory, 2.5)
 
 
 def replay_screw(moves_bag: Path, trajectory_bag: Path, out: Path):
@@ -107,7 +132,8 @@ def replay_screw(moves_bag: Path, trajectory_bag: Path, out: Path):
     screw = [BIN_DIR / "screw_driver", "--ros-args", "-p", "acknowledge_moves:=false",
              "-p", "idle_flush_s:=1.0", "-p", "flow_compensation:=false"]
     plays = [(moves_bag, "/gcode/moves"), (trajectory_bag, "/polar/trajectory")]
-    replay(screw, plays, out, "/screw/command", 2.5)
+    from test_outside_reader import ScrewCommand
+    replay(screw, plays, out, "/screw/command", ScrewCommand, 2.5)
 
 
 if __name__ == "__main__":

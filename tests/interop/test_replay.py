@@ -31,7 +31,7 @@ def test_record_play_rerecord_is_identical(polar_cell, printed_bags, tmp_path):
     )
     try:
         run([polar_cell, "bag", "play", original, "--fast", "--wait-subscribers-s", "15",
-             "--ros-args", "-r", "__node:=player"])
+             "--wait-for-node", "/bag_recorder", "--ros-args", "-r", "__node:=player"])
         time.sleep(0.5)
     finally:
         recorder.send_signal(signal.SIGINT)

@@ -302,6 +302,21 @@ impl CellNode {
         Ok(publisher)
     }
 
+    /// Whether this node's publisher on `topic` (as given to [`CellNode::publisher`]) has
+    /// matched a subscription of the node `node_name` (fully qualified), as that node announced
+    /// its readers on `ros_discovery_info`.
+    pub fn subscribed_by(&self, topic: &str, node_name: &str) -> bool {
+        let Ok(resolved) = self.names.resolve(topic) else {
+            return false;
+        };
+        let readers = crate::graph::readers_of(&self.node.external_nodes(), node_name);
+        self.published
+            .iter()
+            .filter(|p| p.topic == resolved)
+            .flat_map(|p| p.matched_readers())
+            .any(|guid| readers.contains(&ros2_client::Gid::from(guid)))
+    }
+
     /// Waits, at most `max_wait`, until the matched reliable subscribers of every topic this
     /// node publishes have acknowledged everything it published so far; returns the readers
     /// that had not, named (see [`crate::delivery`]). Call it before the node goes away.

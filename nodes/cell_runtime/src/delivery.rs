@@ -30,6 +30,11 @@ impl PublishedTopic {
             acknowledgments,
         }
     }
+
+    /// The reliable readers the writer has matched now.
+    pub fn matched_readers(&self) -> Vec<GUID> {
+        self.acknowledgments.matched_readers()
+    }
 }
 
 /// A matched reader that had not acknowledged everything a writer wrote when the wait ended.

@@ -10,6 +10,7 @@ pub mod args;
 pub mod dds;
 pub mod delivery;
 pub mod flow;
+pub mod graph;
 pub mod names;
 pub mod params;
 pub mod throttle;

@@ -3075,6 +3075,7 @@ mod tests {
       let acks = crate::Acknowledgments::new(f.writer.send_buffer.clone());
       assert_eq!(acks.last_written(), SequenceNumber::new(5));
       let guid = f.reader_guid;
+      assert_eq!(acks.matched_readers(), vec![guid]);
       // Matched, nothing acknowledged yet: it lacks sample 1.
       assert_eq!(
         acks.unacknowledged_readers(SequenceNumber::new(5)),
@@ -3130,6 +3131,7 @@ mod tests {
         vec![(guid, SequenceNumber::new(6))]
       );
       f.writer.reader_lost(guid);
+      assert!(acks.matched_readers().is_empty());
       assert!(acks
         .unacknowledged_readers(SequenceNumber::new(6))
         .is_empty());

@@ -536,6 +536,15 @@ impl Acknowledgments {
     }
   }
 
+  /// The reliable readers matched with the writer now.
+  pub fn matched_readers(&self) -> Vec<GUID> {
+    let inner = self.buffer.shared.inner.lock().unwrap();
+    if inner.writer_gone || !inner.reliable_readers_present {
+      return Vec::new();
+    }
+    inner.reader_acks.iter().map(|&(guid, _)| guid).collect()
+  }
+
   /// Whether the DataWriter was dropped: it delivers nothing more, and this
   /// handle no longer names readers or waits.
   pub fn writer_gone(&self) -> bool {

@@ -1,0 +1,119 @@
+//! Who is who in the ROS graph, from `ros_discovery_info`.
+//!
+//! Every ROS 2 participant announces its nodes on `ros_discovery_info` (rmw_dds_common's
+//! ParticipantEntitiesInfo), each with the GIDs of its readers and writers. That is how
+//! `ros2 node info` knows which node a publisher belongs to, and how the cell decides whether
+//! a flow-control acknowledgement really comes from the consumer node it names: only a
+//! writer that its *own* participant announced as that node's is believed. A participant can
+//! still lie about its own nodes — without DDS Security nothing on the wire is authenticated
+//! (see docs/design/threat-model.md) — but it can no longer speak for another participant's
+//! node, and a plain DDS application that announces nothing cannot speak for any.
+
+use ros2_client::{entities_info::NodeEntitiesInfo, Gid};
+
+/// The first 12 bytes of an RTPS GUID name its participant.
+const PREFIX_LEN: usize = 12;
+
+fn prefix(gid: &Gid) -> &[u8] {
+    &gid.as_bytes()[..PREFIX_LEN]
+}
+
+/// Whether `writer` was announced as a writer of the node `node_name` (fully qualified, e.g.
+/// `/bag_recorder`) by the participant `writer` belongs to. `announced` is what the
+/// participants announced, by participant GID ([`ros2_client::Node::external_nodes`]).
+pub fn is_writer_of(
+    announced: &[(Gid, Vec<NodeEntitiesInfo>)],
+    node_name: &str,
+    writer: &Gid,
+) -> bool {
+    announced
+        .iter()
+        .filter(|(participant, _)| prefix(participant) == prefix(writer))
+        .flat_map(|(_, nodes)| nodes)
+        .any(|node| node.fully_qualified_name() == node_name && node.writer_gids().contains(writer))
+}
+
+/// The readers the node `node_name` (fully qualified) announced, from every participant that
+/// announced a node of that name.
+pub fn readers_of(announced: &[(Gid, Vec<NodeEntitiesInfo>)], node_name: &str) -> Vec<Gid> {
+    announced
+        .iter()
+        .flat_map(|(_, nodes)| nodes)
+        .filter(|node| node.fully_qualified_name() == node_name)
+        .flat_map(|node| node.reader_gids().iter().copied())
+        .collect()
+}
+
+/// The nodes (fully qualified) that announced `writer` among their writers, from its own
+/// participant's announcement: what to call a sender in a log line.
+pub fn nodes_of_writer(announced: &[(Gid, Vec<NodeEntitiesInfo>)], writer: &Gid) -> Vec<String> {
+    announced
+        .iter()
+        .filter(|(participant, _)| prefix(participant) == prefix(writer))
+        .flat_map(|(_, nodes)| nodes)
+        .filter(|node| node.writer_gids().contains(writer))
+        .map(|node| node.fully_qualified_name())
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ros2_client::NodeName;
+
+    fn gid(participant: u8, entity: u8) -> Gid {
+        let mut bytes = [0u8; 16];
+        bytes[..12].fill(participant);
+        bytes[15] = entity;
+        Gid::from(bytes)
+    }
+
+    fn node(name: &str, writers: &[Gid]) -> NodeEntitiesInfo {
+        let mut info = NodeEntitiesInfo::new(NodeName::new("/", name).unwrap());
+        for w in writers {
+            info.add_writer(*w);
+        }
+        info
+    }
+
+    #[test]
+    fn a_writer_belongs_to_a_node_only_by_its_own_participants_word() {
+        let recorder_ack = gid(1, 7);
+        let foreign_ack = gid(2, 9);
+        let announced = vec![
+            (gid(1, 0xc1), vec![node("bag_recorder", &[recorder_ack])]),
+            // Participant 2 claims participant 1's writer for its own node of the same name,
+            // and its own writer for a node it does host.
+            (
+                gid(2, 0xc1),
+                vec![
+                    node("bag_recorder", &[recorder_ack]),
+                    node("spy", &[foreign_ack]),
+                ],
+            ),
+        ];
+        assert!(is_writer_of(&announced, "/bag_recorder", &recorder_ack));
+        assert!(!is_writer_of(&announced, "/polar_planner", &recorder_ack));
+        assert!(!is_writer_of(&announced, "/bag_recorder", &foreign_ack));
+        assert!(is_writer_of(&announced, "/spy", &foreign_ack));
+        // Announced by nobody: a plain DDS participant.
+        assert!(!is_writer_of(&announced, "/bag_recorder", &gid(3, 7)));
+        assert_eq!(
+            nodes_of_writer(&announced, &recorder_ack),
+            ["/bag_recorder"]
+        );
+        assert_eq!(nodes_of_writer(&announced, &foreign_ack), ["/spy"]);
+        assert!(nodes_of_writer(&announced, &gid(3, 7)).is_empty());
+        assert!(!is_writer_of(&[], "/bag_recorder", &recorder_ack));
+        let mut planner = node("polar_planner", &[]);
+        planner.add_reader(gid(1, 3));
+        planner.add_reader(gid(1, 4));
+        let announced = vec![(gid(1, 0xc1), vec![planner, node("bag_recorder", &[])])];
+        assert_eq!(
+            readers_of(&announced, "/polar_planner"),
+            [gid(1, 3), gid(1, 4)]
+        );
+        assert!(readers_of(&announced, "/bag_recorder").is_empty());
+        assert!(readers_of(&announced, "/nobody").is_empty());
+    }
+}

@@ -59,9 +59,10 @@ if grep -qE "FAILED|error(\[|:)" /tmp/polar-cell-cargo-test.log || ! grep -q "te
   awk '/^---- .* stdout ----$/ {show=1} /^failures:$/ && show {show=0} show' /tmp/polar-cell-cargo-test.log | tail -c 20000
   exit 1
 fi
-echo "== the patched RustDDS's writer tests (HEARTBEAT range, repair, acknowledgements, KEEP_LAST)"
+echo "== the patched RustDDS's tests of what patches/rustdds/PATCH.md changes"
 CARGO_TARGET_DIR=target/rustdds-patch cargo test --manifest-path patches/rustdds/Cargo.toml \
-  --locked --lib --quiet -- rtps::writer::tests::repair rtps::writer_send_buffer::tests
+  --locked --lib --quiet -- rtps::writer::tests::repair rtps::writer_send_buffer::tests \
+  structure::dds_cache::tests network::util::tests
 echo "== interop tests (Cyclone DDS, mcap-ros2-support, rosbags, Pinocchio, check_urdf)"
 cd tests/interop
 POLAR_CELL_BIN_DIR="$root/target/release" "$root/.venv/bin/python" -m pytest -q -p no:cacheprovider

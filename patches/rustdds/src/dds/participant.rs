@@ -1247,11 +1247,23 @@ impl DomainParticipantInner {
     let _dummy = _qos_policies; // to make clippy happy
 
     let only_networks: Option<Arc<[IpAddr]>> = only_networks.map(|v| v.into());
+    // polar-cell patch: a participant restricted to one address binds its
+    // unicast listeners there, and its multicast listeners to the group
+    // address (they then hear only the groups joined on the allowed interfaces,
+    // see `UDPListener::new_multicast_with_buf_size`), instead of 0.0.0.0: what
+    // arrives on any other interface does not reach it.
+    let unicast_host =
+      crate::network::util::unicast_bind_address(only_networks.as_deref()).to_string();
+    let multicast_host = if only_networks.is_some() {
+      "239.255.0.1"
+    } else {
+      "0.0.0.0"
+    };
 
     let mut listeners = HashMap::new();
 
     match UDPListener::new_multicast_with_buf_size(
-      "0.0.0.0",
+      multicast_host,
       spdp_well_known_multicast_port(domain_id),
       Ipv4Addr::new(239, 255, 0, 1),
       socket_receive_buffer_size,
@@ -1271,7 +1283,7 @@ impl DomainParticipantInner {
     // Numbers"
     while discovery_listener.is_none() && participant_id < 120 {
       discovery_listener = UDPListener::new_unicast_with_buf_size(
-        "0.0.0.0",
+        &unicast_host,
         spdp_well_known_unicast_port(domain_id, participant_id),
         socket_receive_buffer_size,
       )
@@ -1293,7 +1305,7 @@ impl DomainParticipantInner {
     // Now the user traffic listeners
 
     match UDPListener::new_multicast_with_buf_size(
-      "0.0.0.0",
+      multicast_host,
       user_traffic_multicast_port(domain_id),
       Ipv4Addr::new(239, 255, 0, 1),
       socket_receive_buffer_size,
@@ -1306,7 +1318,7 @@ impl DomainParticipantInner {
     }
 
     let user_traffic_listener = UDPListener::new_unicast_with_buf_size(
-      "0.0.0.0",
+      &unicast_host,
       user_traffic_unicast_port(domain_id, participant_id),
       socket_receive_buffer_size,
     )
@@ -1314,14 +1326,13 @@ impl DomainParticipantInner {
       if matches!(e.kind(), ErrorKind::AddrInUse) {
         // If we do not get the preferred listening port,
         // try again, with "any" port number.
-        UDPListener::new_unicast_with_buf_size("0.0.0.0", 0, socket_receive_buffer_size).or_else(
-          |e| {
+        UDPListener::new_unicast_with_buf_size(&unicast_host, 0, socket_receive_buffer_size)
+          .or_else(|e| {
             create_error_out_of_resources!(
               "Could not open unicast user traffic listener, any port number: {:?}",
               e
             )
-          },
-        )
+          })
       } else {
         create_error_out_of_resources!("Could not open unicast user traffic listener: {e:?}")
       }

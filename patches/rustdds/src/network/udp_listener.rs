@@ -217,6 +217,15 @@ impl UDPListener {
     }
 
     let mio_socket = Self::new_listening_socket(host, port, true, recv_buffer_size)?;
+    // polar-cell patch: with `only_networks`, hear only the group joined below
+    // on the allowed interfaces. Linux otherwise delivers a group's datagrams
+    // arriving on any interface where some socket of the host joined it.
+    #[cfg(target_os = "linux")]
+    if only_networks.is_some() {
+      socket2::SockRef::from(&mio_socket)
+        .set_multicast_all_v4(false)
+        .unwrap_or_else(|e| warn!("Cannot turn IP_MULTICAST_ALL off: {e:?}"));
+    }
     let mut joined_multicast = false;
 
     for multicast_if_ipaddr in get_local_multicast_ip_addrs_filtered(only_networks)? {

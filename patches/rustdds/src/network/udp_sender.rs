@@ -77,7 +77,12 @@ impl UDPSender {
     send_buffer_size: usize,
   ) -> io::Result<Self> {
     let unicast_socket = {
-      let saddr: SocketAddr = SocketAddr::new("0.0.0.0".parse().unwrap(), sender_port);
+      // polar-cell patch: bound to the one address the participant is
+      // restricted to, if any (see `unicast_bind_address`).
+      let saddr: SocketAddr = SocketAddr::new(
+        crate::network::util::unicast_bind_address(only_networks),
+        sender_port,
+      );
       let raw_socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
       Self::set_and_verify_send_buffer(&raw_socket, send_buffer_size);
       raw_socket.bind(&SockAddr::from(saddr))?;

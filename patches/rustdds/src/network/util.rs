@@ -220,6 +220,17 @@ fn get_local_unicast_locators_inner(
     .collect()
 }
 
+/// polar-cell patch: the address to bind unicast sockets to. A participant
+/// restricted to one IPv4 address (`only_networks`, e.g. loopback) binds its
+/// sockets there, so that nothing arriving on another interface reaches it;
+/// otherwise (no restriction, or several addresses) it binds the wildcard.
+pub fn unicast_bind_address(only_networks: Option<&[IpAddr]>) -> IpAddr {
+  match only_networks {
+    Some([address @ IpAddr::V4(_)]) => *address,
+    _ => IpAddr::V4(Ipv4Addr::UNSPECIFIED),
+  }
+}
+
 /// Enumerates local interfaces that we may use for multicasting.
 ///
 /// The result of this function is used to set up senders and listeners.
@@ -291,7 +302,8 @@ mod tests {
 
   use super::{
     build_ifindex_map_inner, get_local_multicast_ip_addrs_inner, get_local_unicast_locators_inner,
-    localhost_spdp_peer_locators, path_mtu_payload_for_peer, IfAddr, InterfaceSelector,
+    localhost_spdp_peer_locators, path_mtu_payload_for_peer, unicast_bind_address, IfAddr,
+    InterfaceSelector,
   };
   use crate::{
     network::constant::spdp_well_known_unicast_port,
@@ -554,5 +566,19 @@ mod tests {
     assert!(peers
       .iter()
       .all(|l| SocketAddr::from(*l).ip().is_loopback()));
+  }
+
+  // polar-cell patch.
+  #[test]
+  fn sockets_bind_the_one_address_a_participant_is_restricted_to() {
+    assert_eq!(
+      unicast_bind_address(Some(&[v4(127, 0, 0, 1)])),
+      v4(127, 0, 0, 1)
+    );
+    assert_eq!(unicast_bind_address(None), v4(0, 0, 0, 0));
+    assert_eq!(
+      unicast_bind_address(Some(&[v4(127, 0, 0, 1), v4(10, 0, 0, 10)])),
+      v4(0, 0, 0, 0)
+    );
   }
 }

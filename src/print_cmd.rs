@@ -338,6 +338,19 @@ pub async fn run_job(
         io.planned.send_replace(machine_time_s);
     }
     let (input, total) = open_input(file)?;
+    // The consumers take moves only from the streamer's writers: tell them its name.
+    let streamer_name = {
+        let args = args_for(
+            ros_args,
+            gcode_streamer::node::NODE_NAME,
+            &streamer_specs,
+            vec![],
+        );
+        let (names, _) =
+            cell_runtime::resolve_node(gcode_streamer::node::NODE_NAME, &streamer_specs, &args)?;
+        names.fully_qualified_node_name()
+    };
+    let producer = || param("producer", format!("{streamer_name:?}"));
 
     let recorder_node = start_node(
         cell_bag::node::NODE_NAME,
@@ -347,6 +360,7 @@ pub async fn run_job(
             vec![
                 param("output", format!("{:?}", options.bag.display().to_string())),
                 param("bag_directory", options.bag_dir.to_string()),
+                producer(),
             ],
             // At machine pace the topics' rates are bounded: a shallower history, less memory.
             match options.execution {
@@ -369,6 +383,8 @@ pub async fn run_job(
         Some(speed) => execution_overrides(ros_args, speed, options.device.is_some())?,
         None => (vec![], vec![], vec![]),
     };
+    let mut screw_extra = screw_extra;
+    screw_extra.push(producer());
     let mut screw_node = start_node(
         screw_driver::node::NODE_NAME,
         &screw_specs,
@@ -377,6 +393,7 @@ pub async fn run_job(
     )?;
     let mut ours = planner_overrides(&screw_node.params);
     ours.extend(planner_extra);
+    ours.push(producer());
     let mut planner_node = start_node(
         polar_planner::node::NODE_NAME,
         &planner_specs,
@@ -620,9 +637,23 @@ pub async fn run_job(
                 );
             }
             print_summary(&recorded);
-            // A print is a success only with its whole record.
+            // A print is a success only with its whole record: every sample, and every move
+            // the streamer counts as acknowledged by every consumer, the recorder among them.
             if let Some(loss) = recorded.loss() {
                 bail!(loss);
+            }
+            if let Some((_, _, recorded_moves)) = recorded
+                .topics
+                .iter()
+                .find(|(topic, _, _)| topic == "/gcode/moves")
+            {
+                if *recorded_moves != s.moves {
+                    bail!(
+                        "the bag holds {recorded_moves} of the {} moves the stream reports \
+                         delivered to every consumer",
+                        s.moves
+                    );
+                }
             }
             Ok(JobReport {
                 ending: Ending::Finished,

@@ -144,6 +144,23 @@ def ros_qos(depth=1000, transient_local=False):
 CONSUMER = "/cyclone_listener"
 
 
+def announce_node(participant, fully_qualified_name, readers=(), writers=()):
+    """Announce a ROS node on ros_discovery_info as rmw_cyclonedds does for rclcpp: this
+    participant's GID and the node's readers and writers by theirs. The streamer takes a
+    consumer's acknowledgements only from a writer so announced; a consumer takes moves only
+    from the streamer's. Returns the writer (the announcement lasts as long as it does)."""
+    namespace, _, name = fully_qualified_name.rpartition("/")
+    gid = lambda entity: Gid(list(entity.guid.bytes))  # noqa: E731
+    writer = DataWriter(
+        participant,
+        Topic(participant, "ros_discovery_info", ParticipantEntitiesInfo),
+        qos=ros_qos(1, transient_local=True),
+    )
+    writer.write(ParticipantEntitiesInfo(gid(participant), [NodeEntitiesInfo(
+        namespace or "/", name, [gid(r) for r in readers], [gid(w) for w in writers])]))
+    return writer
+
+
 def valid(samples, kind):
     """Drop Cyclone's InvalidSample entries (disposals when a writer goes away)."""
     return [s for s in samples if isinstance(s, kind)]
@@ -155,6 +172,7 @@ def consume_moves(participant, deadline_s=90):
     progress_r = DataReader(participant, Topic(participant, "rt/gcode/progress", GcodeProgress), qos=ros_qos())
     diag_r = DataReader(participant, Topic(participant, "rt/diagnostics", DiagnosticArray), qos=ros_qos())
     ack_w = DataWriter(participant, Topic(participant, "rt/gcode/ack", GcodeAck), qos=ros_qos())
+    announcement = announce_node(participant, CONSUMER, [moves_r, progress_r, diag_r], [ack_w])
     next_expected = None
     received, diagnostics = [], []
     finished = False
@@ -181,6 +199,7 @@ def consume_moves(participant, deadline_s=90):
         time.sleep(0.001)
     time.sleep(0.3)
     diagnostics.extend(valid(diag_r.take(N=100), DiagnosticArray))
+    del announcement
     return received, diagnostics, finished
 
 
@@ -284,14 +303,9 @@ def test_print_nodes_appear_under_their_default_names(polar_cell, tmp_path):
     assert ("/", "bag_recorder") in nodes, sorted(nodes)
 
 
-def test_forged_acknowledgements_from_a_foreign_participant_change_nothing(polar_cell, tmp_path):
-    """A Cyclone participant on the domain acknowledges 10^9 moves in the name of each of the
-    print's consumers, every 5 ms, for the whole print. The streamer refuses what was never
-    sent and says so on /rosout; the print finishes with every move in the bag."""
-    name = "polartest.gcode"
-    bag = tmp_path / "forged.mcap"
-    participant = DomainParticipant(0)
-    forger = DataWriter(participant, Topic(participant, "rt/gcode/ack", GcodeAck), qos=ros_qos())
+def print_beside_a_forger(polar_cell, bag, forge, name="polartest.gcode"):
+    """A dry run of `name` while `forge()` runs every 5 ms; the print's stderr, the bag's
+    message counts and /rosout, and the streamer's closing diagnostics."""
     proc = subprocess.Popen(
         [str(polar_cell), "print", str(FIXTURES / name), "--bag", str(bag), "--no-progress", "--dry-run"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -300,25 +314,76 @@ def test_forged_acknowledgements_from_a_foreign_participant_change_nothing(polar
     try:
         deadline = time.monotonic() + 60
         while proc.poll() is None and time.monotonic() < deadline:
-            for consumer in ("/bag_recorder", "/polar_planner", "/screw_driver"):
-                forger.write(GcodeAck(consumer, 10**9, False))
-                forged += 1
+            forged += forge()
             time.sleep(0.005)
-        out, err = proc.communicate(timeout=60)
+        _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
     assert proc.returncode == 0, err
     assert forged > 100, forged
-    import re
-
-    moves = int(re.search(r"(\d+) moves from \d+ lines", err).group(1))
-    assert moves == 1766, err  # `polar-cell check` on the fixture says 1766
     with open(bag, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         counts = reader.get_summary().statistics.channel_message_counts
         topics = {c.id: c.topic for c in reader.get_summary().channels.values()}
         by_topic = {topics[k]: v for k, v in counts.items()}
         logs = [m.msg for _, _, _, m in reader.iter_decoded_messages(topics=["/rosout"])]
+        closing = [
+            {kv.key: kv.value for kv in s.values}
+            for _, _, _, d in reader.iter_decoded_messages(topics=["/diagnostics"])
+            for s in d.status if s.name == "/gcode_streamer" and s.message == "stream finished"
+        ]
+    return err, by_topic, logs, closing
+
+
+def test_forged_acknowledgements_from_a_foreign_participant_change_nothing(polar_cell, tmp_path):
+    """A Cyclone participant on the domain acknowledges 10^9 moves in the name of each of the
+    print's consumers, every 5 ms, for the whole print. It is not those nodes (it announces
+    none), so the streamer ignores every one and counts them in its closing diagnostics; the
+    print finishes with every move in the bag."""
+    participant = DomainParticipant(0)
+    forger = DataWriter(participant, Topic(participant, "rt/gcode/ack", GcodeAck), qos=ros_qos())
+
+    def forge():
+        for consumer in ("/bag_recorder", "/polar_planner", "/screw_driver"):
+            forger.write(GcodeAck(consumer, 10**9, False))
+        return 3
+
+    err, by_topic, logs, closing = print_beside_a_forger(polar_cell, tmp_path / "forged.mcap", forge)
+    import re
+
+    moves = int(re.search(r"(\d+) moves from \d+ lines", err).group(1))
+    assert moves == 1766, err  # `polar-cell check` on the fixture says 1766
     assert by_topic["/gcode/moves"] == moves, (by_topic["/gcode/moves"], moves)
-    assert by_topic["/gcode/moves"] == by_topic["/polar/trajectory"]
-    assert any("ignored an impossible /gcode/ack" in m for m in logs), logs
+    assert by_topic["/polar/trajectory"] == by_topic["/gcode/moves"]
+    assert not any("impossible" in m for m in logs), logs
+    [streamer] = closing
+    assert int(streamer["acks_ignored_foreign"]) > 100, streamer
+    assert streamer["acks_ignored_impossible"] == "0", streamer
+
+
+def test_forged_moves_and_progress_from_a_foreign_participant_change_nothing(polar_cell, tmp_path):
+    """A Cyclone participant publishes moves on /gcode/moves (each sequence number a little
+    ahead of the real stream, a move far off the bed) and a progress report saying the stream
+    is finished, every 5 ms. The consumers take moves and progress only from the streamer
+    node's writers: the bag and the plan are the file's, move for move."""
+    participant = DomainParticipant(0)
+    moves_w = DataWriter(participant, Topic(participant, "rt/gcode/moves", GcodeMove), qos=ros_qos())
+    progress_w = DataWriter(participant, Topic(participant, "rt/gcode/progress", GcodeProgress), qos=ros_qos())
+    sequence = [0]
+
+    def forge():
+        for s in range(sequence[0], sequence[0] + 20):
+            moves_w.write(GcodeMove(s, 1, 1, 0, 1, 9.0, 9.0, 0.0, 0.0, 0.0, 0.1, False, 0.0, 0, 0))
+        sequence[0] += 5
+        progress_w.write(GcodeProgress(Header(Time(0, 0), ""), "forged", 0, 0, 0, 0, 0, 0, [], [], True))
+        return 21
+
+    err, by_topic, _, _ = print_beside_a_forger(polar_cell, tmp_path / "moves.mcap", forge, "finger.gcode")
+    assert "1778 moves from 2001 lines" in err, err
+    assert by_topic["/gcode/moves"] == 1778
+    assert by_topic["/polar/trajectory"] == 1778
+    with open(tmp_path / "moves.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        recorded = [m for _, _, _, m in reader.iter_decoded_messages(topics=["/gcode/moves"])]
+    assert [m.sequence for m in recorded] == list(range(1778))
+    assert max(abs(m.x_m) for m in recorded) < 1.0  # no forged 9 m move

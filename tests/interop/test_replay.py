@@ -12,7 +12,7 @@ from cyclonedds.topic import Topic
 from mcap.reader import make_reader
 
 from conftest import FIXTURES, assert_readable_by_independent_readers, binary, gcode_motion_lines, run
-from test_dds import GcodeAck, GcodeMove, GcodeProgress, ros_qos, valid
+from test_dds import GcodeAck, GcodeMove, GcodeProgress, announce_node, ros_qos, valid
 
 
 def raw_messages(path):
@@ -63,6 +63,7 @@ class Consumer:
         self.moves = DataReader(participant, Topic(participant, "rt/gcode/moves", GcodeMove), qos=ros_qos(10000))
         self.progress = DataReader(participant, Topic(participant, "rt/gcode/progress", GcodeProgress), qos=ros_qos())
         self.acks = DataWriter(participant, Topic(participant, "rt/gcode/ack", GcodeAck), qos=ros_qos())
+        self.announcement = announce_node(participant, CONSUMER, [self.moves, self.progress], [self.acks])
         self.next_expected = None
         self.ack_every = ack_every
         self.uncommitted = []

@@ -103,6 +103,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
             ParamValue::Bool(true),
             "act as a flow-control consumer of /gcode/moves",
         ),
+        cell_runtime::graph::Producer::param_spec(),
     ]
 }
 
@@ -289,6 +290,13 @@ fn spawn_moves_consumer(
         node.subscription("/gcode/progress", &reliable_qos(1000))?;
     let acks = node.publisher::<GcodeAck>("/gcode/ack", &publisher_qos("/gcode/ack"))?;
     let mut tracker = AckTracker::new(node.fully_qualified_name(), 64);
+    // Moves and progress only from the streamer: the bag holds the print's moves, once each.
+    let mut producer = cell_runtime::graph::Producer::new(
+        node.names.resolve(node.params.string("producer"))?,
+        true,
+    );
+    let announced = node.node.external_nodes_view();
+    let started = std::time::Instant::now();
     Ok(tokio::spawn(async move {
         let mut tick = tokio::time::interval(Duration::from_millis(20));
         let mut idle_ticks = 0u32;
@@ -297,6 +305,9 @@ fn spawn_moves_consumer(
                 taken = moves.async_take() => match taken {
                     Ok((m, info)) => {
                         idle_ticks = 0;
+                        if !producer.admits(&announced, info.publisher_gid(), started.elapsed()) {
+                            continue;
+                        }
                         if tracker.accept(m.sequence) == Verdict::Process
                             && !forward(&tx, moves_channel, &m, &info).await
                         {
@@ -309,6 +320,9 @@ fn spawn_moves_consumer(
                     Err(e) => tracing::warn!("recorder: /gcode/moves read error: {e:?}"),
                 },
                 taken = progress.async_take() => if let Ok((p, info)) = taken {
+                    if !producer.admits(&announced, info.publisher_gid(), started.elapsed()) {
+                        continue;
+                    }
                     if tracker.on_progress(&p.consumers, &p.consumer_next_expected) {
                         // Confirm the resume point: the streamer starts sending on this.
                         if let Some(ack) = tracker.ack_due(true) {

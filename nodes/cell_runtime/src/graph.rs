@@ -56,6 +56,115 @@ pub fn nodes_of_writer(announced: &[(Gid, Vec<NodeEntitiesInfo>)], writer: &Gid)
         .collect()
 }
 
+/// The writers a node believes on a flow-controlled link, by the node each must speak for
+/// (an acknowledgement in the name of a consumer, a move from the producer): writers that
+/// their own participant announced as that node's ([`is_writer_of`]). A writer once found is
+/// remembered; for one not (yet) announced, the graph is looked up again at most every
+/// [`Sources::LOOKUP_PERIOD`], so a flood of forged messages costs no more than that.
+#[derive(Debug, Default)]
+pub struct Sources {
+    verified: std::collections::BTreeSet<(String, Gid)>,
+    snapshot: Vec<(Gid, Vec<NodeEntitiesInfo>)>,
+    looked_up: Option<std::time::Duration>,
+}
+
+impl Sources {
+    /// How often the announcements are read again for a writer not yet found in them.
+    pub const LOOKUP_PERIOD: std::time::Duration = std::time::Duration::from_millis(50);
+
+    pub fn new() -> Sources {
+        Sources::default()
+    }
+
+    /// Whether `writer` speaks for `node_name` at `now` (any monotonic clock), `announced`
+    /// giving the graph's announcements when they need reading.
+    pub fn admits(
+        &mut self,
+        node_name: &str,
+        writer: Gid,
+        now: std::time::Duration,
+        announced: impl FnOnce() -> Vec<(Gid, Vec<NodeEntitiesInfo>)>,
+    ) -> bool {
+        let key = (node_name.to_string(), writer);
+        if self.verified.contains(&key) {
+            return true;
+        }
+        if self
+            .looked_up
+            .is_none_or(|at| now.saturating_sub(at) >= Self::LOOKUP_PERIOD)
+        {
+            self.snapshot = announced();
+            self.looked_up = Some(now);
+        }
+        let admitted = is_writer_of(&self.snapshot, node_name, &writer);
+        if admitted {
+            self.verified.insert(key);
+        }
+        admitted
+    }
+}
+
+/// A consumer's view of its link's producer: it takes moves and progress reports only from
+/// writers of the producer node (`producer`, by default `gcode_streamer` in the consumer's
+/// namespace). Without acknowledgements (replaying a bag) there is no producer to check.
+#[derive(Debug)]
+pub struct Producer {
+    name: String,
+    check: bool,
+    sources: Sources,
+    refused: u64,
+}
+
+impl Producer {
+    /// The `producer` parameter every consumer of `/gcode/moves` declares.
+    pub fn param_spec() -> crate::ParamSpec {
+        crate::ParamSpec::new(
+            "producer",
+            crate::ParamValue::String("gcode_streamer".into()),
+            "the node whose /gcode/moves and /gcode/progress this consumer takes (relative: in \
+             its namespace); other writers are ignored",
+        )
+    }
+
+    /// `name` fully qualified; `check` false takes every writer (no flow control).
+    pub fn new(name: String, check: bool) -> Producer {
+        Producer {
+            name,
+            check,
+            sources: Sources::new(),
+            refused: 0,
+        }
+    }
+
+    /// The producer node's fully qualified name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Whether a message from `writer` comes from the producer; `announced` is the graph as
+    /// the consumer's node sees it ([`ros2_client::Node::external_nodes_view`]).
+    pub fn admits(
+        &mut self,
+        announced: &ros2_client::ExternalNodes,
+        writer: Gid,
+        now: std::time::Duration,
+    ) -> bool {
+        let admitted = !self.check
+            || self
+                .sources
+                .admits(&self.name, writer, now, || announced.get());
+        if !admitted {
+            self.refused += 1;
+        }
+        admitted
+    }
+
+    /// Messages refused so far (a node reports them in its diagnostics).
+    pub fn refused(&self) -> u64 {
+        self.refused
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -115,5 +224,34 @@ mod tests {
         );
         assert!(readers_of(&announced, "/bag_recorder").is_empty());
         assert!(readers_of(&announced, "/nobody").is_empty());
+    }
+
+    #[test]
+    fn sources_believe_announced_writers_and_read_the_graph_at_most_every_50_ms() {
+        let ms = std::time::Duration::from_millis;
+        let recorder_ack = gid(1, 7);
+        let mut announced = vec![];
+        let mut lookups = 0;
+        let mut sources = Sources::new();
+        let ask = |sources: &mut Sources, at: u64, announced: &Vec<_>, lookups: &mut u32| {
+            sources.admits("/bag_recorder", recorder_ack, ms(at), || {
+                *lookups += 1;
+                announced.clone()
+            })
+        };
+        // Not announced yet (discovery is still on its way): refused.
+        assert!(!ask(&mut sources, 0, &announced, &mut lookups));
+        announced.push((gid(1, 0xc1), vec![node("bag_recorder", &[recorder_ack])]));
+        // Within 50 ms of the last look: refused without looking again.
+        assert!(!ask(&mut sources, 49, &announced, &mut lookups));
+        assert_eq!(lookups, 1);
+        assert!(ask(&mut sources, 50, &announced, &mut lookups));
+        assert_eq!(lookups, 2);
+        // Remembered: no more lookups, even once the announcement is gone.
+        announced.clear();
+        assert!(ask(&mut sources, 51, &announced, &mut lookups));
+        assert_eq!(lookups, 2);
+        // The same writer for another node is another question.
+        assert!(!sources.admits("/polar_planner", recorder_ack, ms(200), Vec::new));
     }
 }

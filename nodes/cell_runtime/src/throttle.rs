@@ -14,14 +14,24 @@ use std::time::Duration;
 #[derive(Debug)]
 pub struct LogThrottle<K> {
     period: Duration,
-    /// Per key: when it was last logged, and how many were held back since.
-    keys: HashMap<K, (Duration, u64)>,
+    grace: Duration,
+    /// Per key: when it was first seen, when it was last logged, and how many were held back
+    /// since.
+    keys: HashMap<K, (Duration, Option<Duration>, u64)>,
 }
 
 impl<K: Eq + Hash> LogThrottle<K> {
     pub fn new(period: Duration) -> Self {
+        Self::with_grace(period, Duration::ZERO)
+    }
+
+    /// Like [`LogThrottle::new`], but nothing of a key is logged until `grace` after its
+    /// first occurrence: for what is normal for a moment (a new node's acknowledgements before
+    /// its announcement has arrived) and suspect only if it lasts.
+    pub fn with_grace(period: Duration, grace: Duration) -> Self {
         LogThrottle {
             period,
+            grace,
             keys: HashMap::new(),
         }
     }
@@ -29,20 +39,16 @@ impl<K: Eq + Hash> LogThrottle<K> {
     /// Another occurrence for `key` at `now`: `Some(held_back)` when it is to be logged, with
     /// how many occurrences since the last logged one were not; `None` to hold it back.
     pub fn admit(&mut self, key: K, now: Duration) -> Option<u64> {
-        match self.keys.get_mut(&key) {
-            None => {
-                self.keys.insert(key, (now, 0));
-                Some(0)
-            }
-            Some((last, held_back)) if now.saturating_sub(*last) >= self.period => {
-                let count = *held_back;
-                (*last, *held_back) = (now, 0);
-                Some(count)
-            }
-            Some((_, held_back)) => {
-                *held_back += 1;
-                None
-            }
+        let (first, last, held_back) = self.keys.entry(key).or_insert((now, None, 0));
+        let due = now.saturating_sub(*first) >= self.grace
+            && last.is_none_or(|last| now.saturating_sub(last) >= self.period);
+        if due {
+            let count = *held_back;
+            (*last, *held_back) = (Some(now), 0);
+            Some(count)
+        } else {
+            *held_back += 1;
+            None
         }
     }
 }
@@ -73,5 +79,25 @@ mod tests {
         assert_eq!(throttle.admit("a", ms(2000)), Some(1));
         // A quiet key is logged at once when it speaks again.
         assert_eq!(throttle.admit("b", ms(5000)), Some(0));
+    }
+
+    #[test]
+    fn with_grace_nothing_is_logged_until_a_key_has_lasted() {
+        let mut throttle = LogThrottle::with_grace(ms(1000), ms(2000));
+        assert_eq!(throttle.admit("new node", ms(0)), None);
+        assert_eq!(
+            throttle.admit("new node", ms(100)),
+            None,
+            "its announcement is coming"
+        );
+        assert_eq!(throttle.admit("forger", ms(500)), None);
+        assert_eq!(throttle.admit("forger", ms(2499)), None);
+        assert_eq!(
+            throttle.admit("forger", ms(2500)),
+            Some(2),
+            "it lasted: logged, with the count"
+        );
+        assert_eq!(throttle.admit("forger", ms(3000)), None);
+        assert_eq!(throttle.admit("forger", ms(3500)), Some(1));
     }
 }

@@ -195,7 +195,7 @@ pub async fn stream(
     let mut consumers_announced = consumers.is_empty();
     // A consumer that (re)announces itself needs its resume point from /gcode/progress now.
     let mut progress_due = false;
-    let mut impossible_acks = LogThrottle::new(Duration::from_secs(1));
+    let mut ack_checks = AckChecks::new();
     cell_runtime::cell_log!(
         node,
         LogLevel::Info,
@@ -205,7 +205,7 @@ pub async fn stream(
         let now = start.elapsed();
         // Acknowledgements.
         while let Some((ack, info)) = acks.take().context("reading /gcode/ack")? {
-            progress_due |= apply_ack(node, &mut window, &mut impossible_acks, &ack, &info, now);
+            progress_due |= apply_ack(node, &mut window, &mut ack_checks, &ack, &info, now);
         }
         // Parser output into the window.
         while window.has_room() && !eof {
@@ -295,6 +295,13 @@ pub async fn stream(
                     ("moves", summary.moves.to_string()),
                     ("warnings", summary.warnings.to_string()),
                     ("resends", summary.resends.to_string()),
+                    // Acknowledgements from writers not of the consumer they name, and of
+                    // moves never sent: ignored (a forger, or a consumer still unannounced).
+                    ("acks_ignored_foreign", ack_checks.foreign_count.to_string()),
+                    (
+                        "acks_ignored_impossible",
+                        ack_checks.impossible_count.to_string(),
+                    ),
                 ],
             );
             return Ok(summary);
@@ -317,11 +324,34 @@ pub async fn stream(
                 tokio::time::timeout(Duration::from_millis(patience), acks.async_take()).await;
             if let Ok(Ok((ack, info))) = wait {
                 let now = start.elapsed();
-                progress_due |=
-                    apply_ack(node, &mut window, &mut impossible_acks, &ack, &info, now);
+                progress_due |= apply_ack(node, &mut window, &mut ack_checks, &ack, &info, now);
             }
         } else {
             tokio::task::yield_now().await;
+        }
+    }
+}
+
+/// What the streamer checks an acknowledgement by, and how often it says so.
+struct AckChecks {
+    sources: cell_runtime::graph::Sources,
+    /// Acknowledgements from a writer not (yet) known as the consumer's: logged only once
+    /// that lasts 2 s (a consumer's first ones may come before its announcement).
+    foreign: LogThrottle<cell_runtime::Gid>,
+    impossible: LogThrottle<cell_runtime::Gid>,
+    /// Acknowledgements ignored as not from their consumer, and as impossible.
+    foreign_count: u64,
+    impossible_count: u64,
+}
+
+impl AckChecks {
+    fn new() -> AckChecks {
+        AckChecks {
+            sources: cell_runtime::graph::Sources::new(),
+            foreign: LogThrottle::with_grace(Duration::from_secs(1), Duration::from_secs(2)),
+            impossible: LogThrottle::new(Duration::from_secs(1)),
+            foreign_count: 0,
+            impossible_count: 0,
         }
     }
 }
@@ -333,16 +363,47 @@ pub async fn stream(
 fn apply_ack(
     node: &CellNode,
     window: &mut SendWindow<GcodeMove>,
-    impossible_acks: &mut LogThrottle<cell_runtime::Gid>,
+    checks: &mut AckChecks,
     ack: &GcodeAck,
     info: &cell_runtime::MessageInfo,
     now: Duration,
 ) -> bool {
+    let sender = info.publisher_gid();
+    // Only the consumer itself may acknowledge for it (see cell_runtime::graph): anyone else
+    // on the domain could otherwise make the streamer drop moves the consumer never had.
+    if !checks
+        .sources
+        .admits(&ack.consumer, sender, now, || node.node.external_nodes())
+    {
+        checks.foreign_count += 1;
+        if let Some(held_back) = checks.foreign.admit(sender, now) {
+            let speaker =
+                match cell_runtime::graph::nodes_of_writer(&node.node.external_nodes(), &sender) {
+                    nodes if nodes.is_empty() => "not a ROS node".to_string(),
+                    nodes => format!("a writer of {}", nodes.join(", ")),
+                };
+            cell_runtime::cell_log!(
+                node,
+                LogLevel::Warn,
+                "ignored /gcode/ack in the name of {} from publisher {sender:?} ({speaker}): \
+                 it is not a writer of {} in ros_discovery_info{}",
+                ack.consumer,
+                ack.consumer,
+                match held_back {
+                    0 => String::new(),
+                    n => format!(" ({n} more from it since the last report)"),
+                }
+            );
+        }
+        return false;
+    }
+    let impossible_acks = &mut checks.impossible;
     if let AckOutcome::Impossible {
         next_expected,
         sent,
     } = window.on_ack(&ack.into(), now)
     {
+        checks.impossible_count += 1;
         let sender = info.publisher_gid();
         if let Some(held_back) = impossible_acks.admit(sender, now) {
             let more = match held_back {

@@ -62,6 +62,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("plan_epoch_ns", ParamValue::Integer(-1), "stamp of plan time 0 (-1: wall clock at the first move)"),
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.05), "plan the queue to a stop when no move came for this long").range(0.001, 60.0),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves (false: accept moves in sequence order, e.g. from a bag)"),
+        cell_runtime::graph::Producer::param_spec(),
         ParamSpec::new("pin_open_dwell_s", ParamValue::Double(0.0), "rest before each extruding move after a non-extruding one, for the extruder pin (screw_driver's stop strategy; 0: none)").range(0.0, 60.0),
         ParamSpec::new("screw_max_rpm", ParamValue::Double(300.0), "the screw's top speed (screw_driver's max_rpm); extruding moves are slowed so they never need more (0: ignore the screw)").range(0.0, 1e5),
         ParamSpec::new("screw_e_per_rev_m", ParamValue::Double(0.002), "filament-equivalent length one screw revolution feeds (screw_driver's e_per_rev_m)").range(1e-9, 1.0),
@@ -203,6 +204,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         node.fully_qualified_name(),
         params.bool("acknowledge_moves"),
     );
+    // Moves and progress only from the streamer (a forged move would be planned).
+    let mut producer = cell_runtime::graph::Producer::new(
+        node.names.resolve(params.string("producer"))?,
+        params.bool("acknowledge_moves"),
+    );
+    let announced = node.node.external_nodes_view();
+    let started = Instant::now();
     let mut planned = Vec::new();
     let mut segments = Vec::new();
     let mut states = Vec::new();
@@ -218,8 +226,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     loop {
         tokio::select! {
             taken = moves_sub.async_take() => {
-                let (m, _) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
-                if intake.accept(m.sequence) {
+                let (m, info) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
+                if producer.admits(&announced, info.publisher_gid(), started.elapsed())
+                    && intake.accept(m.sequence)
+                {
                     last_move = Instant::now();
                     held.push_back(m);
                 }
@@ -230,7 +240,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 }
             }
             taken = progress_sub.async_take() => {
-                if let Ok((p, _)) = taken {
+                if let Ok((p, info)) = taken {
+                    if !producer.admits(&announced, info.publisher_gid(), started.elapsed()) {
+                        continue;
+                    }
                     if let Some(ack) = intake.on_progress(&p.consumers, &p.consumer_next_expected) {
                         let _ = acks.publish(GcodeAck::from(ack));
                     }

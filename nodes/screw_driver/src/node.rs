@@ -60,6 +60,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("stall_flush_s", ParamValue::Double(2.0), "with flow compensation: when input pauses before the file is all read, commands are computed up to a closed-pin gap; after this long without input, for everything (the pin closes)").range(0.001, 3600.0),
         ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
+        cell_runtime::graph::Producer::param_spec(),
         ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of the screw joint's /polar/planned_joint_states samples (0: none)").range(0.0, 10.0),
     ]
 }
@@ -208,6 +209,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         node.fully_qualified_name(),
         params.bool("acknowledge_moves"),
     );
+    // Moves and progress only from the streamer (a forged move would get material).
+    let mut producer = cell_runtime::graph::Producer::new(
+        node.names.resolve(params.string("producer"))?,
+        params.bool("acknowledge_moves"),
+    );
+    let announced = node.node.external_nodes_view();
+    let started = Instant::now();
     let mut moves: VecDeque<GcodeMove> = VecDeque::new();
     let mut plans: VecDeque<JointTrajectory> = VecDeque::new();
     let mut timed: VecDeque<TimedMove> = VecDeque::new();
@@ -231,8 +239,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         let mut idle_cut = false;
         tokio::select! {
             taken = moves_sub.async_take() => {
-                let (m, _) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
-                if intake.accept(m.sequence) {
+                let (m, info) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
+                if producer.admits(&announced, info.publisher_gid(), started.elapsed())
+                    && intake.accept(m.sequence)
+                {
                     moves.push_back(m);
                 }
             }
@@ -242,7 +252,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 plans.push_back(trajectory);
             }
             taken = progress_sub.async_take() => {
-                if let Ok((p, _)) = taken {
+                if let Ok((p, info)) = taken {
+                    if !producer.admits(&announced, info.publisher_gid(), started.elapsed()) {
+                        continue;
+                    }
                     // Every move of the file acknowledged by every consumer (us included).
                     stream_finished |= p.finished;
                     if let Some(ack) = intake.on_progress(&p.consumers, &p.consumer_next_expected) {

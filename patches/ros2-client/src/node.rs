@@ -39,6 +39,24 @@ use crate::{
 // ----------------------------------------------------------------------------------------------------
 // ----------------------------------------------------------------------------------------------------
 
+/// polar-cell patch: a Node's view of what other participants announced on
+/// `ros_discovery_info` (see [`Node::external_nodes_view`]).
+#[derive(Clone)]
+pub struct ExternalNodes(Arc<Mutex<BTreeMap<Gid, Vec<NodeEntitiesInfo>>>>);
+
+impl ExternalNodes {
+  /// The announced nodes, by participant GID, as last received.
+  pub fn get(&self) -> Vec<(Gid, Vec<NodeEntitiesInfo>)> {
+    self
+      .0
+      .lock()
+      .unwrap()
+      .iter()
+      .map(|(gid, nodes)| (*gid, nodes.clone()))
+      .collect()
+  }
+}
+
 /// ROS 2 Discovery events.
 ///
 /// `Graph` carries the backend-neutral [`GraphEvent`] (ADR-0005 / ADR-0010),
@@ -852,13 +870,13 @@ impl Node {
   /// `ros_discovery_info`, by participant GID, as last received by this
   /// node's Spinner: which node a remote reader or writer belongs to.
   pub fn external_nodes(&self) -> Vec<(Gid, Vec<NodeEntitiesInfo>)> {
-    self
-      .external_nodes
-      .lock()
-      .unwrap()
-      .iter()
-      .map(|(gid, nodes)| (*gid, nodes.clone()))
-      .collect()
+    self.external_nodes_view().get()
+  }
+
+  /// polar-cell patch: [`Node::external_nodes`] as a handle that can be sent
+  /// to a task the Node itself cannot go to.
+  pub fn external_nodes_view(&self) -> ExternalNodes {
+    ExternalNodes(Arc::clone(&self.external_nodes))
   }
 
   // ///////////////////////////////////////////////////

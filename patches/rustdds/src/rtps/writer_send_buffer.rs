@@ -451,8 +451,13 @@ impl WriterSendBuffer {
   /// Has every matched reliable reader acknowledged everything up to and
   /// including `target`? Also true when there are no reliable readers.
   pub fn is_acked_through(&self, target: SequenceNumber) -> bool {
-    let inner = self.shared.inner.lock().unwrap();
-    !inner.reliable_readers_present || inner.acked_before > target
+    Self::acked_through(&self.shared.inner.lock().unwrap(), target)
+  }
+
+  // Everything up to `target` acknowledged by every reliable reader, or nobody
+  // left to wait for (polar-cell patch: including a dropped DataWriter's).
+  fn acked_through(inner: &Inner, target: SequenceNumber) -> bool {
+    inner.writer_gone || !inner.reliable_readers_present || inner.acked_before > target
   }
 
   /// Synchronously wait until everything up to `target` is acknowledged, or
@@ -462,7 +467,7 @@ impl WriterSendBuffer {
     let mut inner = shared.inner.lock().unwrap();
     let deadline = Instant::now() + max_wait;
     loop {
-      if !inner.reliable_readers_present || inner.acked_before > target {
+      if Self::acked_through(&inner, target) {
         return true;
       }
       let now = Instant::now();
@@ -517,23 +522,7 @@ impl Acknowledgments {
   /// up to and including `through`, or `max_wait` passes. True when they have
   /// (or there is no reliable reader, or the DataWriter is gone).
   pub fn wait_through(&self, through: SequenceNumber, max_wait: StdDuration) -> bool {
-    let shared = &*self.buffer.shared;
-    let mut inner = shared.inner.lock().unwrap();
-    let deadline = Instant::now() + max_wait;
-    loop {
-      if inner.writer_gone || !inner.reliable_readers_present || inner.acked_before > through {
-        return true;
-      }
-      let now = Instant::now();
-      if now >= deadline {
-        return false;
-      }
-      inner = shared
-        .progress
-        .wait_timeout(inner, deadline - now)
-        .unwrap()
-        .0;
-    }
+    self.buffer.wait_for_acked_through(through, max_wait)
   }
 
   /// The reliable readers matched with the writer now.

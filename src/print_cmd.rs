@@ -271,10 +271,10 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
     }
 }
 
-/// Run one print: the whole graph for `file`, until it is printed, interrupted or failed.
 /// How long a finished job waits for subscribers to acknowledge the nodes' last messages.
 const DELIVER_TIMEOUT: Duration = Duration::from_secs(5);
 
+/// Run one print: the whole graph for `file`, until it is printed, interrupted or failed.
 pub async fn run_job(
     file: &str,
     options: &PrintOptions,

@@ -291,12 +291,7 @@ fn spawn_moves_consumer(
     let acks = node.publisher::<GcodeAck>("/gcode/ack", &publisher_qos("/gcode/ack"))?;
     let mut tracker = AckTracker::new(node.fully_qualified_name(), 64);
     // Moves and progress only from the streamer: the bag holds the print's moves, once each.
-    let mut producer = cell_runtime::graph::Producer::new(
-        node.names.resolve(node.params.string("producer"))?,
-        true,
-    );
-    let announced = node.node.external_nodes_view();
-    let started = std::time::Instant::now();
+    let mut producer = cell_runtime::graph::Producer::of(node, true)?;
     Ok(tokio::spawn(async move {
         let mut tick = tokio::time::interval(Duration::from_millis(20));
         let mut idle_ticks = 0u32;
@@ -305,7 +300,7 @@ fn spawn_moves_consumer(
                 taken = moves.async_take() => match taken {
                     Ok((m, info)) => {
                         idle_ticks = 0;
-                        if !producer.admits(&announced, info.publisher_gid(), started.elapsed()) {
+                        if !producer.admits(&info) {
                             continue;
                         }
                         if tracker.accept(m.sequence) == Verdict::Process
@@ -320,7 +315,7 @@ fn spawn_moves_consumer(
                     Err(e) => tracing::warn!("recorder: /gcode/moves read error: {e:?}"),
                 },
                 taken = progress.async_take() => if let Ok((p, info)) = taken {
-                    if !producer.admits(&announced, info.publisher_gid(), started.elapsed()) {
+                    if !producer.admits(&info) {
                         continue;
                     }
                     if tracker.on_progress(&p.consumers, &p.consumer_next_expected) {

@@ -108,24 +108,15 @@ pub fn wait_acknowledged(
         .collect()
 }
 
-/// The ROS node that announced `reader` among its readers, by fully qualified name.
-pub fn node_of_reader(node: &Node, reader: GUID) -> Option<String> {
-    let gid = Gid::from(reader);
-    node.external_nodes()
-        .into_iter()
-        .flat_map(|(_, nodes)| nodes)
-        .find(|n| n.reader_gids().contains(&gid))
-        .map(|n| n.fully_qualified_name())
-}
-
 /// [`wait_acknowledged`]'s readers, named through `node`'s view of the ROS graph.
 pub fn name_readers(node: &Node, lagging: Vec<(String, GUID, i64)>) -> Vec<Undelivered> {
+    let announced = node.external_nodes();
     lagging
         .into_iter()
         .map(|(topic, reader, samples)| Undelivered {
             topic,
             reader: guid_text(reader),
-            node: node_of_reader(node, reader),
+            node: crate::graph::node_of_reader(&announced, &Gid::from(reader)),
             samples,
         })
         .collect()

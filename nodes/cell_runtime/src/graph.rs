@@ -44,6 +44,16 @@ pub fn readers_of(announced: &[(Gid, Vec<NodeEntitiesInfo>)], node_name: &str) -
         .collect()
 }
 
+/// The node (fully qualified) that announced `reader` among its readers: what to call a
+/// subscriber in a log line.
+pub fn node_of_reader(announced: &[(Gid, Vec<NodeEntitiesInfo>)], reader: &Gid) -> Option<String> {
+    announced
+        .iter()
+        .flat_map(|(_, nodes)| nodes)
+        .find(|node| node.reader_gids().contains(reader))
+        .map(|node| node.fully_qualified_name())
+}
+
 /// The nodes (fully qualified) that announced `writer` among their writers, from its own
 /// participant's announcement: what to call a sender in a log line.
 pub fn nodes_of_writer(announced: &[(Gid, Vec<NodeEntitiesInfo>)], writer: &Gid) -> Vec<String> {
@@ -63,7 +73,9 @@ pub fn nodes_of_writer(announced: &[(Gid, Vec<NodeEntitiesInfo>)], writer: &Gid)
 /// [`Sources::LOOKUP_PERIOD`], so a flood of forged messages costs no more than that.
 #[derive(Debug, Default)]
 pub struct Sources {
-    verified: std::collections::BTreeSet<(String, Gid)>,
+    /// Writers found, each with the nodes it was found to speak for (looked up without
+    /// allocating: this runs for every message).
+    verified: std::collections::BTreeMap<Gid, Vec<String>>,
     snapshot: Vec<(Gid, Vec<NodeEntitiesInfo>)>,
     looked_up: Option<std::time::Duration>,
 }
@@ -85,8 +97,11 @@ impl Sources {
         now: std::time::Duration,
         announced: impl FnOnce() -> Vec<(Gid, Vec<NodeEntitiesInfo>)>,
     ) -> bool {
-        let key = (node_name.to_string(), writer);
-        if self.verified.contains(&key) {
+        if self
+            .verified
+            .get(&writer)
+            .is_some_and(|nodes| nodes.iter().any(|n| n == node_name))
+        {
             return true;
         }
         if self
@@ -98,7 +113,7 @@ impl Sources {
         }
         let admitted = is_writer_of(&self.snapshot, node_name, &writer);
         if admitted {
-            self.verified.insert(key);
+            (self.verified.entry(writer).or_default()).push(node_name.to_string());
         }
         admitted
     }
@@ -107,12 +122,13 @@ impl Sources {
 /// A consumer's view of its link's producer: it takes moves and progress reports only from
 /// writers of the producer node (`producer`, by default `gcode_streamer` in the consumer's
 /// namespace). Without acknowledgements (replaying a bag) there is no producer to check.
-#[derive(Debug)]
 pub struct Producer {
     name: String,
     check: bool,
     sources: Sources,
-    refused: u64,
+    /// The graph as the consumer's node sees it, and the clock of [`Sources`]' lookups.
+    announced: ros2_client::ExternalNodes,
+    started: std::time::Instant,
 }
 
 impl Producer {
@@ -126,42 +142,27 @@ impl Producer {
         )
     }
 
-    /// `name` fully qualified; `check` false takes every writer (no flow control).
-    pub fn new(name: String, check: bool) -> Producer {
-        Producer {
-            name,
+    /// The producer that `node`'s `producer` parameter names; `check` false takes every
+    /// writer (no flow control).
+    pub fn of(node: &crate::CellNode, check: bool) -> Result<Producer, crate::RuntimeError> {
+        Ok(Producer {
+            name: node.names.resolve(node.params.string("producer"))?,
             check,
             sources: Sources::new(),
-            refused: 0,
-        }
+            announced: node.node.external_nodes_view(),
+            started: std::time::Instant::now(),
+        })
     }
 
-    /// The producer node's fully qualified name.
-    pub fn name(&self) -> &str {
-        &self.name
-    }
-
-    /// Whether a message from `writer` comes from the producer; `announced` is the graph as
-    /// the consumer's node sees it ([`ros2_client::Node::external_nodes_view`]).
-    pub fn admits(
-        &mut self,
-        announced: &ros2_client::ExternalNodes,
-        writer: Gid,
-        now: std::time::Duration,
-    ) -> bool {
-        let admitted = !self.check
-            || self
-                .sources
-                .admits(&self.name, writer, now, || announced.get());
-        if !admitted {
-            self.refused += 1;
-        }
-        admitted
-    }
-
-    /// Messages refused so far (a node reports them in its diagnostics).
-    pub fn refused(&self) -> u64 {
-        self.refused
+    /// Whether a message that came with `info` comes from the producer.
+    pub fn admits(&mut self, info: &ros2_client::MessageInfo) -> bool {
+        !self.check
+            || self.sources.admits(
+                &self.name,
+                info.publisher_gid(),
+                self.started.elapsed(),
+                || self.announced.get(),
+            )
     }
 }
 
@@ -224,6 +225,11 @@ mod tests {
         );
         assert!(readers_of(&announced, "/bag_recorder").is_empty());
         assert!(readers_of(&announced, "/nobody").is_empty());
+        assert_eq!(
+            node_of_reader(&announced, &gid(1, 4)).as_deref(),
+            Some("/polar_planner")
+        );
+        assert_eq!(node_of_reader(&announced, &gid(3, 4)), None);
     }
 
     #[test]

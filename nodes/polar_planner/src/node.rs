@@ -205,12 +205,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         params.bool("acknowledge_moves"),
     );
     // Moves and progress only from the streamer (a forged move would be planned).
-    let mut producer = cell_runtime::graph::Producer::new(
-        node.names.resolve(params.string("producer"))?,
-        params.bool("acknowledge_moves"),
-    );
-    let announced = node.node.external_nodes_view();
-    let started = Instant::now();
+    let mut producer = cell_runtime::graph::Producer::of(node, params.bool("acknowledge_moves"))?;
     let mut planned = Vec::new();
     let mut segments = Vec::new();
     let mut states = Vec::new();
@@ -227,7 +222,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         tokio::select! {
             taken = moves_sub.async_take() => {
                 let (m, info) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
-                if producer.admits(&announced, info.publisher_gid(), started.elapsed())
+                if producer.admits(&info)
                     && intake.accept(m.sequence)
                 {
                     last_move = Instant::now();
@@ -241,7 +236,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             }
             taken = progress_sub.async_take() => {
                 if let Ok((p, info)) = taken {
-                    if !producer.admits(&announced, info.publisher_gid(), started.elapsed()) {
+                    if !producer.admits(&info) {
                         continue;
                     }
                     if let Some(ack) = intake.on_progress(&p.consumers, &p.consumer_next_expected) {

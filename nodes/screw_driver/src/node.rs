@@ -210,12 +210,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         params.bool("acknowledge_moves"),
     );
     // Moves and progress only from the streamer (a forged move would get material).
-    let mut producer = cell_runtime::graph::Producer::new(
-        node.names.resolve(params.string("producer"))?,
-        params.bool("acknowledge_moves"),
-    );
-    let announced = node.node.external_nodes_view();
-    let started = Instant::now();
+    let mut producer = cell_runtime::graph::Producer::of(node, params.bool("acknowledge_moves"))?;
     let mut moves: VecDeque<GcodeMove> = VecDeque::new();
     let mut plans: VecDeque<JointTrajectory> = VecDeque::new();
     let mut timed: VecDeque<TimedMove> = VecDeque::new();
@@ -240,7 +235,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         tokio::select! {
             taken = moves_sub.async_take() => {
                 let (m, info) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
-                if producer.admits(&announced, info.publisher_gid(), started.elapsed())
+                if producer.admits(&info)
                     && intake.accept(m.sequence)
                 {
                     moves.push_back(m);
@@ -253,7 +248,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             }
             taken = progress_sub.async_take() => {
                 if let Ok((p, info)) = taken {
-                    if !producer.admits(&announced, info.publisher_gid(), started.elapsed()) {
+                    if !producer.admits(&info) {
                         continue;
                     }
                     // Every move of the file acknowledged by every consumer (us included).

@@ -12,7 +12,7 @@ discovery and data sockets were; this assertion failed). The effect: another hos
 network namespace joined to ours by a veth pair, 10.23.0.1 here and 10.23.0.2 there — runs a
 Cyclone DDS participant with 10.23.0.1 as its peer that subscribes to /gcode/moves and forges
 acknowledgements for the print's three consumers. With `POLAR_CELL_NETWORK=all` (the
-control) it is matched, reads every move, and the streamer logs that it ignores its forged
+control) it is matched, reads the moves, and the streamer logs that it ignores its forged
 acknowledgements (they are not from the consumers' writers); by default it
 gets nothing and changes nothing. (That second half passed before the patch too: the
 advertised 127.0.0.1 already kept a Cyclone peer on another host from matching.)
@@ -45,6 +45,11 @@ for _ in range(200):
 subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
 subprocess.run(["ip", "addr", "add", "10.23.0.2/24", "dev", "v-peer"], check=True)
 subprocess.run(["ip", "link", "set", "v-peer", "up"], check=True)
+# Let the link finish coming up before Cyclone looks at its interfaces.
+for _ in range(200):
+    if "LOWER_UP" in subprocess.run(["ip", "link", "show", "v-peer"], capture_output=True, text=True).stdout:
+        break
+    time.sleep(0.05)
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
@@ -66,10 +71,15 @@ while not stop.is_set():
 print("received", received, "forged", forged, flush=True)
 """
 
+# SPDPInterval: its announcement to the peer is repeated every 0.5 s, not Cyclone's default
+# 30 s. Its first is sent before the cell exists; when the cell's own first announcement did
+# not reach it either (seen once in CI: the control then received nothing), the cell must
+# still find it within the 8 s print, not after RustDDS's next periodic one at 10 s.
 REMOTE_CYCLONE = """<CycloneDDS><Domain id="any">
   <General><Interfaces><NetworkInterface address="10.23.0.2"/></Interfaces></General>
   <Discovery><Peers><Peer address="10.23.0.1"/></Peers>
     <ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>60</MaxAutoParticipantIndex>
+    <SPDPInterval>0.5s</SPDPInterval>
   </Discovery>
 </Domain></CycloneDDS>"""
 
@@ -149,7 +159,9 @@ def test_a_participant_on_another_host_is_not_heard(polar_cell, other_host, tmp_
     # Control: the cell on every interface hears the other host.
     proc, received, forged, _ = print_beside(polar_cell, other_host(), tmp_path / "all.mcap", "all")
     assert forged > 100
-    assert received == 1778, (received, proc.stderr[-2000:])
+    # Every move when the first announcements crossed (always, here); a late match (at the
+    # remote's next announcement) misses the first moves, which volatile readers never get.
+    assert 0 < received <= 1778, (received, proc.stderr[-2000:])
     assert any("ignored /gcode/ack in the name of" in m for m in rosout(tmp_path / "all.mcap"))
 
     # Default, loopback only: nothing reaches the other host, nothing it sends is heard.

@@ -110,7 +110,7 @@ const SWITCH_DEBOUNCE_TICKS: u64 = 20_000;
 /// Seed 001's program starts this long after the switch counts (ticks on the plan clock).
 const SEED_PROGRAM_LEAD_TICKS: u64 = 10_000;
 
-const LINK_WINDOW: usize = 16;
+const LINK_WINDOW: usize = 32;
 /// Segments the MCU holds: 1,024 cover more than the 2 s horizon at the cell's densest plans
 /// (circles about the centre at 6 rad/s, some 300 segments a second); 256 did not, and the
 /// bridge held the machine on the path waiting for room.

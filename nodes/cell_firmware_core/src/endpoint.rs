@@ -3,7 +3,7 @@
 //! edges go.
 
 use cell_protocol::link::LinkCounters;
-use cell_protocol::message::{FaultCode, HostMessage, McuCounters, McuMessage, Mode};
+use cell_protocol::message::{FaultCode, HostMessage, McuCounters, McuMessage, MessageError, Mode};
 use cell_protocol::{FrameDecoder, Link, LinkOptions, Received, MAX_PAYLOAD, MAX_WIRE_FRAME};
 use heapless::Deque;
 
@@ -45,6 +45,15 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
         &self.machine
     }
 
+    pub fn link(&self) -> &Link<W> {
+        &self.link
+    }
+
+    /// Replies waiting for room in the link's window.
+    pub fn replies_waiting(&self) -> usize {
+        self.outbox.len()
+    }
+
     pub fn link_counters(&self) -> LinkCounters {
         self.link.counters()
     }
@@ -69,24 +78,40 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
             }
             // The link delivers the frame's own payload, decoded above.
             match self.link.receive(&frame, now) {
-                Received::Message(_) | Received::Unsequenced(_) => {}
-                Received::Nothing | Received::PeerRestarted { .. } => continue,
+                Received::Message(_) | Received::Unsequenced(_) => self.handle(message, now),
+                Received::Nothing | Received::PeerRestarted { .. } => {}
             }
-            let reply = match message {
-                Ok(HostMessage::EmergencyStop) => None,
-                Ok(HostMessage::QueryCounters) => Some(McuMessage::Counters(self.counters())),
-                Ok(m) => self.machine.handle(&m, now),
-                Err(_) => {
-                    self.bad_messages += 1;
-                    None
-                }
+            self.deliver_held(now);
+        }
+    }
+
+    /// Messages the link held behind a gap that is now filled, while replies have room (the
+    /// rest stay held, unacknowledged, until the next frame).
+    fn deliver_held(&mut self, now: u64) {
+        while !self.outbox.is_full() {
+            let message = match self.link.next_buffered() {
+                Some(payload) => HostMessage::decode(payload),
+                None => break,
             };
-            if let Some(reply) = reply {
-                // Room was checked above for sequenced frames; an unsequenced query finding
-                // the outbox full goes unanswered, like a lost frame.
-                if self.outbox.push_back(reply).is_err() {
-                    self.replies_dropped += 1;
-                }
+            self.handle(message, now);
+        }
+    }
+
+    fn handle(&mut self, message: Result<HostMessage, MessageError>, now: u64) {
+        let reply = match message {
+            Ok(HostMessage::EmergencyStop) => None, // acted on when its frame arrived
+            Ok(HostMessage::QueryCounters) => Some(McuMessage::Counters(self.counters())),
+            Ok(m) => self.machine.handle(&m, now),
+            Err(_) => {
+                self.bad_messages += 1;
+                None
+            }
+        };
+        if let Some(reply) = reply {
+            // Room was checked for sequenced frames; an unsequenced query finding the outbox
+            // full goes unanswered, like a lost frame.
+            if self.outbox.push_back(reply).is_err() {
+                self.replies_dropped += 1;
             }
         }
     }

@@ -11,8 +11,8 @@
 //!   never occurs inside an encoded frame, a receiver that lost sync (garbage, a dropped byte)
 //!   is back in step at the next `0x00`: whatever lay between is one bad frame, counted and
 //!   dropped, never a misread message.
-//! * [`link`] — frames ⇄ a reliable ordered message stream: go-back-N with a bounded window,
-//!   cumulative acknowledgements, negative acknowledgements on a gap, retransmission on
+//! * [`link`] — frames ⇄ a reliable ordered message stream: selective repeat with a bounded window,
+//!   cumulative acknowledgements, selective negative acknowledgements on a gap, retransmission on
 //!   timeout. Telemetry that a newer sample supersedes may go unsequenced (best effort).
 //! * [`message`] — payload bytes ⇄ typed messages: identify, clock, step segments, screw,
 //!   feed hold and resume, emergency stop, reset, state and faults.
@@ -39,7 +39,7 @@ pub use message::{HostMessage, McuMessage, MessageError};
 
 /// Version of the protocol in `PROTOCOL.md`; the MCU reports it in its identify reply and the
 /// host refuses any other.
-pub const PROTOCOL_VERSION: u16 = 1;
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// Most payload bytes one frame carries (the largest message, a queued segment, takes 60).
 pub const MAX_PAYLOAD: usize = 64;

@@ -1,16 +1,26 @@
 //! The link: a reliable, ordered message stream over frames that may be lost, corrupted or
-//! duplicated (go-back-N).
+//! duplicated (selective repeat).
 //!
 //! # Sequenced messages
 //!
 //! Each side numbers its sequenced frames (mod 256) and keeps every one it sent until the
 //! peer acknowledges it. Every frame either side sends carries `ack`, the next sequence number
-//! it expects: a cumulative acknowledgement of everything before. The receiver delivers a
-//! sequenced frame only if it is exactly the one expected; a frame from the future means one
-//! was lost, so the receiver sends one NAK (a frame with the NAK flag and `ack` = the missing
-//! one) and the sender goes back and resends from there. A lost NAK or a lost last frame is
-//! covered by the retransmit timeout on the oldest unacknowledged frame. At most `window`
-//! frames are unacknowledged (≤ 127, so old and new sequence numbers never look alike).
+//! it expects: a cumulative acknowledgement of everything before. A receiver keeps frames that
+//! arrive ahead of a missing one (up to `W` ahead) and delivers them, in order, once the gap
+//! is filled ([`Link::next_buffered`]). While it holds frames behind a gap it answers every
+//! sequenced frame with a NAK: a bare frame whose payload is a bitmap of the frames it holds
+//! beyond `ack` (a selective acknowledgement). The sender resends only what the bitmap shows
+//! missing, and only a copy that went out *before* a frame the receiver holds: a serial line
+//! never reorders, so such a copy is lost, while a later one may still be on its way. A lost
+//! NAK or a lost last frame is covered by the retransmit timeout on the oldest unacknowledged
+//! frame, which resends every frame not selectively acknowledged.
+//!
+//! Go-back-N (protocol version 1) resent the whole window after each loss, which on a line
+//! that damages every second frame delivered about one frame per round trip; selective
+//! repeat costs each loss one frame.
+//!
+//! At most `window` frames are unacknowledged (≤ 127, so old and new sequence numbers never
+//! look alike).
 //!
 //! # Sessions
 //!
@@ -36,8 +46,10 @@ use crate::{MAX_PAYLOAD, MAX_WIRE_FRAME};
 pub struct LinkOptions {
     /// Most sequenced frames unacknowledged at once (1..=127, and at most the link's `W`).
     pub window: usize,
-    /// After this long without an acknowledgement of the oldest frame, resend from it (and
-    /// repeat an unanswered SYNC_REQUEST). In the caller's time unit.
+    /// After this long without an acknowledgement of the oldest frame, resend what the peer
+    /// does not hold (and repeat an unanswered SYNC_REQUEST). In the caller's time unit. This
+    /// is the longest wait and the first; once round trips are measured the link waits the
+    /// measured round trip plus four deviations (RFC 6298), not less than an eighth of this.
     pub retransmit_timeout: u64,
     /// This session's nonce: random, so that a restart is told from a repeated request.
     pub nonce: u32,
@@ -74,14 +86,21 @@ pub struct LinkCounters {
     pub retransmits: u32,
     pub naks_sent: u32,
     pub naks_received: u32,
+    /// Retransmit timeouts that fired (each resends what the peer does not hold).
+    pub timeouts: u32,
     /// Sequenced frames received again (already delivered).
     pub duplicates: u32,
-    /// Sequenced frames received ahead of a missing one (dropped, NAKed).
+    /// Sequenced frames received ahead of a missing one (held if within the window, NAKed).
     pub out_of_order: u32,
     pub peer_restarts: u32,
 }
 
-/// One end of a link, holding up to `W` unacknowledged payloads (`W` ≤ 127).
+/// Most bytes of a selective-acknowledgement bitmap: one bit for each of the 127 frames a
+/// window can hold beyond the acknowledged one.
+pub const MAX_SACK_BYTES: usize = 16;
+
+/// One end of a link, holding up to `W` unacknowledged payloads and up to `W` received ahead
+/// of a missing one (`W` ≤ 127).
 #[derive(Clone, Debug)]
 pub struct Link<const W: usize> {
     options: LinkOptions,
@@ -93,25 +112,48 @@ pub struct Link<const W: usize> {
 
     slots: [[u8; MAX_PAYLOAD]; W],
     slot_lens: [u8; W],
+    /// Per slot: waiting to go out (first time or again).
+    slot_pending: [bool; W],
+    /// Per slot: the peer holds it (selectively acknowledged); never resent.
+    slot_sacked: [bool; W],
+    /// Per slot: the transmission count when it last went out (0: never).
+    slot_sent_as: [u64; W],
+    /// Per slot: when it first went out, and how often (a round trip is measured only on a
+    /// frame sent once: Karn's rule).
+    slot_first_sent_at: [u64; W],
+    slot_last_sent_at: [u64; W],
+    slot_copies: [u8; W],
+    /// Smoothed round trip and its mean deviation, once measured.
+    smoothed_rtt: Option<u64>,
+    rtt_deviation: u64,
+    /// Timeouts since the last progress: each doubles the wait.
+    backoff: u32,
+    /// Sequenced transmissions so far: orders copies on the (never reordering) line.
+    transmissions: u64,
     /// Slot of the oldest unacknowledged frame.
     head: usize,
     /// Frames queued (sent or not) and not acknowledged.
     queued: usize,
     /// Sequence number of the frame in `head`.
     base_seq: u8,
-    /// Frames from `head` on that went out at least once.
+    /// Frames from `head` on that went out at least once (always a prefix: first
+    /// transmissions go in order).
     transmitted: usize,
-    /// Offset from `head` of the next frame to (re)transmit.
-    cursor: usize,
     /// When the oldest unacknowledged frame last went out (or the last acknowledgement came).
     timer_start: u64,
 
     /// Sequence number expected next from the peer.
     expected: u8,
+    /// Frames received ahead of `expected`: slot `(rx_head + k) % W` holds `expected + k`.
+    rx_slots: [[u8; MAX_PAYLOAD]; W],
+    rx_lens: [u8; W],
+    rx_present: [bool; W],
+    rx_head: usize,
     ack_owed: bool,
+    /// Frames are held behind a gap and the sender has not been told since the last frame.
     nak_owed: bool,
-    /// A NAK for the current gap went out: do not send another until progress.
-    nak_outstanding: bool,
+    /// When the last NAK went out: one is repeated while the gap lasts (it may be lost too).
+    last_nak_at: u64,
 
     counters: LinkCounters,
 }
@@ -134,16 +176,29 @@ impl<const W: usize> Link<W> {
             sync_reply_owed: false,
             slots: [[0; MAX_PAYLOAD]; W],
             slot_lens: [0; W],
+            slot_pending: [false; W],
+            slot_sacked: [false; W],
+            slot_sent_as: [0; W],
+            slot_first_sent_at: [0; W],
+            slot_last_sent_at: [0; W],
+            slot_copies: [0; W],
+            smoothed_rtt: None,
+            rtt_deviation: 0,
+            backoff: 0,
+            transmissions: 0,
             head: 0,
             queued: 0,
             base_seq: 0,
             transmitted: 0,
-            cursor: 0,
             timer_start: 0,
             expected: 0,
+            rx_slots: [[0; MAX_PAYLOAD]; W],
+            rx_lens: [0; W],
+            rx_present: [false; W],
+            rx_head: 0,
             ack_owed: false,
             nak_owed: false,
-            nak_outstanding: false,
+            last_nak_at: 0,
             counters: LinkCounters::default(),
         }
     }
@@ -166,6 +221,16 @@ impl<const W: usize> Link<W> {
         self.queued
     }
 
+    /// Sequence number of the oldest unacknowledged (or the next) sequenced frame we send.
+    pub fn oldest_unacknowledged_seq(&self) -> u8 {
+        self.base_seq
+    }
+
+    /// Sequence number we expect next from the peer.
+    pub fn expected_seq(&self) -> u8 {
+        self.expected
+    }
+
     /// Room for another sequenced message.
     pub fn can_send(&self) -> bool {
         self.queued < self.options.window
@@ -184,6 +249,10 @@ impl<const W: usize> Link<W> {
         let slot = (self.head + self.queued) % W;
         self.slots[slot][..payload.len()].copy_from_slice(payload);
         self.slot_lens[slot] = payload.len() as u8;
+        self.slot_pending[slot] = true;
+        self.slot_sacked[slot] = false;
+        self.slot_sent_as[slot] = 0;
+        self.slot_copies[slot] = 0;
         self.queued += 1;
         Ok(())
     }
@@ -198,9 +267,10 @@ impl<const W: usize> Link<W> {
         Ok(encode_frame(&header, payload, out)?)
     }
 
-    /// The next bytes to write, if any: a session reply or request, a (re)transmission, or a
-    /// bare acknowledgement. Call until `None` whenever something was received or sent, and
-    /// periodically (at least every retransmit timeout) so that timeouts fire.
+    /// The next bytes to write, if any: a session reply or request, a selective
+    /// acknowledgement, a (re)transmission, or a bare acknowledgement. Call until `None`
+    /// whenever something was received or sent, and periodically (at least every retransmit
+    /// timeout) so that timeouts fire.
     pub fn poll_transmit(&mut self, now: u64, out: &mut [u8; MAX_WIRE_FRAME]) -> Option<usize> {
         if self.sync_reply_owed {
             self.sync_reply_owed = false;
@@ -210,6 +280,23 @@ impl<const W: usize> Link<W> {
             payload[..4].copy_from_slice(&self.peer_nonce.unwrap_or(0).to_le_bytes());
             payload[4..].copy_from_slice(&self.options.nonce.to_le_bytes());
             return self.encode(&header, &payload, out);
+        }
+        let gap_open = self.rx_present.iter().any(|&p| p);
+        if gap_open && now.saturating_sub(self.last_nak_at) >= self.options.retransmit_timeout / 8 {
+            self.nak_owed = true; // the gap lasts: our last NAK, or the resend, was lost
+        }
+        if self.nak_owed {
+            // Ahead of our own data: it is small, and the peer's window waits on it.
+            self.nak_owed = false;
+            self.last_nak_at = now;
+            let mut bitmap = [0u8; MAX_SACK_BYTES];
+            let len = self.sack_bitmap(&mut bitmap);
+            if len > 0 {
+                self.counters.naks_sent += 1;
+                let mut header = self.header(self.next_seq(), false);
+                header.nak = true;
+                return self.encode(&header, &bitmap[..len], out);
+            }
         }
         if !self.synced {
             let due = self
@@ -223,13 +310,22 @@ impl<const W: usize> Link<W> {
             }
         } else {
             if self.transmitted > 0
-                && now.saturating_sub(self.timer_start) >= self.options.retransmit_timeout
+                && now.saturating_sub(self.timer_start) >= self.retransmit_timeout()
             {
-                self.cursor = 0; // timeout: go back to the oldest unacknowledged frame
+                // Timeout: resend everything sent that the peer does not hold.
+                self.counters.timeouts += 1;
+                self.backoff = (self.backoff + 1).min(1);
+                for offset in 0..self.transmitted {
+                    let slot = (self.head + offset) % W;
+                    if !self.slot_sacked[slot] {
+                        self.slot_pending[slot] = true;
+                    }
+                }
+                self.timer_start = now;
             }
-            if self.cursor < self.queued {
-                let offset = self.cursor;
-                self.cursor += 1;
+            if let Some(offset) = (0..self.queued).find(|&o| self.slot_pending[(self.head + o) % W])
+            {
+                let slot = (self.head + offset) % W;
                 if offset < self.transmitted {
                     self.counters.retransmits += 1;
                 } else {
@@ -238,7 +334,14 @@ impl<const W: usize> Link<W> {
                 if offset == 0 {
                     self.timer_start = now;
                 }
-                let slot = (self.head + offset) % W;
+                self.slot_pending[slot] = false;
+                if self.slot_copies[slot] == 0 {
+                    self.slot_first_sent_at[slot] = now;
+                }
+                self.slot_copies[slot] = self.slot_copies[slot].saturating_add(1);
+                self.slot_last_sent_at[slot] = now;
+                self.transmissions += 1;
+                self.slot_sent_as[slot] = self.transmissions;
                 let seq = self.base_seq.wrapping_add(offset as u8);
                 let header = self.header(seq, true);
                 let payload = self.slots[slot];
@@ -246,14 +349,16 @@ impl<const W: usize> Link<W> {
                 return self.encode(&header, &payload[..len], out);
             }
         }
-        if self.ack_owed || self.nak_owed {
+        if self.ack_owed {
             let header = self.header(self.next_seq(), false);
             return self.encode(&header, &[], out);
         }
         None
     }
 
-    /// Take a frame from the decoder.
+    /// Take a frame from the decoder. After a [`Received::Message`], call
+    /// [`Link::next_buffered`] until `None`: the frame may have filled a gap in front of
+    /// frames that arrived earlier.
     pub fn receive<'a>(&mut self, frame: &Frame<'a>, now: u64) -> Received<'a> {
         let header = &frame.header;
         if header.sync_request {
@@ -263,26 +368,35 @@ impl<const W: usize> Link<W> {
             self.on_sync_reply(frame);
             return Received::Nothing;
         }
-        self.on_ack(header.ack, header.nak, now);
+        self.on_ack(header.ack, now);
         if !header.sequenced {
+            if header.nak {
+                self.on_sack(frame.payload, now);
+                return Received::Nothing;
+            }
             return if frame.payload.is_empty() {
                 Received::Nothing
             } else {
                 Received::Unsequenced(frame.payload)
             };
         }
-        let ahead = header.seq.wrapping_sub(self.expected);
+        let ahead = header.seq.wrapping_sub(self.expected) as usize;
         if ahead == 0 {
-            self.expected = self.expected.wrapping_add(1);
-            self.ack_owed = true;
-            self.nak_outstanding = false;
+            self.advance_expected();
             Received::Message(frame.payload)
         } else if ahead < 128 {
             self.counters.out_of_order += 1;
-            if !self.nak_outstanding {
-                self.nak_outstanding = true;
-                self.nak_owed = true;
+            if ahead < W {
+                let slot = (self.rx_head + ahead) % W;
+                if self.rx_present[slot] {
+                    self.counters.duplicates += 1;
+                } else {
+                    self.rx_present[slot] = true;
+                    self.rx_lens[slot] = frame.payload.len() as u8;
+                    self.rx_slots[slot][..frame.payload.len()].copy_from_slice(frame.payload);
+                }
             }
+            self.nak_owed = true;
             Received::Nothing
         } else {
             // Behind: our acknowledgement was lost; repeat it so the peer moves on.
@@ -292,14 +406,51 @@ impl<const W: usize> Link<W> {
         }
     }
 
+    /// The next message that arrived ahead of a gap now filled, in order; `None` when the
+    /// next one has not arrived. Delivering it acknowledges it: call only when the
+    /// application can take it (it stays held until then).
+    pub fn next_buffered(&mut self) -> Option<&[u8]> {
+        let slot = self.rx_head;
+        if !self.rx_present[slot] {
+            return None;
+        }
+        self.advance_expected();
+        Some(&self.rx_slots[slot][..self.rx_lens[slot] as usize])
+    }
+
     /// Take only the acknowledgement a frame carries, not its message: for a receiver that
     /// cannot accept another message now. The peer resends the message later, as if it had
     /// been lost.
     pub fn receive_ack_only(&mut self, frame: &Frame, now: u64) {
         let header = &frame.header;
         if !header.sync_request && !header.sync_reply {
-            self.on_ack(header.ack, header.nak, now);
+            self.on_ack(header.ack, now);
+            if header.nak && !header.sequenced {
+                self.on_sack(frame.payload, now);
+            }
         }
+    }
+
+    /// `expected` was delivered: step past it; tell the sender about any gap still open.
+    fn advance_expected(&mut self) {
+        self.rx_present[self.rx_head] = false;
+        self.rx_head = (self.rx_head + 1) % W;
+        self.expected = self.expected.wrapping_add(1);
+        self.ack_owed = true;
+        self.nak_owed = !self.rx_present[self.rx_head] && self.rx_present.iter().any(|&p| p);
+    }
+
+    /// Bit `k` of the bitmap: we hold `expected + 1 + k`. Returns the bytes used (0: we
+    /// hold nothing ahead of a gap).
+    fn sack_bitmap(&self, bitmap: &mut [u8; MAX_SACK_BYTES]) -> usize {
+        let mut len = 0;
+        for k in 0..(W - 1).min(8 * MAX_SACK_BYTES) {
+            if self.rx_present[(self.rx_head + 1 + k) % W] {
+                bitmap[k / 8] |= 1 << (k % 8);
+                len = k / 8 + 1;
+            }
+        }
+        len
     }
 
     fn on_sync_request<'a>(&mut self, frame: &Frame<'a>) -> Received<'a> {
@@ -313,16 +464,16 @@ impl<const W: usize> Link<W> {
         let restarted = self.peer_nonce.is_some();
         self.peer_nonce = Some(nonce);
         self.expected = frame.header.seq;
+        self.rx_present = [false; W];
+        self.rx_head = 0;
         self.ack_owed = false;
         self.nak_owed = false;
-        self.nak_outstanding = false;
         // What the old session never acknowledged is gone with it.
         let lost = self.transmitted;
         self.head = (self.head + lost) % W;
         self.queued -= lost;
         self.base_seq = self.base_seq.wrapping_add(lost as u8);
         self.transmitted = 0;
-        self.cursor = 0;
         if restarted {
             self.counters.peer_restarts += 1;
             Received::PeerRestarted { lost }
@@ -344,25 +495,92 @@ impl<const W: usize> Link<W> {
         if self.peer_nonce != Some(peer) {
             self.peer_nonce = Some(peer);
             self.expected = frame.header.seq;
+            self.rx_present = [false; W];
+            self.rx_head = 0;
         }
     }
 
-    fn on_ack(&mut self, ack: u8, nak: bool, now: u64) {
+    fn on_ack(&mut self, ack: u8, now: u64) {
         let acked = ack.wrapping_sub(self.base_seq) as usize;
         if acked > self.transmitted {
             return; // acknowledges nothing we sent: stale or from another session
         }
         if acked > 0 {
+            let newest = (self.head + acked - 1) % W;
+            if self.slot_copies[newest] == 1 {
+                self.measured_round_trip(now.saturating_sub(self.slot_first_sent_at[newest]));
+            }
+            self.backoff = 0;
             self.head = (self.head + acked) % W;
             self.queued -= acked;
             self.transmitted -= acked;
-            self.cursor = self.cursor.saturating_sub(acked);
             self.base_seq = ack;
             self.timer_start = now;
         }
-        if nak && self.transmitted > 0 {
-            self.counters.naks_received += 1;
-            self.cursor = 0;
+    }
+
+    /// A selective acknowledgement (after `on_ack` took its cumulative part): mark what the
+    /// peer holds, and resend what it lacks that is lost: a copy that went out before one it
+    /// holds (the line never reorders), or one that went out a round trip ago (the peer repeats
+    /// its NAK while the gap lasts; the copy we resent after the last one was lost too).
+    fn on_sack(&mut self, bitmap: &[u8], now: u64) {
+        if self.transmitted == 0 {
+            return;
+        }
+        self.counters.naks_received += 1;
+        let mut newest_held = 0;
+        for offset in 1..self.transmitted {
+            let k = offset - 1;
+            let held = bitmap.get(k / 8).is_some_and(|b| b & (1 << (k % 8)) != 0);
+            if held {
+                let slot = (self.head + offset) % W;
+                self.slot_sacked[slot] = true;
+                newest_held = newest_held.max(self.slot_sent_as[slot]);
+            }
+        }
+        let round_trip = self.loss_delay();
+        for offset in 0..self.transmitted {
+            let slot = (self.head + offset) % W;
+            let overtaken = self.slot_sent_as[slot] < newest_held;
+            let overdue = now.saturating_sub(self.slot_last_sent_at[slot]) >= round_trip;
+            if !self.slot_sacked[slot] && (overtaken || overdue) {
+                self.slot_pending[slot] = true;
+            }
+        }
+    }
+
+    /// How long after sending a copy a NAK that still lacks it shows it lost: the measured
+    /// round trip plus its deviation (half the timeout until measured).
+    fn loss_delay(&self) -> u64 {
+        let longest = self.options.retransmit_timeout;
+        match self.smoothed_rtt {
+            Some(srtt) => (srtt + self.rtt_deviation).clamp(longest / 8, longest),
+            None => longest / 2,
+        }
+    }
+
+    /// The wait before resending: measured (RFC 6298: smoothed round trip plus four mean
+    /// deviations) within an eighth of the configured timeout and the timeout, doubled by
+    /// each timeout since the last progress.
+    pub fn retransmit_timeout(&self) -> u64 {
+        let longest = self.options.retransmit_timeout;
+        let base = match self.smoothed_rtt {
+            Some(srtt) => (srtt + 4 * self.rtt_deviation).clamp(longest / 8, longest),
+            None => longest,
+        };
+        base.saturating_mul(1 << self.backoff).min(longest)
+    }
+
+    fn measured_round_trip(&mut self, rtt: u64) {
+        match self.smoothed_rtt {
+            None => {
+                self.smoothed_rtt = Some(rtt);
+                self.rtt_deviation = rtt / 2;
+            }
+            Some(srtt) => {
+                self.rtt_deviation = (3 * self.rtt_deviation + srtt.abs_diff(rtt)) / 4;
+                self.smoothed_rtt = Some((7 * srtt + rtt) / 8);
+            }
         }
     }
 
@@ -370,18 +588,14 @@ impl<const W: usize> Link<W> {
         self.base_seq.wrapping_add(self.queued as u8)
     }
 
-    /// A header carrying our acknowledgement (and a NAK if one is owed).
+    /// A header carrying our acknowledgement.
     fn header(&mut self, seq: u8, sequenced: bool) -> FrameHeader {
-        let nak = core::mem::take(&mut self.nak_owed);
-        if nak {
-            self.counters.naks_sent += 1;
-        }
         self.ack_owed = false;
         FrameHeader {
             seq,
             ack: self.expected,
             sequenced,
-            nak,
+            nak: false,
             sync_request: false,
             sync_reply: false,
         }

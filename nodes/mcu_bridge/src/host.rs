@@ -79,14 +79,13 @@ impl HostEndpoint {
                 continue;
             };
             match self.link.receive(&frame, now_us) {
-                Received::Message(p) | Received::Unsequenced(p) => {
-                    on_message(match McuMessage::decode(p) {
-                        Ok(m) => FromMcu::Message(m),
-                        Err(_) => FromMcu::Undecodable,
-                    })
-                }
+                Received::Message(p) | Received::Unsequenced(p) => on_message(decode(p)),
                 Received::PeerRestarted { lost } => on_message(FromMcu::Restarted { lost }),
                 Received::Nothing => {}
+            }
+            // Messages held behind a gap this frame filled.
+            while let Some(p) = self.link.next_buffered() {
+                on_message(decode(p));
             }
         }
     }
@@ -94,5 +93,12 @@ impl HostEndpoint {
     /// The next bytes to write at `now_us`, if any; call until `None`.
     pub fn poll_transmit(&mut self, now_us: u64, out: &mut [u8; MAX_WIRE_FRAME]) -> Option<usize> {
         self.link.poll_transmit(now_us, out)
+    }
+}
+
+fn decode(payload: &[u8]) -> FromMcu {
+    match McuMessage::decode(payload) {
+        Ok(m) => FromMcu::Message(m),
+        Err(_) => FromMcu::Undecodable,
     }
 }

@@ -519,6 +519,8 @@ impl<L: McuLink> Machine for McuMachine<L> {
         let counters = self.session.endpoint().link().counters();
         values.push(("link_retransmits", counters.retransmits.to_string()));
         values.push(("link_naks", counters.naks_sent.to_string()));
+        values.push(("link_naks_received", counters.naks_received.to_string()));
+        values.push(("link_timeouts", counters.timeouts.to_string()));
         values.push(("screw_commands_late", self.session.screw_late.to_string()));
         values.push((
             "screw_late_worst_ms",

@@ -22,7 +22,7 @@ use rand::{Rng, SeedableRng};
 use rand_xoshiro::Xoshiro256PlusPlus;
 
 /// Link window of the emulated MCU (as the RP2040 firmware).
-pub const LINK_WINDOW: usize = 16;
+pub const LINK_WINDOW: usize = 32;
 /// Segments the emulated MCU queues (as the RP2040 firmware).
 pub const SEGMENT_QUEUE: usize = 256;
 /// Screw commands the emulated MCU queues.

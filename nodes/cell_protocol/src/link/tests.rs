@@ -65,7 +65,12 @@ impl Side {
         while let Some(byte) = self.inbox.pop_front() {
             if let Some(Ok(frame)) = self.decoder.push(byte) {
                 match self.link.receive(&frame, now) {
-                    Received::Message(p) => self.delivered.push(p.to_vec()),
+                    Received::Message(p) => {
+                        self.delivered.push(p.to_vec());
+                        while let Some(p) = self.link.next_buffered() {
+                            self.delivered.push(p.to_vec());
+                        }
+                    }
                     Received::PeerRestarted { lost } => self.restarts.push(lost),
                     Received::Unsequenced(_) | Received::Nothing => {}
                 }
@@ -215,11 +220,86 @@ fn a_lost_frame_is_naked_and_resent() {
     transmit(&mut a, &mut b, 12, CLEAN, &mut rng);
     assert_eq!(
         a.link.counters().retransmits,
-        3,
-        "go-back-N resends 1, 2, 3"
+        1,
+        "selective repeat resends 1 only: the NAK's bitmap says 2 and 3 arrived"
     );
     b.receive_all(12);
     assert_eq!(b.delivered, (0..4).map(message).collect::<Vec<_>>());
+    transmit(&mut b, &mut a, 13, CLEAN, &mut rng);
+    a.receive_all(13);
+    assert_eq!(a.link.unacknowledged(), 0);
+}
+
+#[test]
+fn a_frame_still_on_its_way_is_not_resent() {
+    // 0..6 go out; 1 and 4 are lost. The receiver NAKs when 2 arrives, before 3..5 are
+    // read: its bitmap holds only 2, so 1 (sent before 2) is resent and 3..5 (sent after)
+    // are not: they are still on the line, not lost.
+    let mut a = Side::new(1, 8);
+    let mut b = Side::new(2, 8);
+    let mut rng = Rng(1);
+    for now in 0..3 {
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
+    }
+    for i in 0..6 {
+        a.link.send(&message(i)).unwrap();
+    }
+    let mut out = [0; MAX_WIRE_FRAME];
+    let mut frames = Vec::new();
+    while let Some(len) = a.link.poll_transmit(10, &mut out) {
+        frames.push(out[..len].to_vec());
+    }
+    assert_eq!(frames.len(), 6);
+    b.inbox.extend(frames[0].iter().chain(&frames[2]).copied());
+    b.receive_all(10);
+    transmit(&mut b, &mut a, 10, CLEAN, &mut rng);
+    a.receive_all(10);
+    transmit(&mut a, &mut b, 11, CLEAN, &mut rng); // the resent 1, after 3..5 on the line
+    assert_eq!(a.link.counters().retransmits, 1);
+    let resent = std::mem::take(&mut b.inbox);
+    b.inbox.extend(frames[3].iter().chain(&frames[5]).copied());
+    b.inbox.extend(resent);
+    b.receive_all(11);
+    assert_eq!(
+        b.delivered,
+        (0..4).map(message).collect::<Vec<_>>(),
+        "4 is missing"
+    );
+    // The NAK now holds 5 (sent after 4): 4 alone goes again.
+    transmit(&mut b, &mut a, 12, CLEAN, &mut rng);
+    a.receive_all(12);
+    transmit(&mut a, &mut b, 13, CLEAN, &mut rng);
+    assert_eq!(a.link.counters().retransmits, 2);
+    b.receive_all(13);
+    assert_eq!(b.delivered, (0..6).map(message).collect::<Vec<_>>());
+}
+
+#[test]
+fn a_lost_frame_costs_one_frame_however_large_the_window() {
+    // One frame lost in a full window of 32: one retransmission, not 31.
+    let mut a = Side::new(1, 32);
+    let mut b = Side::new(2, 32);
+    let mut rng = Rng(1);
+    for now in 0..3 {
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
+    }
+    for i in 0..32 {
+        a.link.send(&message(i)).unwrap();
+    }
+    let mut out = [0; MAX_WIRE_FRAME];
+    let mut index = 0;
+    while let Some(len) = a.link.poll_transmit(10, &mut out) {
+        if index != 3 {
+            b.inbox.extend(out[..len].iter().copied());
+        }
+        index += 1;
+    }
+    for now in 10..14 {
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
+    }
+    assert_eq!(b.delivered, (0..32).map(message).collect::<Vec<_>>());
+    assert_eq!(a.link.counters().retransmits, 1);
+    assert_eq!(a.link.unacknowledged(), 0);
 }
 
 #[test]

@@ -93,16 +93,33 @@ pub fn mcu_machine_with_crystal(
     crystal: Crystal,
     emulator: EmulatorOptions,
 ) -> McuMachine<InProcess> {
-    let options = SessionOptions::new(
+    mcu_machine_with(
+        session_options(),
+        EmulatorOptions {
+            crystal,
+            ..emulator
+        },
+    )
+}
+
+/// The session as the node builds it by default: the planner's steps and accelerations, a
+/// 0.25 s pin delay.
+pub fn session_options() -> SessionOptions {
+    SessionOptions::new(
         StepOptions::default().steps_per_unit,
         std::array::from_fn(|j| PlannerOptions::default().joints[j].acceleration),
         0.25,
-    );
+    )
+}
+
+/// The MCU machine with these session options on this in-process emulator: 64 places, a 2 s
+/// horizon.
+pub fn mcu_machine_with(
+    options: SessionOptions,
+    emulator: EmulatorOptions,
+) -> McuMachine<InProcess> {
     let link = InProcess {
-        mcu: Emulator::new(EmulatorOptions {
-            crystal,
-            ..emulator
-        }),
+        mcu: Emulator::new(emulator),
         edges: Vec::new(),
     };
     McuMachine::new(McuSession::new(options, 0x5EED), link, 64, 2.0)

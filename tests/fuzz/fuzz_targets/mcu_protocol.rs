@@ -61,6 +61,9 @@ fuzz_target!(|input: &[u8]| {
         let _ = HostMessage::decode(frame.payload);
         let _ = McuMessage::decode(frame.payload);
         let _ = link.receive(&frame, now as u64);
+        while let Some(held) = link.next_buffered() {
+            let _ = HostMessage::decode(held);
+        }
         if link.can_send() {
             link.send(&[0x40]).expect("room was reported");
         }

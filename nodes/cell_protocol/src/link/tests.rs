@@ -110,6 +110,17 @@ fn round(a: &mut Side, b: &mut Side, now: u64, faults: Faults, rng: &mut Rng) {
     b.receive_all(now);
 }
 
+/// Two sides with this window, their session started over a clean channel.
+fn synced_pair(window: usize) -> (Side, Side, Rng) {
+    let mut a = Side::new(1, window);
+    let mut b = Side::new(2, window);
+    let mut rng = Rng(1);
+    for now in 0..3 {
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
+    }
+    (a, b, rng)
+}
+
 fn message(i: u32) -> Vec<u8> {
     let mut p = Vec::from(i.to_le_bytes());
     p.resize(4 + (i as usize % 40), i as u8);
@@ -185,12 +196,7 @@ fn nothing_sequenced_flows_before_the_peer_answers() {
 
 #[test]
 fn a_lost_frame_is_naked_and_resent() {
-    let mut a = Side::new(1, 8);
-    let mut b = Side::new(2, 8);
-    let mut rng = Rng(1);
-    for now in 0..3 {
-        round(&mut a, &mut b, now, CLEAN, &mut rng);
-    }
+    let (mut a, mut b, mut rng) = synced_pair(8);
     assert!(a.link.is_synced() && b.link.is_synced());
     for i in 0..4 {
         a.link.send(&message(i)).unwrap();
@@ -235,12 +241,7 @@ fn a_frame_still_on_its_way_is_not_resent() {
     // 0..6 go out; 1 and 4 are lost. The receiver NAKs when 2 arrives, before 3..5 are
     // read: its bitmap holds only 2, so 1 (sent before 2) is resent and 3..5 (sent after)
     // are not: they are still on the line, not lost.
-    let mut a = Side::new(1, 8);
-    let mut b = Side::new(2, 8);
-    let mut rng = Rng(1);
-    for now in 0..3 {
-        round(&mut a, &mut b, now, CLEAN, &mut rng);
-    }
+    let (mut a, mut b, mut rng) = synced_pair(8);
     for i in 0..6 {
         a.link.send(&message(i)).unwrap();
     }
@@ -277,12 +278,7 @@ fn a_frame_still_on_its_way_is_not_resent() {
 #[test]
 fn a_lost_frame_costs_one_frame_however_large_the_window() {
     // One frame lost in a full window of 32: one retransmission, not 31.
-    let mut a = Side::new(1, 32);
-    let mut b = Side::new(2, 32);
-    let mut rng = Rng(1);
-    for now in 0..3 {
-        round(&mut a, &mut b, now, CLEAN, &mut rng);
-    }
+    let (mut a, mut b, mut rng) = synced_pair(32);
     for i in 0..32 {
         a.link.send(&message(i)).unwrap();
     }
@@ -304,12 +300,7 @@ fn a_lost_frame_costs_one_frame_however_large_the_window() {
 
 #[test]
 fn a_lost_last_frame_is_resent_after_the_timeout() {
-    let mut a = Side::new(1, 8);
-    let mut b = Side::new(2, 8);
-    let mut rng = Rng(1);
-    for now in 0..3 {
-        round(&mut a, &mut b, now, CLEAN, &mut rng);
-    }
+    let (mut a, mut b, _) = synced_pair(8);
     a.link.send(b"only").unwrap();
     let mut out = [0; MAX_WIRE_FRAME];
     assert!(a.link.poll_transmit(5, &mut out).is_some()); // lost

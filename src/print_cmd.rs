@@ -400,6 +400,19 @@ pub async fn run_job(
         ros_args,
         ours,
     )?;
+    // The machine executes steps and screw commands only from these two nodes.
+    let mut executor_overrides = executor_overrides;
+    executor_overrides.extend([
+        producer(),
+        param(
+            "steps_producer",
+            format!("{:?}", planner_node.fully_qualified_name()),
+        ),
+        param(
+            "screw_producer",
+            format!("{:?}", screw_node.fully_qualified_name()),
+        ),
+    ]);
     let (commands, command_rx) = tokio::sync::mpsc::unbounded_channel();
     let status_tx = io.status;
     let status = status_tx.subscribe();

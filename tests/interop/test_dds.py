@@ -303,11 +303,11 @@ def test_print_nodes_appear_under_their_default_names(polar_cell, tmp_path):
     assert ("/", "bag_recorder") in nodes, sorted(nodes)
 
 
-def print_beside_a_forger(polar_cell, bag, forge, name="polartest.gcode"):
-    """A dry run of `name` while `forge()` runs every 5 ms; the print's stderr, the bag's
-    message counts and /rosout, and the streamer's closing diagnostics."""
+def print_beside_a_forger(polar_cell, bag, forge, name="polartest.gcode", pace=("--dry-run",)):
+    """A print of `name` (by default a dry run) while `forge()` runs every 5 ms; the print's
+    stderr, the bag's message counts and /rosout, and the streamer's closing diagnostics."""
     proc = subprocess.Popen(
-        [str(polar_cell), "print", str(FIXTURES / name), "--bag", str(bag), "--no-progress", "--dry-run"],
+        [str(polar_cell), "print", str(FIXTURES / name), "--bag", str(bag), "--no-progress", *pace],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     forged = 0
@@ -359,6 +359,47 @@ def test_forged_acknowledgements_from_a_foreign_participant_change_nothing(polar
     [streamer] = closing
     assert int(streamer["acks_ignored_foreign"]) > 100, streamer
     assert streamer["acks_ignored_impossible"] == "0", streamer
+
+
+def test_forged_steps_and_screw_commands_from_a_foreign_participant_move_nothing(polar_cell, tmp_path):
+    """While finger prints at 20x, a Cyclone participant publishes, every 5 ms, a step segment
+    of 100,000 bed steps, a screw command of 500 rpm with the pin open, and a progress report
+    saying the stream is finished. The machine executes /polar/steps only from the planner,
+    /screw/command only from the screw driver and /gcode/progress only from the streamer: it
+    plays exactly the plan (4,074 segments, 168.055 s, no underrun), logs that it ignored
+    each topic, and counts the forgeries in its diagnostics."""
+    from test_outside_reader import ScrewCommand, StepSegment
+
+    participant = DomainParticipant(0)
+    steps_w = DataWriter(participant, Topic(participant, "rt/polar/steps", StepSegment), qos=ros_qos())
+    screw_w = DataWriter(participant, Topic(participant, "rt/screw/command", ScrewCommand), qos=ros_qos())
+    progress_w = DataWriter(participant, Topic(participant, "rt/gcode/progress", GcodeProgress), qos=ros_qos())
+    header = Header(Time(0, 0), "")
+
+    def forge():
+        steps_w.write(StepSegment(
+            header, 5, 1, ["bed", "arm", "z"], [100_000, 0, 0], [1, 1, 1], 0, 1e6,
+            100.0, 0.0, 100.0, 0, 100_000, 0, 10.0, True))
+        screw_w.write(ScrewCommand(header, 500.0, True, 1, "forged"))
+        progress_w.write(GcodeProgress(header, "forged", 0, 0, 0, 0, 0, 0, [], [], True))
+        return 3
+
+    err, by_topic, logs, _ = print_beside_a_forger(
+        polar_cell, tmp_path / "steps.mcap", forge, "finger.gcode", ("--speed", "20"))
+    executed = next(line for line in err.splitlines() if " executed " in line)
+    assert "executed 4074 step segments" in executed, executed
+    assert "(168.055 s; planned 168.055 s), 0 underruns" in executed, executed
+    for topic in ("/polar/steps", "/screw/command", "/gcode/progress"):
+        assert any(f"ignored {topic} from a writer" in m for m in logs), (topic, logs[-20:])
+    with open(tmp_path / "steps.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        machine = [
+            {kv.key: kv.value for kv in s.values}
+            for _, _, _, d in reader.iter_decoded_messages(topics=["/diagnostics"])
+            for s in d.status if s.name == "/cell_executor"
+        ]
+    assert int(machine[-1]["ignored_foreign_steps"]) > 100, machine[-1]
+    assert int(machine[-1]["ignored_foreign_screw_commands"]) > 100, machine[-1]
 
 
 def test_forged_moves_and_progress_from_a_foreign_participant_change_nothing(polar_cell, tmp_path):

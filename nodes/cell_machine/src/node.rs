@@ -18,6 +18,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
+use cell_runtime::graph::Producer;
 use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
     now_ns, parse_service_mapping, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
@@ -55,6 +56,9 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("horizon_s", ParamValue::Double(2.0), "plan time the producers may run ahead of execution").range(0.05, 3600.0),
         ParamSpec::new("speed", ParamValue::Double(1.0), "machine seconds per wall second (a faster simulation of the same timeline)").range(0.01, 1000.0),
         ParamSpec::new("tick_period_s", ParamValue::Double(0.005), "wall time between the node's looks at the clock when nothing arrives").range(1e-4, 0.1),
+        Producer::named_param_spec("producer", "gcode_streamer", "the node whose /gcode/progress this machine takes (relative: in its namespace; empty: any writer's); other writers are ignored"),
+        Producer::named_param_spec("steps_producer", "polar_planner", "the node whose /polar/steps this machine executes (relative: in its namespace; empty: any writer's, e.g. a replayed bag); other writers are ignored"),
+        Producer::named_param_spec("screw_producer", "screw_driver", "the node whose /screw/command this machine executes (relative: in its namespace; empty: any writer's); other writers are ignored"),
         ParamSpec::new("steps_per_unit", ParamValue::DoubleArray(s.steps_per_unit.to_vec()), "steps per rad (bed), per m (arm), per m (z): the planner's"),
         ParamSpec::new("step_timer_hz", ParamValue::Double(s.timer_hz), "step timer frequency: the planner's").range(1.0, 1e9),
         ParamSpec::new("joint_accelerations", ParamValue::DoubleArray(DEFAULT_JOINT_ACCELERATIONS.to_vec()), "bed (rad/s²), arm, z (m/s²) limits a pause or cancel keeps to: the planner's"),
@@ -259,6 +263,12 @@ pub async fn run<M: Machine>(
     let tree = TfTree::from_urdf(&options.urdf).context("URDF")?;
     let capacity = options.queue_capacity;
 
+    // Only the pipeline's own nodes drive the machine: a segment or a screw command from any
+    // other writer on the domain would move it.
+    let mut steps_from = Producer::named(node, "steps_producer", true)?;
+    let mut screw_from = Producer::named(node, "screw_producer", true)?;
+    let mut progress_from = Producer::named(node, "producer", true)?;
+    let mut ignored = IgnoredWriters::default();
     let steps_sub = node.subscription::<StepSegment>("/polar/steps", &reliable_qos(capacity))?;
     let screw_sub = node.subscription::<ScrewCommand>("/screw/command", &reliable_qos(capacity))?;
     let progress_sub =
@@ -340,17 +350,29 @@ pub async fn run<M: Machine>(
         let mut requested: Option<(Command, Option<(usize, ros2_client::RmwRequestId)>)> = None;
         tokio::select! {
             taken = steps_sub.async_take() => {
-                let (s, _) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
-                received += 1;
-                pending_steps.push_back(s);
+                let (s, info) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
+                if steps_from.admits(&info) {
+                    received += 1;
+                    pending_steps.push_back(s);
+                } else {
+                    ignored.note(node, "/polar/steps", steps_from.name());
+                }
             }
             taken = screw_sub.async_take() => {
-                let (c, _) = taken.map_err(|e| anyhow!("/screw/command: {e:?}"))?;
-                pending_screw.push_back(c);
+                let (c, info) = taken.map_err(|e| anyhow!("/screw/command: {e:?}"))?;
+                if screw_from.admits(&info) {
+                    pending_screw.push_back(c);
+                } else {
+                    ignored.note(node, "/screw/command", screw_from.name());
+                }
             }
             taken = progress_sub.async_take() => {
-                if let Ok((p, _)) = taken {
-                    input_finished |= p.finished;
+                if let Ok((p, info)) = taken {
+                    if progress_from.admits(&info) {
+                        input_finished |= p.finished;
+                    } else {
+                        ignored.note(node, "/gcode/progress", progress_from.name());
+                    }
                 }
             }
             Some(command) = commands.recv() => requested = Some((command, None)),
@@ -597,6 +619,9 @@ pub async fn run<M: Machine>(
                 ("pin_open", state.pin_open.to_string()),
             ];
             values.extend(executor.diagnostics());
+            for (topic, count) in &ignored.counts {
+                values.push((ignored_key(topic), count.to_string()));
+            }
             node.diagnose(level, &message, &values);
         }
     }
@@ -748,6 +773,36 @@ mod tests {
         fn reset(&mut self) {
             self.calls.push("reset");
             self.stopped = false;
+        }
+    }
+}
+
+/// The diagnostics key counting `topic`'s messages from foreign writers.
+fn ignored_key(topic: &str) -> &'static str {
+    match topic {
+        "/polar/steps" => "ignored_foreign_steps",
+        "/screw/command" => "ignored_foreign_screw_commands",
+        _ => "ignored_foreign_progress",
+    }
+}
+
+/// Messages taken from writers that are not the named producer's: counted, and logged the
+/// first time per topic (a flood of forgeries must not flood the log).
+#[derive(Default)]
+struct IgnoredWriters {
+    counts: std::collections::BTreeMap<&'static str, u64>,
+}
+
+impl IgnoredWriters {
+    fn note(&mut self, node: &CellNode, topic: &'static str, producer: &str) {
+        let count = self.counts.entry(topic).or_default();
+        *count += 1;
+        if *count == 1 {
+            cell_runtime::cell_log!(
+                node,
+                LogLevel::Warn,
+                "ignored {topic} from a writer that is not {producer}'s (counted in diagnostics)"
+            );
         }
     }
 }

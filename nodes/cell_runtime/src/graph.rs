@@ -142,16 +142,49 @@ impl Producer {
         )
     }
 
+    /// A parameter `param` naming the node whose writes a node takes, as `description`
+    /// says (an empty name takes every writer's, e.g. a bag replayed into the node).
+    pub fn named_param_spec(
+        param: &'static str,
+        default: &str,
+        description: &'static str,
+    ) -> crate::ParamSpec {
+        crate::ParamSpec::new(
+            param,
+            crate::ParamValue::String(default.into()),
+            description,
+        )
+    }
+
     /// The producer that `node`'s `producer` parameter names; `check` false takes every
     /// writer (no flow control).
     pub fn of(node: &crate::CellNode, check: bool) -> Result<Producer, crate::RuntimeError> {
+        Self::named(node, "producer", check)
+    }
+
+    /// The producer that `node`'s parameter `param` names; `check` false, or an empty name,
+    /// takes every writer.
+    pub fn named(
+        node: &crate::CellNode,
+        param: &str,
+        check: bool,
+    ) -> Result<Producer, crate::RuntimeError> {
+        let name = node.params.string(param);
         Ok(Producer {
-            name: node.names.resolve(node.params.string("producer"))?,
-            check,
+            check: check && !name.is_empty(),
+            name: match name.is_empty() {
+                true => String::new(),
+                false => node.names.resolve(name)?,
+            },
             sources: Sources::new(),
             announced: node.node.external_nodes_view(),
             started: std::time::Instant::now(),
         })
+    }
+
+    /// The producer's fully qualified name (empty: any writer is taken).
+    pub fn name(&self) -> &str {
+        &self.name
     }
 
     /// Whether a message that came with `info` comes from the producer.

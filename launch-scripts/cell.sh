@@ -29,7 +29,7 @@ done
 "$bin/bag_recorder" --ros-args --params-file "$params" -p "output:=$bag" ${POLAR_CELL_ROS_ARGS:-} &
 recorder=$!
 # shellcheck disable=SC2086
-"$bin/polar_planner" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &
+"$bin/polar_planner" --ros-args --params-file "$params" -p "credit_producer:=$machine" ${POLAR_CELL_ROS_ARGS:-} &
 planner=$!
 # shellcheck disable=SC2086
 "$bin/screw_driver" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &

@@ -406,6 +406,13 @@ pub async fn run_job(
     )?;
     let mut ours = planner_overrides(&screw_node.params);
     ours.extend(planner_extra);
+    if options.execution.is_some() {
+        // The planner follows only the machine's credit.
+        let args = args_for(ros_args, machine_name, &executor_specs, vec![]);
+        let (names, _) = cell_runtime::resolve_node(machine_name, &executor_specs, &args)?;
+        let machine = names.fully_qualified_node_name();
+        ours.push(param("credit_producer", format!("{machine:?}")));
+    }
     ours.push(producer());
     let mut planner_node = start_node(
         polar_planner::node::NODE_NAME,

@@ -63,6 +63,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.05), "plan the queue to a stop when no move came for this long").range(0.001, 60.0),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves (false: accept moves in sequence order, e.g. from a bag)"),
         cell_runtime::graph::Producer::param_spec(),
+        cell_runtime::graph::Producer::named_param_spec("credit_producer", "cell_executor", "the machine node whose /cell/plan_credit this planner follows (relative: in its namespace; empty: any writer's); other writers are ignored"),
         ParamSpec::new("pin_open_dwell_s", ParamValue::Double(0.0), "rest before each extruding move after a non-extruding one, for the extruder pin (screw_driver's stop strategy; 0: none)").range(0.0, 60.0),
         ParamSpec::new("screw_max_rpm", ParamValue::Double(300.0), "the screw's top speed (screw_driver's max_rpm); extruding moves are slowed so they never need more (0: ignore the screw)").range(0.0, 1e5),
         ParamSpec::new("screw_e_per_rev_m", ParamValue::Double(0.002), "filament-equivalent length one screw revolution feeds (screw_driver's e_per_rev_m)").range(1e-9, 1.0),
@@ -206,6 +207,9 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     );
     // Moves and progress only from the streamer (a forged move would be planned).
     let mut producer = cell_runtime::graph::Producer::of(node, params.bool("acknowledge_moves"))?;
+    // Credit only from the machine (a forged credit would plan ahead of it, or stall it).
+    let mut machine =
+        cell_runtime::graph::Producer::named(node, "credit_producer", follow_execution)?;
     let mut planned = Vec::new();
     let mut segments = Vec::new();
     let mut states = Vec::new();
@@ -230,8 +234,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 }
             }
             taken = credit_sub.async_take() => {
-                if let Ok((c, _)) = taken {
-                    credit = Some(c);
+                if let Ok((c, info)) = taken {
+                    if machine.admits(&info) {
+                        credit = Some(c);
+                    }
                 }
             }
             taken = progress_sub.async_take() => {

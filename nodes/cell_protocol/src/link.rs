@@ -334,7 +334,11 @@ impl<const W: usize> Link<W> {
                 if offset == 0 {
                     self.timer_start = now;
                 }
-                self.slot_pending[slot] = false;
+                // A frame lost twice already goes out twice in a row: on a line that damages
+                // every second frame, that halves the odds of a third loss (a duplicate costs
+                // the receiver nothing).
+                self.slot_pending[slot] =
+                    self.slot_copies[slot] >= 2 && self.slot_copies[slot].is_multiple_of(2);
                 if self.slot_copies[slot] == 0 {
                     self.slot_first_sent_at[slot] = now;
                 }

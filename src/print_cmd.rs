@@ -385,19 +385,6 @@ pub async fn run_job(
     };
     let mut screw_extra = screw_extra;
     screw_extra.push(producer());
-    // The screw driver pairs moves only with the planner's trajectories.
-    let planner_name = {
-        let args = args_for(
-            ros_args,
-            polar_planner::node::NODE_NAME,
-            &planner_specs,
-            vec![],
-        );
-        let (names, _) =
-            cell_runtime::resolve_node(polar_planner::node::NODE_NAME, &planner_specs, &args)?;
-        names.fully_qualified_node_name()
-    };
-    screw_extra.push(param("trajectory_producer", format!("{planner_name:?}")));
     let mut screw_node = start_node(
         screw_driver::node::NODE_NAME,
         &screw_specs,

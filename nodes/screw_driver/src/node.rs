@@ -61,7 +61,6 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
         cell_runtime::graph::Producer::param_spec(),
-        cell_runtime::graph::Producer::named_param_spec("trajectory_producer", "polar_planner", "the node whose /polar/trajectory this screw driver pairs with moves (relative: in its namespace; empty: any writer's); other writers are ignored (not checked when replaying, acknowledge_moves false)"),
         ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of the screw joint's /polar/planned_joint_states samples (0: none)").range(0.0, 10.0),
     ]
 }
@@ -212,13 +211,6 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     );
     // Moves and progress only from the streamer (a forged move would get material).
     let mut producer = cell_runtime::graph::Producer::of(node, params.bool("acknowledge_moves"))?;
-    // Trajectories only from the planner.
-    let mut planner = cell_runtime::graph::Producer::named(
-        node,
-        "trajectory_producer",
-        params.bool("acknowledge_moves"),
-    )?;
-    let mut foreign_trajectories = 0u64;
     let mut moves: VecDeque<GcodeMove> = VecDeque::new();
     let mut plans: VecDeque<JointTrajectory> = VecDeque::new();
     let mut timed: VecDeque<TimedMove> = VecDeque::new();
@@ -250,20 +242,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 }
             }
             taken = trajectories.async_take() => {
-                let (trajectory, info) = taken.map_err(|e| anyhow!("/polar/trajectory: {e:?}"))?;
-                if !planner.admits(&info) {
-                    // A forged plan would shift every later pairing.
-                    foreign_trajectories += 1;
-                    if foreign_trajectories == 1 {
-                        cell_runtime::cell_log!(
-                            node,
-                            LogLevel::Warn,
-                            "ignored /polar/trajectory from a writer that is not {}'s",
-                            planner.name()
-                        );
-                    }
-                    continue;
-                }
+                let (trajectory, _) = taken.map_err(|e| anyhow!("/polar/trajectory: {e:?}"))?;
                 last_input = Instant::now();
                 plans.push_back(trajectory);
             }

@@ -126,8 +126,8 @@ pub struct Link<const W: usize> {
     /// Smoothed round trip and its mean deviation, once measured.
     smoothed_rtt: Option<u64>,
     rtt_deviation: u64,
-    /// Timeouts since the last progress: each doubles the wait.
-    backoff: u32,
+    /// A timeout fired since the last progress: the wait is doubled (once).
+    backed_off: bool,
     /// Sequenced transmissions so far: orders copies on the (never reordering) line.
     transmissions: u64,
     /// Slot of the oldest unacknowledged frame.
@@ -184,7 +184,7 @@ impl<const W: usize> Link<W> {
             slot_copies: [0; W],
             smoothed_rtt: None,
             rtt_deviation: 0,
-            backoff: 0,
+            backed_off: false,
             transmissions: 0,
             head: 0,
             queued: 0,
@@ -314,7 +314,7 @@ impl<const W: usize> Link<W> {
             {
                 // Timeout: resend everything sent that the peer does not hold.
                 self.counters.timeouts += 1;
-                self.backoff = (self.backoff + 1).min(1);
+                self.backed_off = true;
                 for offset in 0..self.transmitted {
                     let slot = (self.head + offset) % W;
                     if !self.slot_sacked[slot] {
@@ -467,9 +467,7 @@ impl<const W: usize> Link<W> {
         }
         let restarted = self.peer_nonce.is_some();
         self.peer_nonce = Some(nonce);
-        self.expected = frame.header.seq;
-        self.rx_present = [false; W];
-        self.rx_head = 0;
+        self.restart_receiving(frame.header.seq);
         self.ack_owed = false;
         self.nak_owed = false;
         // What the old session never acknowledged is gone with it.
@@ -498,10 +496,15 @@ impl<const W: usize> Link<W> {
         self.synced = true;
         if self.peer_nonce != Some(peer) {
             self.peer_nonce = Some(peer);
-            self.expected = frame.header.seq;
-            self.rx_present = [false; W];
-            self.rx_head = 0;
+            self.restart_receiving(frame.header.seq);
         }
+    }
+
+    /// A new peer session numbers from `seq`: nothing held from the old one counts.
+    fn restart_receiving(&mut self, seq: u8) {
+        self.expected = seq;
+        self.rx_present = [false; W];
+        self.rx_head = 0;
     }
 
     fn on_ack(&mut self, ack: u8, now: u64) {
@@ -514,7 +517,7 @@ impl<const W: usize> Link<W> {
             if self.slot_copies[newest] == 1 {
                 self.measured_round_trip(now.saturating_sub(self.slot_first_sent_at[newest]));
             }
-            self.backoff = 0;
+            self.backed_off = false;
             self.head = (self.head + acked) % W;
             self.queued -= acked;
             self.transmitted -= acked;
@@ -556,23 +559,29 @@ impl<const W: usize> Link<W> {
     /// How long after sending a copy a NAK that still lacks it shows it lost: the measured
     /// round trip plus its deviation (half the timeout until measured).
     fn loss_delay(&self) -> u64 {
-        let longest = self.options.retransmit_timeout;
-        match self.smoothed_rtt {
-            Some(srtt) => (srtt + self.rtt_deviation).clamp(longest / 8, longest),
-            None => longest / 2,
-        }
+        self.measured_wait(1, self.options.retransmit_timeout / 2)
     }
 
     /// The wait before resending: measured (RFC 6298: smoothed round trip plus four mean
-    /// deviations) within an eighth of the configured timeout and the timeout, doubled by
-    /// each timeout since the last progress.
+    /// deviations) within an eighth of the configured timeout and the timeout, doubled
+    /// after a timeout until the next progress.
     pub fn retransmit_timeout(&self) -> u64 {
         let longest = self.options.retransmit_timeout;
-        let base = match self.smoothed_rtt {
-            Some(srtt) => (srtt + 4 * self.rtt_deviation).clamp(longest / 8, longest),
-            None => longest,
-        };
-        base.saturating_mul(1 << self.backoff).min(longest)
+        let base = self.measured_wait(4, longest);
+        match self.backed_off {
+            true => base.saturating_mul(2).min(longest),
+            false => base,
+        }
+    }
+
+    /// The smoothed round trip plus `deviations` mean deviations, within an eighth of the
+    /// configured timeout and the timeout; `unmeasured` before any round trip is measured.
+    fn measured_wait(&self, deviations: u64, unmeasured: u64) -> u64 {
+        let longest = self.options.retransmit_timeout;
+        match self.smoothed_rtt {
+            Some(srtt) => (srtt + deviations * self.rtt_deviation).clamp(longest / 8, longest),
+            None => unmeasured,
+        }
     }
 
     fn measured_round_trip(&mut self, rtt: u64) {

@@ -110,6 +110,18 @@ fn round(a: &mut Side, b: &mut Side, now: u64, faults: Faults, rng: &mut Rng) {
     b.receive_all(now);
 }
 
+/// Everything `from` has to send at `now` into `to`'s inbox, but for the `lost`-th frame.
+fn transmit_losing(from: &mut Side, to: &mut Side, now: u64, lost: usize) {
+    let mut out = [0; MAX_WIRE_FRAME];
+    let mut index = 0;
+    while let Some(len) = from.link.poll_transmit(now, &mut out) {
+        if index != lost {
+            to.inbox.extend(out[..len].iter().copied());
+        }
+        index += 1;
+    }
+}
+
 /// Two sides with this window, their session started over a clean channel.
 fn synced_pair(window: usize) -> (Side, Side, Rng) {
     let mut a = Side::new(1, window);
@@ -201,15 +213,7 @@ fn a_lost_frame_is_naked_and_resent() {
     for i in 0..4 {
         a.link.send(&message(i)).unwrap();
     }
-    // Drop frame 1 of 4 on the way.
-    let mut out = [0; MAX_WIRE_FRAME];
-    let mut index = 0;
-    while let Some(len) = a.link.poll_transmit(10, &mut out) {
-        if index != 1 {
-            b.inbox.extend(out[..len].iter().copied());
-        }
-        index += 1;
-    }
+    transmit_losing(&mut a, &mut b, 10, 1); // frame 1 of 4 lost on the way
     b.receive_all(10);
     assert_eq!(b.delivered, [message(0)]);
     assert_eq!(b.link.counters().out_of_order, 2);
@@ -282,14 +286,7 @@ fn a_lost_frame_costs_one_frame_however_large_the_window() {
     for i in 0..32 {
         a.link.send(&message(i)).unwrap();
     }
-    let mut out = [0; MAX_WIRE_FRAME];
-    let mut index = 0;
-    while let Some(len) = a.link.poll_transmit(10, &mut out) {
-        if index != 3 {
-            b.inbox.extend(out[..len].iter().copied());
-        }
-        index += 1;
-    }
+    transmit_losing(&mut a, &mut b, 10, 3);
     for now in 10..14 {
         round(&mut a, &mut b, now, CLEAN, &mut rng);
     }

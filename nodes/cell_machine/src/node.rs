@@ -355,7 +355,7 @@ pub async fn run<M: Machine>(
                     received += 1;
                     pending_steps.push_back(s);
                 } else {
-                    ignored.note(node, "/polar/steps", steps_from.name());
+                    ignored.note(node, "/polar/steps", "ignored_foreign_steps", steps_from.name());
                 }
             }
             taken = screw_sub.async_take() => {
@@ -363,7 +363,12 @@ pub async fn run<M: Machine>(
                 if screw_from.admits(&info) {
                     pending_screw.push_back(c);
                 } else {
-                    ignored.note(node, "/screw/command", screw_from.name());
+                    ignored.note(
+                        node,
+                        "/screw/command",
+                        "ignored_foreign_screw_commands",
+                        screw_from.name(),
+                    );
                 }
             }
             taken = progress_sub.async_take() => {
@@ -371,7 +376,12 @@ pub async fn run<M: Machine>(
                     if progress_from.admits(&info) {
                         input_finished |= p.finished;
                     } else {
-                        ignored.note(node, "/gcode/progress", progress_from.name());
+                        ignored.note(
+                            node,
+                            "/gcode/progress",
+                            "ignored_foreign_progress",
+                            progress_from.name(),
+                        );
                     }
                 }
             }
@@ -619,8 +629,8 @@ pub async fn run<M: Machine>(
                 ("pin_open", state.pin_open.to_string()),
             ];
             values.extend(executor.diagnostics());
-            for (topic, count) in &ignored.counts {
-                values.push((ignored_key(topic), count.to_string()));
+            for (&key, count) in &ignored.counts {
+                values.push((key, count.to_string()));
             }
             node.diagnose(level, &message, &values);
         }
@@ -777,25 +787,17 @@ mod tests {
     }
 }
 
-/// The diagnostics key counting `topic`'s messages from foreign writers.
-fn ignored_key(topic: &str) -> &'static str {
-    match topic {
-        "/polar/steps" => "ignored_foreign_steps",
-        "/screw/command" => "ignored_foreign_screw_commands",
-        _ => "ignored_foreign_progress",
-    }
-}
-
 /// Messages taken from writers that are not the named producer's: counted, and logged the
 /// first time per topic (a flood of forgeries must not flood the log).
 #[derive(Default)]
 struct IgnoredWriters {
+    /// By diagnostics key, one per topic.
     counts: std::collections::BTreeMap<&'static str, u64>,
 }
 
 impl IgnoredWriters {
-    fn note(&mut self, node: &CellNode, topic: &'static str, producer: &str) {
-        let count = self.counts.entry(topic).or_default();
+    fn note(&mut self, node: &CellNode, topic: &str, key: &'static str, producer: &str) {
+        let count = self.counts.entry(key).or_default();
         *count += 1;
         if *count == 1 {
             cell_runtime::cell_log!(

@@ -373,16 +373,35 @@ pub async fn run_job(
                     let depth = cell_bag::node::executed_reader_depth(speed, horizon_s);
                     vec![param("reader_depth", depth.to_string())]
                 }
-                None => vec![],
+                // No machine: the bag is the plan's slowest consumer, and grants the credit.
+                None => vec![
+                    param("grant_credit", "true".into()),
+                    param(
+                        "reader_depth",
+                        cell_bag::node::CREDITED_READER_DEPTH.to_string(),
+                    ),
+                ],
             },
         ]
         .concat(),
     )?;
+    let bag_credit_horizon_s = options
+        .execution
+        .is_none()
+        .then(|| cell_bag::node::granted_credit_horizon_s(&recorder_node.params))
+        .flatten();
+    let recorder_name = recorder_node.fully_qualified_name();
     let recorder = Recorder::start(recorder_node)?;
-    let (executor_overrides, planner_extra, screw_extra) = match options.execution {
-        Some(speed) => execution_overrides(ros_args, speed, options.device.is_some())?,
-        None => (vec![], vec![], vec![]),
-    };
+    let (executor_overrides, planner_extra, screw_extra) =
+        match (options.execution, bag_credit_horizon_s) {
+            (Some(speed), _) => execution_overrides(ros_args, speed, options.device.is_some())?,
+            (None, Some(horizon_s)) => (
+                vec![],
+                vec![param("follow_execution", "true".into())],
+                screw_paced_by(horizon_s),
+            ),
+            (None, None) => (vec![], vec![], vec![]),
+        };
     let mut screw_extra = screw_extra;
     screw_extra.push(producer());
     let mut screw_node = start_node(
@@ -399,6 +418,8 @@ pub async fn run_job(
         let (names, _) = cell_runtime::resolve_node(machine_name, &executor_specs, &args)?;
         let machine = names.fully_qualified_node_name();
         ours.push(param("credit_producer", format!("{machine:?}")));
+    } else if bag_credit_horizon_s.is_some() {
+        ours.push(param("credit_producer", format!("{recorder_name:?}")));
     }
     ours.push(producer());
     let mut planner_node = start_node(
@@ -748,11 +769,19 @@ fn execution_overrides(
     ];
     let horizon_s = executor.f64("horizon_s");
     let planner_extra = vec![param("follow_execution", "true".into())];
-    screw_extra.extend([
+    screw_extra.extend(screw_paced_by(horizon_s));
+    Ok((executor_overrides, planner_extra, screw_extra))
+}
+
+/// The screw driver behind a planner that follows a credit of `horizon_s`: it publishes each
+/// quarter horizon of plan (its commands reach the consumer in small pieces well inside the
+/// horizon, never in a burst of a minute of plan), and a planner waiting for credit is not a
+/// stall that closes the pin.
+fn screw_paced_by(horizon_s: f64) -> Vec<ParamOverride> {
+    vec![
         param("max_buffer_s", format!("{:?}", (horizon_s / 4.0).max(0.1))),
         param("stall_flush_s", "3600.0".into()),
-    ]);
-    Ok((executor_overrides, planner_extra, screw_extra))
+    ]
 }
 
 /// Executing: over the plan's machine time; dry run: over the moves (from the pre-flight;

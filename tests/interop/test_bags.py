@@ -168,7 +168,7 @@ def test_the_bag_says_the_qos_its_publishers_offer(printed_bags):
         "/gcode/ack": (1000, 2),
         "/polar/steps": (10_000, 2),
         "/polar/trajectory": (10_000, 2),
-        "/screw/command": (100_000, 2),
+        "/screw/command": (10_000, 2),
         "/joint_states": (1000, 2),
         "/tf": (1000, 2),
         "/diagnostics": (10, 2),

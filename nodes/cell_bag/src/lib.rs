@@ -11,6 +11,7 @@
 //! The writer works on any `Write + Seek`; the caller owns the file. [`metadata_yaml`] renders
 //! the `metadata.yaml` of a bag directory from a finished bag's summary.
 
+pub mod credit;
 pub mod gaps;
 mod meta;
 mod qos;

@@ -70,6 +70,9 @@ pub(crate) fn mcap_options(
         .profile(profile)
         .library(library)
         .compression(Some(compression))
+        // One compressor on the writer's thread: zstd's multithreaded context takes 50 MB
+        // (a third of a dry run's peak memory), and the graph's other threads have the cores.
+        .compression_threads(0)
         .chunk_size(Some(options.chunk_size_bytes))
         .emit_statistics(true)
         .emit_message_indexes(true)

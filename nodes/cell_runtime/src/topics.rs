@@ -150,7 +150,7 @@ pub const SUITE_TOPICS: &[SuiteTopic] = &[
     topic(
         "/screw/command",
         "polar_cell_msgs/msg/ScrewCommand",
-        TopicQos::reliable(100_000),
+        TopicQos::reliable(10_000),
     ),
     topic(
         "/mechanism/joint_states",

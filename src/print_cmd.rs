@@ -374,13 +374,7 @@ pub async fn run_job(
                     vec![param("reader_depth", depth.to_string())]
                 }
                 // No machine: the bag is the plan's slowest consumer, and grants the credit.
-                None => vec![
-                    param("grant_credit", "true".into()),
-                    param(
-                        "reader_depth",
-                        cell_bag::node::CREDITED_READER_DEPTH.to_string(),
-                    ),
-                ],
+                None => vec![param("grant_credit", "true".into())],
             },
         ]
         .concat(),
@@ -395,10 +389,12 @@ pub async fn run_job(
     let (executor_overrides, planner_extra, screw_extra) =
         match (options.execution, bag_credit_horizon_s) {
             (Some(speed), _) => execution_overrides(ros_args, speed, options.device.is_some())?,
-            (None, Some(horizon_s)) => (
+            // The screw driver keeps its own chunks (a quarter horizon would cut runs without a
+            // closed-pin gap, and an opening then reaches back before the cut).
+            (None, Some(_)) => (
                 vec![],
                 vec![param("follow_execution", "true".into())],
-                screw_paced_by(horizon_s),
+                vec![],
             ),
             (None, None) => (vec![], vec![], vec![]),
         };

@@ -54,12 +54,6 @@ pub fn executed_reader_depth(speed: f64, horizon_s: f64) -> usize {
 /// and what is in flight to the bag stays small.
 pub const DEFAULT_CREDIT_HORIZON_S: f64 = 2.0;
 
-/// The readers' depth of a recorder that grants the credit: the plan in flight to it is at
-/// most the horizon (2 s of plan), which even a file of 0.5 ms moves fills with 4,000
-/// trajectories and about 12,000 step segments. Deeper is memory: RustDDS keeps `depth`
-/// samples of each topic after the reader took them (100,000 held 130 MB more in a dry run).
-pub const CREDITED_READER_DEPTH: usize = 16_384;
-
 /// The topics whose recorded plan a granted credit follows: the planner's. Not the screw
 /// driver's commands: they end where the last extruding move ends, so after travel moves
 /// their end stays behind the plan and a credit that waited for it held the planner for good

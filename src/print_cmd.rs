@@ -389,8 +389,8 @@ pub async fn run_job(
     let (executor_overrides, planner_extra, screw_extra) =
         match (options.execution, bag_credit_horizon_s) {
             (Some(speed), _) => execution_overrides(ros_args, speed, options.device.is_some())?,
-            // The screw driver keeps its own chunks: cut at a quarter horizon, runs without a
-            // closed-pin gap were cut too, and test_screw saw commands out of time order.
+            // The screw driver keeps its own chunks: cut at a quarter horizon, test_screw saw
+            // commands out of time order (by 1 ns: stamps rounded from plan time).
             (None, Some(_)) => (
                 vec![],
                 vec![param("follow_execution", "true".into())],

@@ -379,24 +379,21 @@ pub async fn run_job(
         ]
         .concat(),
     )?;
-    let bag_credit_horizon_s = options
-        .execution
-        .is_none()
-        .then(|| cell_bag::node::granted_credit_horizon_s(&recorder_node.params))
-        .flatten();
+    let bag_grants_credit =
+        options.execution.is_none() && cell_bag::node::grants_credit(&recorder_node.params);
     let recorder_name = recorder_node.fully_qualified_name();
     let recorder = Recorder::start(recorder_node)?;
     let (executor_overrides, planner_extra, screw_extra) =
-        match (options.execution, bag_credit_horizon_s) {
+        match (options.execution, bag_grants_credit) {
             (Some(speed), _) => execution_overrides(ros_args, speed, options.device.is_some())?,
             // The screw driver keeps its own chunks: cut at a quarter horizon, test_screw saw
             // commands out of time order (by 1 ns: stamps rounded from plan time).
-            (None, Some(_)) => (
+            (None, true) => (
                 vec![],
                 vec![param("follow_execution", "true".into())],
                 vec![],
             ),
-            (None, None) => (vec![], vec![], vec![]),
+            (None, false) => (vec![], vec![], vec![]),
         };
     let mut screw_extra = screw_extra;
     screw_extra.push(producer());
@@ -414,7 +411,7 @@ pub async fn run_job(
         let (names, _) = cell_runtime::resolve_node(machine_name, &executor_specs, &args)?;
         let machine = names.fully_qualified_node_name();
         ours.push(param("credit_producer", format!("{machine:?}")));
-    } else if bag_credit_horizon_s.is_some() {
+    } else if bag_grants_credit {
         ours.push(param("credit_producer", format!("{recorder_name:?}")));
     }
     ours.push(producer());
@@ -765,19 +762,11 @@ fn execution_overrides(
     ];
     let horizon_s = executor.f64("horizon_s");
     let planner_extra = vec![param("follow_execution", "true".into())];
-    screw_extra.extend(screw_paced_by(horizon_s));
-    Ok((executor_overrides, planner_extra, screw_extra))
-}
-
-/// The screw driver behind a planner that follows a credit of `horizon_s`: it publishes each
-/// quarter horizon of plan (its commands reach the consumer in small pieces well inside the
-/// horizon, never in a burst of a minute of plan), and a planner waiting for credit is not a
-/// stall that closes the pin.
-fn screw_paced_by(horizon_s: f64) -> Vec<ParamOverride> {
-    vec![
+    screw_extra.extend([
         param("max_buffer_s", format!("{:?}", (horizon_s / 4.0).max(0.1))),
         param("stall_flush_s", "3600.0".into()),
-    ]
+    ]);
+    Ok((executor_overrides, planner_extra, screw_extra))
 }
 
 /// Executing: over the plan's machine time; dry run: over the moves (from the pre-flight;

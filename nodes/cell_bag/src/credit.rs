@@ -58,9 +58,48 @@ pub fn credit_due(
     moved_s >= horizon_s / 20.0 || since_last_s >= repeat_s
 }
 
+/// Where the plan taken on one topic ends: spans that share a start stamp follow each other
+/// (a move's step segments), a new start begins again. The end, not the start, is the
+/// frontier: a credit from the last start would hold a planner whose last move is longer
+/// than the horizon short of its own plan for good.
+#[derive(Debug, Default)]
+pub struct PlanEnd {
+    last: Option<(i64, i64)>,
+}
+
+impl PlanEnd {
+    /// The end of the plan taken so far, after a span `(start, length)`.
+    pub fn after(&mut self, (start_ns, length_ns): (i64, i64)) -> i64 {
+        let end_ns = match self.last {
+            Some((last_start_ns, last_end_ns)) if last_start_ns == start_ns => {
+                last_end_ns + length_ns
+            }
+            _ => start_ns + length_ns,
+        };
+        self.last = Some((start_ns, end_ns));
+        end_ns
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_plan_ends_after_a_moves_segments_and_a_new_move_starts_again() {
+        let mut end = PlanEnd::default();
+        // A 3 s move in three segments (1 s, 1.5 s, 0.5 s), all stamped at its start.
+        assert_eq!(end.after((10_000, 1_000)), 11_000);
+        assert_eq!(end.after((10_000, 1_500)), 12_500);
+        assert_eq!(end.after((10_000, 500)), 13_000);
+        // The next move starts where that one ended.
+        assert_eq!(end.after((13_000, 2_000)), 15_000);
+        // Spans of no length at one instant, then a later one.
+        let mut instants = PlanEnd::default();
+        assert_eq!(instants.after((7, 0)), 7);
+        assert_eq!(instants.after((7, 0)), 7);
+        assert_eq!(instants.after((9, 0)), 9);
+    }
 
     #[test]
     fn the_recorded_plan_ends_at_the_lowest_frontier_of_the_topics_that_carried_something() {

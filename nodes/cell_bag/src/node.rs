@@ -14,6 +14,7 @@ use std::time::Duration;
 use anyhow::{anyhow, bail, Context as _};
 use cell_runtime::flow::{AckTracker, Verdict};
 
+use crate::credit::PlanEnd;
 use crate::gaps::SequenceGaps;
 use cell_runtime::topics::{publisher_qos, DEFAULT_MOVE_WINDOW};
 use cell_runtime::{
@@ -60,16 +61,16 @@ pub const DEFAULT_CREDIT_HORIZON_S: f64 = 2.0;
 /// (polartest with a window of 3). The screw driver cannot run ahead of the planner anyway.
 const CREDIT_TOPICS: [&str; 2] = ["/polar/trajectory", "/polar/steps"];
 
-/// The plan-ahead a recorder with these parameters grants (`grant_credit`, and recording one
-/// of the plan topics the credit follows), if it does.
-pub fn granted_credit_horizon_s(params: &cell_runtime::Params) -> Option<f64> {
+/// Whether a recorder with these parameters grants the credit: `grant_credit`, and it records
+/// one of the plan topics the credit follows.
+pub fn grants_credit(params: &cell_runtime::Params) -> bool {
     let follows_a_topic = params.strings("topics").iter().any(|entry| {
         let name = entry
             .split_once(':')
             .map_or(entry.as_str(), |(name, _)| name);
         CREDIT_TOPICS.contains(&name)
     });
-    (params.bool("grant_credit") && follows_a_topic).then(|| params.f64("credit_horizon_s"))
+    params.bool("grant_credit") && follows_a_topic
 }
 
 /// What a message says of the plan's timeline, for the credit a recorder grants: the plan
@@ -117,29 +118,6 @@ impl Recordable for StepSegment {
             self.header.stamp.as_nanos(),
             (self.duration_s * 1e9).round() as i64,
         ))
-    }
-}
-
-/// Where the plan taken on one topic ends: spans that share a start stamp follow each other
-/// (a move's step segments), a new start begins again. The end, not the start, is the
-/// frontier: a credit from the last start would hold a planner whose last move is longer
-/// than the horizon short of its own plan for good.
-#[derive(Default)]
-struct PlanEnd {
-    last: Option<(i64, i64)>,
-}
-
-impl PlanEnd {
-    /// The end of the plan taken so far, after a span `(start, length)`.
-    fn after(&mut self, (start_ns, length_ns): (i64, i64)) -> i64 {
-        let end_ns = match self.last {
-            Some((last_start_ns, last_end_ns)) if last_start_ns == start_ns => {
-                last_end_ns + length_ns
-            }
-            _ => start_ns + length_ns,
-        };
-        self.last = Some((start_ns, end_ns));
-        end_ns
     }
 }
 
@@ -887,22 +865,6 @@ pub fn cdr_publisher(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_plan_ends_after_a_moves_segments_and_a_new_move_starts_again() {
-        let mut end = PlanEnd::default();
-        // A 3 s move in three segments (1 s, 1.5 s, 0.5 s), all stamped at its start.
-        assert_eq!(end.after((10_000, 1_000)), 11_000);
-        assert_eq!(end.after((10_000, 1_500)), 12_500);
-        assert_eq!(end.after((10_000, 500)), 13_000);
-        // The next move starts where that one ended.
-        assert_eq!(end.after((13_000, 2_000)), 15_000);
-        // Spans of no length at one instant, then a later one.
-        let mut instants = PlanEnd::default();
-        assert_eq!(instants.after((7, 0)), 7);
-        assert_eq!(instants.after((7, 0)), 7);
-        assert_eq!(instants.after((9, 0)), 9);
-    }
 
     /// At machine pace the depth covers 8 s of 500 screw commands a second of machine time,
     /// scaled with the speed, plus a burst of the horizon at twice that rate; a fast

@@ -27,8 +27,9 @@
 //!
 //! Rounding each period to 2⁻³² tick keeps a 10,000-step ramp within a few thousandths of a
 //! tick of the same recurrence in `f64` (see the tests); the host converts a segment from its
-//! floating-point fields once ([`Segment::from_fields`]) and the microcontroller receives the
-//! converted integers.
+//! floating-point fields once ([`Segment::from_fields`]), rounding the first period and ramp
+//! term to [`SIGNIFICANT_BITS`] so that each fits one word on the wire, and the
+//! microcontroller receives the converted integers.
 
 #![no_std]
 #![forbid(unsafe_code)]
@@ -148,6 +149,25 @@ fn to_fixed(value: f64, fraction_bits: u32) -> u64 {
     (value * (1u64 << fraction_bits) as f64 + 0.5) as u64
 }
 
+/// Significant bits kept of a segment's first period and ramp term: the wire protocol carries
+/// each in one 32-bit word (26 bits of mantissa, 6 of exponent), so the host rounds to that
+/// before anyone steps the segment, and the planner, the executor and the firmware all play
+/// the same numbers. The relative rounding (≤ 2⁻²⁷) moves a 10,000-step ramp by hundredths
+/// of a tick at most (see the tests).
+pub const SIGNIFICANT_BITS: u32 = 26;
+
+/// `value` rounded (half up) to [`SIGNIFICANT_BITS`] significant bits.
+pub fn round_significant(value: u64) -> u64 {
+    let bits = u64::BITS - value.leading_zeros();
+    if bits <= SIGNIFICANT_BITS {
+        return value;
+    }
+    let shift = bits - SIGNIFICANT_BITS;
+    let mantissa = (value >> shift) + (value >> (shift - 1) & 1);
+    // A carry out of the mantissa (all ones rounded up) is still exact: 2^26 << shift.
+    ((mantissa as u128) << shift).min(u64::MAX as u128) as u64
+}
+
 fn non_negative(field: &'static str, value: f64) -> Result<f64, SegmentError> {
     if value.is_finite() && value >= 0.0 {
         Ok(value)
@@ -199,8 +219,8 @@ impl Segment {
         if x > 0.5 {
             return Err(SegmentError::RampTooSteep { x });
         }
-        segment.first_period_q32 = to_fixed(period, TICK_FRACTION_BITS);
-        segment.first_ramp_q62 = to_fixed(x, RAMP_FRACTION_BITS);
+        segment.first_period_q32 = round_significant(to_fixed(period, TICK_FRACTION_BITS));
+        segment.first_ramp_q62 = round_significant(to_fixed(x, RAMP_FRACTION_BITS));
         Ok(segment)
     }
 

@@ -33,6 +33,23 @@ fn reference_times(f: &SegmentFields) -> Vec<f64> {
     out
 }
 
+/// `f` with the first period and ramp as the segment steps them, after the rounding to
+/// [`SIGNIFICANT_BITS`]: the reference for the arithmetic itself.
+fn as_stepped(f: &SegmentFields) -> SegmentFields {
+    let segment = Segment::from_fields(f).unwrap();
+    let period = seconds_q32(segment.first_period_q32);
+    let ramp = segment.first_ramp_q62 as f64 / (1u64 << 62) as f64;
+    let n = f.accelerate_steps + f.cruise_steps + f.decelerate_steps;
+    let mut stepped = *f;
+    if n > 0 && f.cruise_steps == n {
+        stepped.cruise_period_ticks = period;
+    } else if n > 0 {
+        stepped.first_period_ticks = period;
+        stepped.ramp_r = ramp / (period * period);
+    }
+    stepped
+}
+
 fn run(segment: &Segment) -> Vec<Pulse> {
     let mut train = PulseTrain::new(segment);
     let mut out = Vec::new();
@@ -62,9 +79,15 @@ fn ramp_fields(v0: f64, a: f64, n: u32, hz: f64) -> SegmentFields {
     }
 }
 
-fn worst_difference_ticks(fields: &SegmentFields) -> f64 {
+/// Worst distance of the fixed-point pulses from the `f64` recurrence on the same (rounded)
+/// numbers, or with `unrounded`, on the host's own numbers.
+fn worst_difference_ticks(fields: &SegmentFields, unrounded: bool) -> f64 {
     let pulses = run(&Segment::from_fields(fields).unwrap());
-    let reference = reference_times(fields);
+    let reference = reference_times(&if unrounded {
+        *fields
+    } else {
+        as_stepped(fields)
+    });
     assert_eq!(pulses.len(), reference.len());
     pulses
         .iter()
@@ -86,10 +109,44 @@ fn fixed_point_ramps_follow_the_floating_point_recurrence() {
         (5_000.0, 1_000_000.0, 100_000, 0.1),
     ] {
         let fields = ramp_fields(v0, a, n, 1e6);
-        let worst = worst_difference_ticks(&fields);
+        let worst = worst_difference_ticks(&fields, false);
         std::eprintln!("v0 {v0} a {a} n {n}: worst {worst:.2e} ticks");
         assert!(worst < bound, "v0 {v0} a {a} n {n}: {worst} ticks");
     }
+}
+
+/// What the rounding to the wire's 26 significant bits costs against the host's unrounded
+/// numbers: hundredths of a tick over the longest ramps, far inside the whole tick a pulse
+/// is output on.
+#[test]
+fn rounding_to_the_wire_moves_long_ramps_by_hundredths_of_a_tick() {
+    for (v0, a, n, bound) in [
+        (1_000.0, 20_000.0, 2000, 0.01),
+        (5_000.0, 5_000.0, 10_000, 0.05),
+        (31_000.0, -2_000_000.0, 200, 1e-3),
+        (2_000.0, -300.0, 5000, 0.05),
+        (400.0, 0.5, 300, 0.05),
+    ] {
+        let fields = ramp_fields(v0, a, n, 1e6);
+        let worst = worst_difference_ticks(&fields, true);
+        std::eprintln!("v0 {v0} a {a} n {n}: rounded {worst:.2e} ticks off the unrounded");
+        assert!(worst < bound, "v0 {v0} a {a} n {n}: {worst} ticks");
+    }
+}
+
+#[test]
+fn round_significant_keeps_26_bits_rounding_half_up() {
+    assert_eq!(round_significant(0), 0);
+    assert_eq!(round_significant((1 << 26) - 1), (1 << 26) - 1);
+    // 27 bits: the last one goes, half rounds up.
+    assert_eq!(round_significant((1 << 26) + 1), (1 << 26) + 2);
+    assert_eq!(round_significant((1 << 26) + 2), (1 << 26) + 2);
+    assert_eq!(round_significant((1 << 27) - 1), 1 << 27);
+    let v = 0x0123_4567_89AB_CDEFu64;
+    let kept = round_significant(v);
+    assert!(kept.trailing_zeros() >= 57 - 26);
+    assert!(kept.abs_diff(v) <= 1 << (57 - 26 - 1));
+    assert_eq!(round_significant(u64::MAX), u64::MAX);
 }
 
 #[test]
@@ -106,7 +163,7 @@ fn a_three_phase_segment_keeps_the_period_reached_through_its_cruise() {
         decelerate_steps: 150,
     };
     let pulses = run(&Segment::from_fields(&fields).unwrap());
-    let reference = reference_times(&fields);
+    let reference = reference_times(&as_stepped(&fields));
     for (p, r) in pulses.iter().zip(&reference) {
         assert!((seconds_q32(p.time_q32) - r).abs() < 1e-6);
     }
@@ -360,7 +417,7 @@ proptest! {
         }
         prop_assert_eq!(made, fields.step_counts);
         prop_assert!(pulses.windows(2).all(|w| w[0].time_q32 < w[1].time_q32));
-        let reference = reference_times(&fields);
+        let reference = reference_times(&as_stepped(&fields));
         for (p, r) in pulses.iter().zip(&reference) {
             prop_assert!((seconds_q32(p.time_q32) - r).abs() < 1e-3 + 1e-9 * r);
         }

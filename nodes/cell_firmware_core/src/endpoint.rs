@@ -3,7 +3,9 @@
 //! edges go.
 
 use cell_protocol::link::LinkCounters;
-use cell_protocol::message::{FaultCode, HostMessage, McuCounters, McuMessage, MessageError, Mode};
+use cell_protocol::message::{
+    host_messages, FaultCode, HostMessage, McuCounters, McuMessage, MessageError, Mode,
+};
 use cell_protocol::{FrameDecoder, Link, LinkOptions, Received, MAX_PAYLOAD, MAX_WIRE_FRAME};
 use heapless::Deque;
 
@@ -67,18 +69,23 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
             self.machine.host_frame(now);
             // An emergency stop acts in any valid frame, before the link decides whether the
             // frame is in order.
-            let message = HostMessage::decode(frame.payload);
-            if message == Ok(HostMessage::EmergencyStop) {
+            if host_messages(frame.payload).any(|m| m == Ok(HostMessage::EmergencyStop)) {
                 self.machine.emergency_stop();
             }
-            // No room for a reply: leave the message to be resent rather than drop its reply.
+            // No room for a reply (a frame asks for at most one): leave the frame to be resent
+            // rather than drop its reply.
             if frame.header.sequenced && self.outbox.is_full() {
                 self.link.receive_ack_only(&frame, now);
                 continue;
             }
-            // The link delivers the frame's own payload, decoded above.
+            // The link delivers the frame's own payload (copied out of the decoder's buffer).
+            let mut payload = [0u8; MAX_PAYLOAD];
+            let len = frame.payload.len();
+            payload[..len].copy_from_slice(frame.payload);
             match self.link.receive(&frame, now) {
-                Received::Message(_) | Received::Unsequenced(_) => self.handle(message, now),
+                Received::Message(_) | Received::Unsequenced(_) => {
+                    self.handle_payload(&payload[..len], now)
+                }
                 Received::Nothing | Received::PeerRestarted { .. } => {}
             }
             self.deliver_held(now);
@@ -88,11 +95,23 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
     /// Messages the link held behind a gap that is now filled, while replies have room (the
     /// rest stay held, unacknowledged, until the next frame).
     fn deliver_held(&mut self, now: u64) {
+        let mut payload = [0u8; MAX_PAYLOAD];
         while !self.outbox.is_full() {
-            let message = match self.link.next_buffered() {
-                Some(payload) => HostMessage::decode(payload),
+            let len = match self.link.next_buffered() {
+                Some(held) => {
+                    payload[..held.len()].copy_from_slice(held);
+                    held.len()
+                }
                 None => break,
             };
+            self.handle_payload(&payload[..len], now);
+        }
+    }
+
+    /// Act on every message of a payload in order. One that does not decode is counted, and
+    /// what follows it is lost with it (its length is unknown).
+    fn handle_payload(&mut self, payload: &[u8], now: u64) {
+        for message in host_messages(payload) {
             self.handle(message, now);
         }
     }

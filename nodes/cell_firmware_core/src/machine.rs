@@ -28,7 +28,7 @@
 //! for the fraction of a second a ramp lasts.
 
 use cell_protocol::message::{
-    FaultCode, HostMessage, Identity, McuMessage, McuState, Mode, QueuedSegment,
+    FaultCode, HostMessage, Identity, McuMessage, McuState, Mode, QueuedSegment, ScrewRamp,
     SEGMENT_ENDS_AT_REST,
 };
 use cell_protocol::PROTOCOL_VERSION;
@@ -108,6 +108,11 @@ pub struct Machine<const Q: usize, const S: usize> {
     queue: Deque<QueuedSegment, Q>,
     /// Plan tick where the last accepted segment ends (the next must start there).
     schedule_end: Option<u64>,
+    /// Tag of the last accepted segment: a compact next segment's tag counts on from it.
+    schedule_tag: u32,
+    /// Start clock (as sent) of the last accepted screw command: a compact one is timed
+    /// from it.
+    screw_reference: Option<u64>,
     positions: [i32; MAX_AXES],
     done_tag: u32,
     screw: Screw<S>,
@@ -133,6 +138,8 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             playing: None,
             queue: Deque::new(),
             schedule_end: None,
+            schedule_tag: 0,
+            screw_reference: None,
             positions: config.initial_steps,
             done_tag: 0,
             screw: Screw::new(),
@@ -267,19 +274,29 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 self.last_host_frame = now;
             }
             HostMessage::QueueSegment(queued) => self.queue_segment(queued),
-            HostMessage::Screw(command) => {
-                if self.fault == FaultCode::None {
-                    let refused = self.screw.push(command, self.plan_clock());
-                    match refused {
-                        Ok(late) => {
-                            // Started at arrival (see `Screw::push`), counted with the late.
-                            self.counters.late_segments += u32::from(late);
-                        }
-                        Err(ScrewRefusal::OutOfOrder) => self.latch(FaultCode::BadSegment, 0),
-                        Err(ScrewRefusal::Full) => self.latch(FaultCode::QueueOverflow, 0),
-                    }
-                }
-            }
+            HostMessage::NextSegment(next) => match self.schedule_end {
+                Some(end) => self.queue_segment(QueuedSegment {
+                    start_clock: end,
+                    duration_ticks: next.duration_ticks(),
+                    tag: self.schedule_tag.wrapping_add(next.tag_step()),
+                    flags: next.flags(),
+                    segment: *next.segment(),
+                }),
+                // No schedule to continue (none begun, or dropped by a fault or the host).
+                None if self.fault == FaultCode::None => self.latch(FaultCode::BadSegment, 0),
+                None => {}
+            },
+            HostMessage::Screw(command) => self.queue_screw(command),
+            HostMessage::ScrewNext(next) => match self.screw_reference {
+                Some(reference) => self.queue_screw(ScrewRamp {
+                    start_clock: reference.saturating_add(next.start_step_ticks as u64),
+                    ramp_ticks: next.ramp_ticks,
+                    target_millirpm: next.target_millirpm,
+                    pin_open: next.pin_open,
+                }),
+                None if self.fault == FaultCode::None => self.latch(FaultCode::BadSegment, 0),
+                None => {}
+            },
             HostMessage::FeedHold { rate_q32 } => {
                 if self.fault == FaultCode::None {
                     self.pin_held_closed = true;
@@ -350,6 +367,21 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         }
     }
 
+    fn queue_screw(&mut self, command: ScrewRamp) {
+        if self.fault != FaultCode::None {
+            return;
+        }
+        match self.screw.push(command, self.plan_clock()) {
+            Ok(late) => {
+                // Started at arrival (see `Screw::push`), counted with the late.
+                self.counters.late_segments += u32::from(late);
+                self.screw_reference = Some(command.start_clock);
+            }
+            Err(ScrewRefusal::OutOfOrder) => self.latch(FaultCode::BadSegment, 0),
+            Err(ScrewRefusal::Full) => self.latch(FaultCode::QueueOverflow, 0),
+        }
+    }
+
     fn queue_segment(&mut self, queued: QueuedSegment) {
         if self.fault != FaultCode::None {
             return; // refused silently: the host already has the fault report
@@ -372,6 +404,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             return self.latch(FaultCode::QueueOverflow, tag);
         }
         self.schedule_end = Some(queued.start_clock + queued.duration_ticks as u64);
+        self.schedule_tag = tag;
     }
 
     /// Drop everything scheduled and stop the screw: what a fault and a drop have in common.
@@ -379,6 +412,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         self.playing = None;
         self.queue.clear();
         self.schedule_end = None;
+        self.screw_reference = None;
         self.screw.stop();
         self.ramp = Ramp::Steady;
     }

@@ -39,7 +39,7 @@ pub use message::{HostMessage, McuMessage, MessageError};
 
 /// Version of the protocol in `PROTOCOL.md`; the MCU reports it in its identify reply and the
 /// host refuses any other.
-pub const PROTOCOL_VERSION: u16 = 2;
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// Most payload bytes one frame carries (the largest message, a queued segment, takes 60).
 pub const MAX_PAYLOAD: usize = 64;

@@ -1,4 +1,5 @@
-//! Messages: the payload of a frame, one kind byte and fixed little-endian fields.
+//! Messages: a frame's payload is one or more of them, each a kind byte and its fields —
+//! fixed little-endian fields, or for the two compact continuing forms ([`compact`]) varints.
 //!
 //! Host → MCU kinds are `0x01..=0x7F`, MCU → host kinds `0x81..=0xFF`, so a frame sent the
 //! wrong way round is an unknown kind, not a misread. Times are MCU clock ticks (`_clock`:
@@ -7,6 +8,10 @@
 use step_core::{Segment, MAX_AXES};
 
 use crate::MAX_PAYLOAD;
+
+pub mod compact;
+
+pub use compact::{NextSegment, ScrewNext};
 
 /// A step segment scheduled on the MCU clock.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -55,7 +60,11 @@ pub enum HostMessage {
         state_period_ticks: u32,
     },
     QueueSegment(QueuedSegment),
+    /// A segment that starts where the previously queued one ends (compact form).
+    NextSegment(NextSegment),
     Screw(ScrewRamp),
+    /// A screw ramp timed after the previous screw command (compact form).
+    ScrewNext(ScrewNext),
     /// Feed hold: the plan clock slows to a stop along the path; the feed scale σ (Q32, 1.0 =
     /// 2³²) falls by `rate_q32` per tick. The host derives the rate from the joints'
     /// acceleration limits over what it queued.
@@ -204,6 +213,10 @@ pub enum MessageError {
         expected: usize,
         actual: usize,
     },
+    #[error("message kind {kind:#04x} ends before its last field")]
+    Truncated { kind: u8 },
+    #[error("message kind {kind:#04x}: {field} is not a minimal varint of at most 32 bits")]
+    BadVarint { kind: u8, field: &'static str },
     #[error("message kind {kind:#04x}: {field} = {value} is not a valid value")]
     BadValue {
         kind: u8,
@@ -218,6 +231,8 @@ mod kind {
     pub const CONFIGURE: u8 = 0x03;
     pub const QUEUE_SEGMENT: u8 = 0x10;
     pub const SCREW: u8 = 0x11;
+    pub const NEXT_SEGMENT: u8 = 0x12;
+    pub const SCREW_NEXT: u8 = 0x13;
     pub const FEED_HOLD: u8 = 0x20;
     pub const FEED_RESUME: u8 = 0x21;
     pub const DROP_QUEUE: u8 = 0x22;
@@ -271,25 +286,26 @@ impl Writer {
     }
 }
 
-/// A payload being read, whose length was checked against the kind's layout first.
+/// A fixed-layout message being read, whose length was checked against the kind's layout
+/// first.
 struct Reader<'a> {
     kind: u8,
     rest: &'a [u8],
 }
 
 impl<'a> Reader<'a> {
-    /// Check that `payload` (kind byte included) is exactly `len` bytes.
-    fn new(payload: &'a [u8], len: usize) -> Result<Reader<'a>, MessageError> {
-        if payload.len() != len {
+    /// The message of `len` bytes (kind byte included) at the start of `bytes`.
+    fn new(bytes: &'a [u8], len: usize) -> Result<Reader<'a>, MessageError> {
+        if bytes.len() < len {
             return Err(MessageError::Length {
-                kind: payload[0],
+                kind: bytes[0],
                 expected: len,
-                actual: payload.len(),
+                actual: bytes.len(),
             });
         }
         Ok(Reader {
-            kind: payload[0],
-            rest: &payload[1..],
+            kind: bytes[0],
+            rest: &bytes[1..len],
         })
     }
     fn take<const N: usize>(&mut self) -> [u8; N] {
@@ -325,6 +341,61 @@ impl<'a> Reader<'a> {
             field,
             value,
         }
+    }
+}
+
+/// A payload that holds more than the one message at its start.
+fn exactly(payload: &[u8], len: usize) -> Result<(), MessageError> {
+    if payload.len() == len {
+        Ok(())
+    } else {
+        Err(MessageError::Length {
+            kind: payload[0],
+            expected: len,
+            actual: payload.len(),
+        })
+    }
+}
+
+/// The messages of a payload in order. After the first that does not decode, nothing more:
+/// its length is unknown, so whatever follows cannot be found.
+pub struct Messages<'a, M> {
+    rest: &'a [u8],
+    decode: fn(&[u8]) -> Result<(M, usize), MessageError>,
+}
+
+impl<M> Iterator for Messages<'_, M> {
+    type Item = Result<M, MessageError>;
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.rest.is_empty() {
+            return None;
+        }
+        match (self.decode)(self.rest) {
+            Ok((message, len)) => {
+                self.rest = &self.rest[len..];
+                Some(Ok(message))
+            }
+            Err(e) => {
+                self.rest = &[];
+                Some(Err(e))
+            }
+        }
+    }
+}
+
+/// The host messages of a payload (one or more).
+pub fn host_messages(payload: &[u8]) -> Messages<'_, HostMessage> {
+    Messages {
+        rest: payload,
+        decode: HostMessage::decode_prefix,
+    }
+}
+
+/// The MCU messages of a payload (one or more).
+pub fn mcu_messages(payload: &[u8]) -> Messages<'_, McuMessage> {
+    Messages {
+        rest: payload,
+        decode: McuMessage::decode_prefix,
     }
 }
 
@@ -389,6 +460,26 @@ impl HostMessage {
                 write_segment(&mut w, &q.segment);
                 w
             }
+            NextSegment(n) => {
+                let mut w = Writer::new(kind::NEXT_SEGMENT);
+                let mut c = compact::CompactWriter {
+                    out: &mut w.buf,
+                    len: w.len,
+                };
+                compact::write_next_segment(&mut c, n);
+                w.len = c.len;
+                w
+            }
+            ScrewNext(s) => {
+                let mut w = Writer::new(kind::SCREW_NEXT);
+                let mut c = compact::CompactWriter {
+                    out: &mut w.buf,
+                    len: w.len,
+                };
+                compact::write_screw_next(&mut c, s);
+                w.len = c.len;
+                w
+            }
             Screw(s) => {
                 let mut w = Writer::new(kind::SCREW);
                 w.u64(s.start_clock)
@@ -419,11 +510,35 @@ impl HostMessage {
         w.finish(out)
     }
 
+    /// The payload as exactly one message.
     pub fn decode(payload: &[u8]) -> Result<HostMessage, MessageError> {
+        let (message, len) = HostMessage::decode_prefix(payload)?;
+        exactly(payload, len)?;
+        Ok(message)
+    }
+
+    /// The message at the start of `bytes`, and its length.
+    pub fn decode_prefix(bytes: &[u8]) -> Result<(HostMessage, usize), MessageError> {
         use HostMessage::*;
-        let &kind = payload.first().ok_or(MessageError::Empty)?;
-        let reader = |len| Reader::new(payload, len);
-        Ok(match kind {
+        let &kind = bytes.first().ok_or(MessageError::Empty)?;
+        if let kind::NEXT_SEGMENT | kind::SCREW_NEXT = kind {
+            let mut r = compact::CompactReader {
+                kind,
+                rest: &bytes[1..],
+            };
+            let message = if kind == kind::NEXT_SEGMENT {
+                NextSegment(compact::read_next_segment(&mut r)?)
+            } else {
+                ScrewNext(compact::read_screw_next(&mut r)?)
+            };
+            return Ok((message, bytes.len() - r.rest.len()));
+        }
+        let mut len = 0;
+        let mut reader = |n| {
+            len = n;
+            Reader::new(bytes, n)
+        };
+        let message = match kind {
             kind::IDENTIFY => {
                 reader(1)?;
                 Identify
@@ -495,7 +610,15 @@ impl HostMessage {
                 QueryCounters
             }
             kind => return Err(MessageError::UnknownKind { kind }),
-        })
+        };
+        Ok((message, len))
+    }
+
+    /// Whether the MCU answers the message (with identity, clock, state or counters). A frame
+    /// carries at most one such message, so the MCU's room for replies is one per frame.
+    pub fn asks_reply(&self) -> bool {
+        use HostMessage::*;
+        matches!(self, Identify | ClockQuery { .. } | QueryState | QueryCounters)
     }
 
     /// Whether the message goes sequenced (delivered once, in order). Only the emergency stop
@@ -596,10 +719,22 @@ impl McuMessage {
         w.finish(out)
     }
 
+    /// The payload as exactly one message.
     pub fn decode(payload: &[u8]) -> Result<McuMessage, MessageError> {
-        let &kind = payload.first().ok_or(MessageError::Empty)?;
-        let reader = |len| Reader::new(payload, len);
-        Ok(match kind {
+        let (message, len) = McuMessage::decode_prefix(payload)?;
+        exactly(payload, len)?;
+        Ok(message)
+    }
+
+    /// The message at the start of `bytes`, and its length.
+    pub fn decode_prefix(bytes: &[u8]) -> Result<(McuMessage, usize), MessageError> {
+        let &kind = bytes.first().ok_or(MessageError::Empty)?;
+        let mut len = 0;
+        let mut reader = |n| {
+            len = n;
+            Reader::new(bytes, n)
+        };
+        let message = match kind {
             kind::IDENTITY => {
                 let mut r = reader(12)?;
                 McuMessage::Identity(Identity {
@@ -669,7 +804,8 @@ impl McuMessage {
                 }
             }
             kind => return Err(MessageError::UnknownKind { kind }),
-        })
+        };
+        Ok((message, len))
     }
 
     /// Whether the message goes sequenced. Periodic state is best effort (the next one

@@ -1,6 +1,6 @@
 //! The host's end of the wire: typed messages in and out, bytes on the line.
 
-use cell_protocol::message::{HostMessage, McuMessage};
+use cell_protocol::message::{mcu_messages, HostMessage, McuMessage};
 use cell_protocol::{
     FrameDecoder, Link, LinkError, LinkOptions, Received, MAX_PAYLOAD, MAX_WIRE_FRAME,
 };
@@ -22,10 +22,19 @@ pub enum FromMcu {
 }
 
 /// The host's protocol endpoint. Times are host microseconds.
+///
+/// Sequenced messages are packed: each goes into the payload being filled, and the payload
+/// becomes a frame when the next message does not fit, when a second message would ask for a
+/// reply (the MCU keeps room for one reply per frame), or when the line is next polled. A
+/// print's segments and screw commands, 11–19 bytes each in their compact forms, travel three
+/// or four to a frame.
 #[derive(Clone, Debug)]
 pub struct HostEndpoint {
     link: Link<HOST_WINDOW>,
     decoder: FrameDecoder,
+    pending: [u8; MAX_PAYLOAD],
+    pending_len: usize,
+    pending_asks_reply: bool,
 }
 
 impl HostEndpoint {
@@ -38,6 +47,9 @@ impl HostEndpoint {
                 nonce,
             }),
             decoder: FrameDecoder::new(),
+            pending: [0; MAX_PAYLOAD],
+            pending_len: 0,
+            pending_asks_reply: false,
         }
     }
 
@@ -49,16 +61,39 @@ impl HostEndpoint {
         &self.decoder
     }
 
-    /// Room for another sequenced message.
+    /// Room for another sequenced message: the payload being filled can become a frame.
     pub fn can_send(&self) -> bool {
         self.link.can_send()
     }
 
-    /// Queue a sequenced message (every host message but the emergency stop).
+    /// Sequenced frames not yet acknowledged, counting the payload being filled as one.
+    pub fn unacknowledged(&self) -> usize {
+        self.link.unacknowledged() + usize::from(self.pending_len > 0)
+    }
+
+    /// Queue a sequenced message (every host message but the emergency stop). Call only when
+    /// [`HostEndpoint::can_send`].
     pub fn send(&mut self, message: &HostMessage) -> Result<(), LinkError> {
         let mut payload = [0; MAX_PAYLOAD];
         let len = message.encode(&mut payload);
-        self.link.send(&payload[..len])
+        let asks_reply = message.asks_reply();
+        if self.pending_len + len > MAX_PAYLOAD || (asks_reply && self.pending_asks_reply) {
+            self.seal()?;
+        }
+        self.pending[self.pending_len..self.pending_len + len].copy_from_slice(&payload[..len]);
+        self.pending_len += len;
+        self.pending_asks_reply |= asks_reply;
+        Ok(())
+    }
+
+    /// The payload being filled becomes a frame in the link's window.
+    fn seal(&mut self) -> Result<(), LinkError> {
+        if self.pending_len > 0 {
+            self.link.send(&self.pending[..self.pending_len])?;
+            self.pending_len = 0;
+            self.pending_asks_reply = false;
+        }
+        Ok(())
     }
 
     /// Encode an unsequenced message (the emergency stop) for sending at once.
@@ -79,26 +114,34 @@ impl HostEndpoint {
                 continue;
             };
             match self.link.receive(&frame, now_us) {
-                Received::Message(p) | Received::Unsequenced(p) => on_message(decode(p)),
+                Received::Message(p) | Received::Unsequenced(p) => decode_all(p, on_message),
                 Received::PeerRestarted { lost } => on_message(FromMcu::Restarted { lost }),
                 Received::Nothing => {}
             }
             // Messages held behind a gap this frame filled.
             while let Some(p) = self.link.next_buffered() {
-                on_message(decode(p));
+                decode_all(p, on_message);
             }
         }
     }
 
-    /// The next bytes to write at `now_us`, if any; call until `None`.
+    /// The next bytes to write at `now_us`, if any; call until `None`. What was packed so far
+    /// goes out now (as soon as the window has room for it).
     pub fn poll_transmit(&mut self, now_us: u64, out: &mut [u8; MAX_WIRE_FRAME]) -> Option<usize> {
+        if self.link.can_send() {
+            // Cannot fail: the window has room.
+            let _ = self.seal();
+        }
         self.link.poll_transmit(now_us, out)
     }
 }
 
-fn decode(payload: &[u8]) -> FromMcu {
-    match McuMessage::decode(payload) {
-        Ok(m) => FromMcu::Message(m),
-        Err(_) => FromMcu::Undecodable,
+/// Every message of a payload (the MCU sends one per frame, but may send more).
+fn decode_all(payload: &[u8], on_message: &mut impl FnMut(FromMcu)) {
+    for message in mcu_messages(payload) {
+        on_message(match message {
+            Ok(m) => FromMcu::Message(m),
+            Err(_) => FromMcu::Undecodable,
+        });
     }
 }

@@ -24,7 +24,8 @@
 use std::collections::VecDeque;
 
 use cell_protocol::message::{
-    FaultCode, HostMessage, Identity, McuMessage, McuState, Mode, QueuedSegment, ScrewRamp,
+    FaultCode, HostMessage, Identity, McuMessage, McuState, Mode, NextSegment, QueuedSegment,
+    ScrewNext, ScrewRamp,
     SEGMENT_ENDS_AT_REST,
 };
 use cell_protocol::{LinkError, MAX_WIRE_FRAME, PROTOCOL_VERSION};
@@ -138,6 +139,8 @@ pub struct McuSession {
     /// Tag and start clock of the last segment sent.
     last_sent_tag: Option<u32>,
     last_sent_start: Option<u64>,
+    /// Start clock of the last screw command sent: the next is timed from it.
+    last_screw_sent_start: Option<u64>,
     error: Option<SessionError>,
     /// An emergency stop was asked for, and when it last went out.
     emergency: bool,
@@ -188,6 +191,7 @@ impl McuSession {
             sent_end: None,
             last_sent_tag: None,
             last_sent_start: None,
+            last_screw_sent_start: None,
             error: None,
             emergency: false,
             emergency_sent_us: None,
@@ -331,6 +335,7 @@ impl McuSession {
         self.sent_end = None;
         self.last_sent_tag = None;
         self.last_sent_start = None;
+        self.last_screw_sent_start = None;
     }
 
     /// A screw command in force from plan time `plan_s` (needs the first segment's anchor).
@@ -528,7 +533,7 @@ impl McuSession {
         if !self.endpoint.link().is_synced() {
             return Ok(()); // the link is still starting; poll_transmit sends its requests
         }
-        if self.identity.is_none() && self.endpoint.link().unacknowledged() == 0 {
+        if self.identity.is_none() && self.endpoint.unacknowledged() == 0 {
             self.endpoint.send(&HostMessage::Identify)?;
             return Ok(());
         }
@@ -601,7 +606,21 @@ impl McuSession {
                 break;
             }
             let next = *next;
-            self.endpoint.send(&HostMessage::QueueSegment(next))?;
+            // Continuing the schedule, the compact form (if the segment has one) leaves out
+            // the start and the tag: the MCU knows both.
+            let continuing = self.sent_end.is_some_and(|(end, _)| end == next.start_clock);
+            let compact = self.last_sent_tag.filter(|_| continuing).and_then(|tag| {
+                NextSegment::new(
+                    next.duration_ticks,
+                    next.tag.wrapping_sub(tag),
+                    next.flags,
+                    next.segment,
+                )
+            });
+            self.endpoint.send(&match compact {
+                Some(compact) => HostMessage::NextSegment(compact),
+                None => HostMessage::QueueSegment(next),
+            })?;
             self.segments.pop_front();
             let end = next.start_clock + next.duration_ticks as u64;
             self.on_mcu.push_back((end, self.sigma_rate_bound(&next)));
@@ -631,7 +650,19 @@ impl McuSession {
                 ramp.ramp_ticks = end.saturating_sub(earliest).min(u32::MAX as u64) as u32;
                 ramp.start_clock = earliest;
             }
-            self.endpoint.send(&HostMessage::Screw(ramp))?;
+            let step = self
+                .last_screw_sent_start
+                .and_then(|last| u32::try_from(ramp.start_clock.checked_sub(last)?).ok());
+            self.endpoint.send(&match step {
+                Some(start_step_ticks) => HostMessage::ScrewNext(ScrewNext {
+                    start_step_ticks,
+                    ramp_ticks: ramp.ramp_ticks,
+                    target_millirpm: ramp.target_millirpm,
+                    pin_open: ramp.pin_open,
+                }),
+                None => HostMessage::Screw(ramp),
+            })?;
+            self.last_screw_sent_start = Some(ramp.start_clock);
             self.screw.pop_front();
             self.screw_on_mcu.push_back(ramp.start_clock);
         }

@@ -1,0 +1,343 @@
+//! The compact continuing forms of a step segment and a screw ramp (protocol version 3).
+//!
+//! Nearly every segment of a print starts where the previous one ended and carries the next
+//! move's tag, and nearly every screw command starts a few hundredths of a second after the
+//! previous one. These forms leave out what the MCU already knows — the start clock, the tag,
+//! the cruise count — and write the rest as LEB128 varints (`unsigned-varint`, minimal form
+//! only) and the two fixed-point numbers as one 32-bit word each. A typical segment takes
+//! 17–19 bytes instead of 60, so three share a frame.
+
+use step_core::{Segment, MAX_AXES, SIGNIFICANT_BITS};
+
+use super::{MessageError, SEGMENT_ENDS_AT_REST};
+
+/// A step segment that continues the schedule: it starts at the end of the segment queued
+/// before it, and its tag is that segment's plus `tag_step`. Built only through
+/// [`NextSegment::new`], so every value has an exact compact encoding.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub struct NextSegment {
+    duration_ticks: u32,
+    tag_step: u32,
+    flags: u8,
+    segment: Segment,
+}
+
+impl NextSegment {
+    /// The compact form of a segment, if it has one: flags of [`SEGMENT_ENDS_AT_REST`] only, a
+    /// dominant axis that exists, phases that add up to its count, the first period and ramp
+    /// rounded as [`Segment::from_fields`] rounds them (to [`SIGNIFICANT_BITS`]), no ramp on
+    /// a pure cruise and no timing on a segment without steps. Every segment the host
+    /// converts has one; anything else goes as a full `QueueSegment`.
+    pub fn new(duration_ticks: u32, tag_step: u32, flags: u8, segment: Segment) -> Option<Self> {
+        let dominant = segment.dominant_axis as usize;
+        if flags & !SEGMENT_ENDS_AT_REST != 0 || dominant >= MAX_AXES || segment.negative_mask > 7
+        {
+            return None;
+        }
+        let count = segment.step_counts[dominant] as u64;
+        let ramped = segment.accelerate_steps as u64 + segment.decelerate_steps as u64;
+        if ramped > count || segment.cruise_steps as u64 != count - ramped {
+            return None;
+        }
+        let timing_fits = if count == 0 {
+            segment.first_period_q32 == 0 && segment.first_ramp_q62 == 0
+        } else {
+            word_of(segment.first_period_q32).is_some()
+                && word_of(segment.first_ramp_q62).is_some()
+                && (ramped > 0 || segment.first_ramp_q62 == 0)
+        };
+        timing_fits.then_some(NextSegment {
+            duration_ticks,
+            tag_step,
+            flags,
+            segment,
+        })
+    }
+
+    pub fn duration_ticks(&self) -> u32 {
+        self.duration_ticks
+    }
+
+    /// How far its tag lies after the previous segment's (wrapping).
+    pub fn tag_step(&self) -> u32 {
+        self.tag_step
+    }
+
+    pub fn flags(&self) -> u8 {
+        self.flags
+    }
+
+    pub fn segment(&self) -> &Segment {
+        &self.segment
+    }
+}
+
+/// A screw ramp whose start is given after the previous screw command's start (its
+/// `start_clock` as sent, not as a late arrival moved it).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub struct ScrewNext {
+    pub start_step_ticks: u32,
+    pub ramp_ticks: u32,
+    pub target_millirpm: i32,
+    pub pin_open: bool,
+}
+
+/// Head byte of a `NEXT_SEGMENT`.
+const HEAD_ENDS_AT_REST: u8 = 0x01;
+const HEAD_NEGATIVE_SHIFT: u32 = 1;
+const HEAD_DOMINANT_SHIFT: u32 = 4;
+const HEAD_TAG_STEP: u8 = 0x40;
+const HEAD_RESERVED: u8 = 0x80;
+
+/// Head byte of a `SCREW_NEXT`.
+const SCREW_HEAD_PIN_OPEN: u8 = 0x01;
+
+/// Mantissa bits of a word; the other six are the exponent.
+const MANTISSA_MASK: u32 = (1 << SIGNIFICANT_BITS) - 1;
+
+/// The word of a value with at most [`SIGNIFICANT_BITS`] significant bits: the value is
+/// `mantissa << exponent`, the exponent 0 for values below 2²⁶ and otherwise the one that
+/// puts the mantissa's top bit at bit 25 (so each value has exactly one word).
+fn word_of(value: u64) -> Option<u32> {
+    let bits = u64::BITS - value.leading_zeros();
+    let exponent = bits.saturating_sub(SIGNIFICANT_BITS);
+    (value & ((1u64 << exponent) - 1) == 0)
+        .then(|| exponent << SIGNIFICANT_BITS | (value >> exponent) as u32)
+}
+
+/// The value of a word, if it is the one word of its value.
+fn value_of(word: u32) -> Option<u64> {
+    let exponent = word >> SIGNIFICANT_BITS;
+    let mantissa = (word & MANTISSA_MASK) as u64;
+    let canonical = exponent == 0 || (mantissa >> (SIGNIFICANT_BITS - 1) == 1 && exponent <= 38);
+    canonical.then(|| mantissa << exponent)
+}
+
+fn zigzag(value: i32) -> u32 {
+    ((value << 1) ^ (value >> 31)) as u32
+}
+
+fn unzigzag(value: u32) -> i32 {
+    (value >> 1) as i32 ^ -((value & 1) as i32)
+}
+
+/// Writes into a payload whose room the caller checked (the largest compact message is 45
+/// bytes).
+pub(super) struct CompactWriter<'a> {
+    pub out: &'a mut [u8],
+    pub len: usize,
+}
+
+impl CompactWriter<'_> {
+    fn u8(&mut self, v: u8) {
+        self.out[self.len] = v;
+        self.len += 1;
+    }
+    fn varint(&mut self, v: u32) {
+        let mut buf = unsigned_varint::encode::u32_buffer();
+        for &b in unsigned_varint::encode::u32(v, &mut buf) {
+            self.u8(b);
+        }
+    }
+    fn word(&mut self, v: u32) {
+        for b in v.to_le_bytes() {
+            self.u8(b);
+        }
+    }
+}
+
+/// Reads a compact message from the bytes after its kind byte.
+pub(super) struct CompactReader<'a> {
+    pub kind: u8,
+    pub rest: &'a [u8],
+}
+
+impl CompactReader<'_> {
+    fn truncated(&self) -> MessageError {
+        MessageError::Truncated { kind: self.kind }
+    }
+    fn u8(&mut self) -> Result<u8, MessageError> {
+        let (&first, tail) = self.rest.split_first().ok_or(self.truncated())?;
+        self.rest = tail;
+        Ok(first)
+    }
+    fn varint(&mut self, field: &'static str) -> Result<u32, MessageError> {
+        use unsigned_varint::decode::Error;
+        match unsigned_varint::decode::u32(self.rest) {
+            Ok((value, tail)) => {
+                self.rest = tail;
+                Ok(value)
+            }
+            Err(Error::Insufficient) => Err(self.truncated()),
+            Err(_) => Err(MessageError::BadVarint {
+                kind: self.kind,
+                field,
+            }),
+        }
+    }
+    fn word(&mut self, field: &'static str) -> Result<u64, MessageError> {
+        let (head, tail) = self
+            .rest
+            .split_first_chunk::<4>()
+            .ok_or(self.truncated())?;
+        self.rest = tail;
+        let word = u32::from_le_bytes(*head);
+        value_of(word).ok_or(MessageError::BadValue {
+            kind: self.kind,
+            field,
+            value: word as u64,
+        })
+    }
+    fn bad(&self, field: &'static str, value: u64) -> MessageError {
+        MessageError::BadValue {
+            kind: self.kind,
+            field,
+            value,
+        }
+    }
+}
+
+pub(super) fn write_next_segment(w: &mut CompactWriter, n: &NextSegment) {
+    let s = &n.segment;
+    let mut head = (n.flags & SEGMENT_ENDS_AT_REST != 0) as u8 * HEAD_ENDS_AT_REST
+        | s.negative_mask << HEAD_NEGATIVE_SHIFT
+        | s.dominant_axis << HEAD_DOMINANT_SHIFT;
+    if n.tag_step != 1 {
+        head |= HEAD_TAG_STEP;
+    }
+    w.u8(head);
+    w.varint(n.duration_ticks);
+    if n.tag_step != 1 {
+        w.varint(n.tag_step);
+    }
+    for &count in &s.step_counts {
+        w.varint(count);
+    }
+    if s.dominant_steps() == 0 {
+        return;
+    }
+    w.varint(s.accelerate_steps);
+    w.varint(s.decelerate_steps);
+    // `new` admitted only values that have a word.
+    w.word(word_of(s.first_period_q32).unwrap_or(0));
+    if s.accelerate_steps as u64 + s.decelerate_steps as u64 > 0 {
+        w.word(word_of(s.first_ramp_q62).unwrap_or(0));
+    }
+}
+
+pub(super) fn read_next_segment(r: &mut CompactReader) -> Result<NextSegment, MessageError> {
+    let head = r.u8()?;
+    if head & HEAD_RESERVED != 0 {
+        return Err(r.bad("head", head as u64));
+    }
+    let dominant_axis = head >> HEAD_DOMINANT_SHIFT & 0b11;
+    if dominant_axis as usize >= MAX_AXES {
+        return Err(r.bad("dominant_axis", dominant_axis as u64));
+    }
+    let duration_ticks = r.varint("duration_ticks")?;
+    let tag_step = if head & HEAD_TAG_STEP != 0 {
+        let step = r.varint("tag_step")?;
+        if step == 1 {
+            return Err(r.bad("tag_step", 1)); // 1 is written by leaving the bit clear
+        }
+        step
+    } else {
+        1
+    };
+    let mut segment = Segment {
+        negative_mask: head >> HEAD_NEGATIVE_SHIFT & 0b111,
+        dominant_axis,
+        ..Segment::default()
+    };
+    for count in &mut segment.step_counts {
+        *count = r.varint("step_counts")?;
+    }
+    let count = segment.dominant_steps();
+    if count > 0 {
+        segment.accelerate_steps = r.varint("accelerate_steps")?;
+        segment.decelerate_steps = r.varint("decelerate_steps")?;
+        let ramped = segment.accelerate_steps as u64 + segment.decelerate_steps as u64;
+        if ramped > count as u64 {
+            return Err(r.bad("decelerate_steps", segment.decelerate_steps as u64));
+        }
+        segment.cruise_steps = count - ramped as u32;
+        segment.first_period_q32 = r.word("first_period")?;
+        if ramped > 0 {
+            segment.first_ramp_q62 = r.word("first_ramp")?;
+        }
+    }
+    let flags = (head & HEAD_ENDS_AT_REST != 0) as u8 * SEGMENT_ENDS_AT_REST;
+    // Everything read has a compact form; `new` only restates the rules.
+    NextSegment::new(duration_ticks, tag_step, flags, segment)
+        .ok_or(r.bad("segment", count as u64))
+}
+
+pub(super) fn write_screw_next(w: &mut CompactWriter, s: &ScrewNext) {
+    w.u8(s.pin_open as u8 * SCREW_HEAD_PIN_OPEN);
+    w.varint(s.start_step_ticks);
+    w.varint(s.ramp_ticks);
+    w.varint(zigzag(s.target_millirpm));
+}
+
+pub(super) fn read_screw_next(r: &mut CompactReader) -> Result<ScrewNext, MessageError> {
+    let head = r.u8()?;
+    if head & !SCREW_HEAD_PIN_OPEN != 0 {
+        return Err(r.bad("head", head as u64));
+    }
+    Ok(ScrewNext {
+        pin_open: head & SCREW_HEAD_PIN_OPEN != 0,
+        start_step_ticks: r.varint("start_step_ticks")?,
+        ramp_ticks: r.varint("ramp_ticks")?,
+        target_millirpm: unzigzag(r.varint("target_millirpm")?),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn words_are_canonical_and_exact() {
+        assert_eq!(word_of(0), Some(0));
+        assert_eq!(word_of((1 << 26) - 1), Some((1 << 26) - 1));
+        assert_eq!(word_of(1 << 26), Some(1 << 26 | 1 << 25));
+        assert_eq!(word_of((1 << 26) + 1), None); // 27 significant bits
+        assert_eq!(word_of(1234 << 32), Some(17 << 26 | 1234 << 15)); // 1234 has 11 bits
+        // Non-canonical words are refused: a mantissa without its top bit, a shifted small one.
+        assert_eq!(value_of(1 << 26 | 1), None);
+        assert_eq!(value_of(39 << 26 | 1 << 25), None); // 2^64: beyond u64
+        assert_eq!(value_of(38 << 26 | MANTISSA_MASK), Some((MANTISSA_MASK as u64) << 38));
+    }
+
+    #[test]
+    fn zigzag_maps_small_magnitudes_to_small_numbers() {
+        assert_eq!(zigzag(0), 0);
+        assert_eq!(zigzag(-1), 1);
+        assert_eq!(zigzag(1), 2);
+        assert_eq!(zigzag(i32::MIN), u32::MAX);
+        assert_eq!(unzigzag(u32::MAX), i32::MIN);
+    }
+
+    proptest! {
+        #[test]
+        fn a_rounded_value_has_a_word_and_comes_back(value in 0u64..1 << 63) {
+            let rounded = step_core::round_significant(value);
+            let word = word_of(rounded);
+            prop_assert!(word.is_some(), "{rounded:#x}");
+            prop_assert_eq!(value_of(word.unwrap()), Some(rounded));
+        }
+
+        #[test]
+        fn any_word_is_refused_or_comes_back(word in any::<u32>()) {
+            if let Some(value) = value_of(word) {
+                prop_assert_eq!(word_of(value), Some(word));
+            }
+        }
+
+        #[test]
+        fn zigzag_round_trips(value in any::<i32>()) {
+            prop_assert_eq!(unzigzag(zigzag(value)), value);
+        }
+    }
+}

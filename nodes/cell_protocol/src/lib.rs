@@ -18,9 +18,10 @@
 //!   feed hold and resume, emergency stop, reset, state and faults.
 //!
 //! The model is Klipper's host/MCU split (the host schedules every step in MCU clock time,
-//! the MCU only executes and reports), with a different encoding: fixed little-endian fields
-//! instead of variable-length integers, because a segment here is one fixed-size record
-//! ([`step_core::Segment`]) and fixed offsets are what a firmware author can check by eye.
+//! the MCU only executes and reports), with our own encoding: fixed little-endian fields for
+//! the rare messages (what a firmware author can check by eye), and for the two that make up
+//! a print — a segment continuing the schedule, a screw ramp after the previous one — compact
+//! forms of varints and 32-bit mantissa-exponent words, packed several to a frame.
 
 #![no_std]
 #![forbid(unsafe_code)]
@@ -41,7 +42,8 @@ pub use message::{HostMessage, McuMessage, MessageError};
 /// host refuses any other.
 pub const PROTOCOL_VERSION: u16 = 3;
 
-/// Most payload bytes one frame carries (the largest message, a queued segment, takes 60).
+/// Most payload bytes one frame carries (the largest message, a full queued segment, takes 60;
+/// a payload holds as many messages as fit).
 pub const MAX_PAYLOAD: usize = 64;
 
 /// Header bytes before the payload: length, sequence, acknowledgement, flags.

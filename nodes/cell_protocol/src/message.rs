@@ -361,8 +361,11 @@ fn exactly(payload: &[u8], len: usize) -> Result<(), MessageError> {
 /// its length is unknown, so whatever follows cannot be found.
 pub struct Messages<'a, M> {
     rest: &'a [u8],
-    decode: fn(&[u8]) -> Result<(M, usize), MessageError>,
+    decode: DecodePrefix<M>,
 }
+
+/// Decodes the message at the start of some bytes, returning it and its length.
+type DecodePrefix<M> = fn(&[u8]) -> Result<(M, usize), MessageError>;
 
 impl<M> Iterator for Messages<'_, M> {
     type Item = Result<M, MessageError>;
@@ -618,7 +621,10 @@ impl HostMessage {
     /// carries at most one such message, so the MCU's room for replies is one per frame.
     pub fn asks_reply(&self) -> bool {
         use HostMessage::*;
-        matches!(self, Identify | ClockQuery { .. } | QueryState | QueryCounters)
+        matches!(
+            self,
+            Identify | ClockQuery { .. } | QueryState | QueryCounters
+        )
     }
 
     /// Whether the message goes sequenced (delivered once, in order). Only the emergency stop

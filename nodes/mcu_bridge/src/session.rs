@@ -25,8 +25,7 @@ use std::collections::VecDeque;
 
 use cell_protocol::message::{
     FaultCode, HostMessage, Identity, McuMessage, McuState, Mode, NextSegment, QueuedSegment,
-    ScrewNext, ScrewRamp,
-    SEGMENT_ENDS_AT_REST,
+    ScrewNext, ScrewRamp, SEGMENT_ENDS_AT_REST,
 };
 use cell_protocol::{LinkError, MAX_WIRE_FRAME, PROTOCOL_VERSION};
 use polar_cell_msgs::{Hold, ScrewCommand, StepSegment};
@@ -154,6 +153,12 @@ pub struct McuSession {
 /// ahead instead: late material, reported. One that still arrives late (resent on a damaged
 /// line) the MCU starts at arrival (PROTOCOL.md, SCREW).
 pub const SCREW_MARGIN_S: f64 = 0.02;
+
+/// Plan time sent at once: nothing is sent until something lies within the horizon less
+/// this (a quarter of the horizon if that is less), and then everything within the horizon
+/// goes. Sent as it came (a segment or two per millisecond tick), the messages filled frames
+/// a third; in bursts they fill them.
+pub const FEED_BATCH_S: f64 = 0.25;
 
 /// Clock samples the fit keeps: 51 s of them at the default query period. A long window
 /// averages the round trips' jitter out of the rate (over 3 s, ±120 ppm on a pty at 1×; the
@@ -592,6 +597,22 @@ impl McuSession {
             return Ok(());
         };
         let horizon = ticks(self.options.horizon_s, self.timer_hz()) as u64;
+        let batch = ticks(
+            FEED_BATCH_S.min(self.options.horizon_s / 4.0),
+            self.timer_hz(),
+        ) as u64;
+        let due_line = plan_now + horizon - batch;
+        let due = self
+            .segments
+            .front()
+            .is_some_and(|s| s.start_clock <= due_line)
+            || self
+                .screw
+                .front()
+                .is_some_and(|r| r.start_clock <= due_line);
+        if !due {
+            return Ok(());
+        }
         // Room in the MCU's queue: what its last state reported less what was sent since,
         // and never more than its capacity less every segment sent that its plan clock has
         // not yet passed — a state taken while segments were still on the line does not
@@ -608,7 +629,9 @@ impl McuSession {
             let next = *next;
             // Continuing the schedule, the compact form (if the segment has one) leaves out
             // the start and the tag: the MCU knows both.
-            let continuing = self.sent_end.is_some_and(|(end, _)| end == next.start_clock);
+            let continuing = self
+                .sent_end
+                .is_some_and(|(end, _)| end == next.start_clock);
             let compact = self.last_sent_tag.filter(|_| continuing).and_then(|tag| {
                 NextSegment::new(
                     next.duration_ticks,

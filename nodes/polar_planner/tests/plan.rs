@@ -373,7 +373,10 @@ fn the_fixed_point_core_steps_every_fixture_segment_within_a_tick_of_the_recurre
             segments.len()
         );
         assert!(edges > 100_000, "{name}: {edges}");
-        assert!(worst_ticks < 1e-3, "{name}: {worst_ticks}");
+        // The fixed-point arithmetic and the rounding of the first period and ramp term to the
+        // wire's 26 significant bits (step_core::round_significant) together: 1.7e-3 ticks on
+        // polartest and finger.
+        assert!(worst_ticks < 5e-3, "{name}: {worst_ticks}");
         assert!(worst_rounded <= 0.5 + 1e-3, "{name}: {worst_rounded}");
     }
 }

@@ -8,6 +8,7 @@
 #![no_main]
 
 use cell_protocol::frame::{encode_frame, FrameHeader};
+use cell_protocol::message::{host_messages, mcu_messages};
 use cell_protocol::{FrameDecoder, HostMessage, Link, LinkOptions, McuMessage, MAX_WIRE_FRAME};
 use libfuzzer_sys::fuzz_target;
 
@@ -60,9 +61,11 @@ fuzz_target!(|input: &[u8]| {
         };
         let _ = HostMessage::decode(frame.payload);
         let _ = McuMessage::decode(frame.payload);
+        host_messages(frame.payload).for_each(drop);
+        mcu_messages(frame.payload).for_each(drop);
         let _ = link.receive(&frame, now as u64);
         while let Some(held) = link.next_buffered() {
-            let _ = HostMessage::decode(held);
+            host_messages(held).for_each(drop);
         }
         if link.can_send() {
             link.send(&[0x40]).expect("room was reported");

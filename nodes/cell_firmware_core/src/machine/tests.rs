@@ -2,7 +2,7 @@ use proptest::prelude::*;
 use std::vec::Vec;
 
 use super::*;
-use cell_protocol::message::ScrewRamp;
+use cell_protocol::message::{ScrewNext, ScrewRamp};
 use step_core::{Segment, SegmentFields};
 
 extern crate std;
@@ -538,4 +538,85 @@ proptest! {
         prop_assert_eq!(m.positions(), [n[0] as i32, n[1] as i32, -(n[2] as i32)]);
         prop_assert_eq!(m.mode(), Mode::Idle);
     }
+}
+
+fn next_of(q: &QueuedSegment, tag_step: u32) -> HostMessage {
+    HostMessage::NextSegment(
+        cell_protocol::message::NextSegment::new(q.duration_ticks, tag_step, q.flags, q.segment)
+            .unwrap(),
+    )
+}
+
+/// A compact next segment plays exactly as the full one it stands for: it starts where the
+/// schedule ends and takes the tag after the last one; the same steps on the same ticks.
+#[test]
+fn a_next_segment_continues_the_schedule_as_the_full_form_would() {
+    let first = cruise(1000, 10, 100, 0, 7);
+    let second = cruise(2000, 20, 50, SEGMENT_ENDS_AT_REST, 9);
+    let mut full = machine();
+    queue(&mut full, first);
+    queue(&mut full, second);
+    let mut compact = machine();
+    queue(&mut compact, first);
+    assert_eq!(compact.handle(&next_of(&second, 2), 0), None);
+    assert_eq!(run(&mut compact, 10_000), run(&mut full, 10_000));
+    assert_eq!(compact.state().done_tag, 9);
+    assert_eq!(compact.positions(), [30, -15, 0]);
+    assert_eq!(compact.fault(), FaultCode::None);
+}
+
+/// Without a schedule to continue — none begun, or dropped — a next segment is a bad segment,
+/// never a segment guessed into place.
+#[test]
+fn a_next_segment_without_a_schedule_is_a_fault() {
+    let mut m = machine();
+    m.handle(&next_of(&cruise(0, 10, 100, 0, 1), 1), 0);
+    assert_eq!(m.fault(), FaultCode::BadSegment);
+    let mut m = machine();
+    queue(&mut m, cruise(0, 10, 100, SEGMENT_ENDS_AT_REST, 1));
+    run(&mut m, 5000);
+    m.handle(&HostMessage::DropQueue, m.clock());
+    m.handle(&next_of(&cruise(0, 10, 100, 0, 1), 1), m.clock());
+    assert_eq!(m.fault(), FaultCode::BadSegment);
+}
+
+/// A compact screw command is timed from the previous command's start as sent (not as a
+/// late arrival moved it); with no previous command it is a fault.
+#[test]
+fn a_screw_next_is_timed_from_the_previous_command() {
+    let mut m = machine();
+    queue(&mut m, cruise(0, 100, 100, 0, 1));
+    let screw = |start_clock, target_millirpm| {
+        HostMessage::Screw(ScrewRamp {
+            start_clock,
+            ramp_ticks: 0,
+            target_millirpm,
+            pin_open: true,
+        })
+    };
+    let next = |start_step_ticks, target_millirpm| {
+        HostMessage::ScrewNext(ScrewNext {
+            start_step_ticks,
+            ramp_ticks: 0,
+            target_millirpm,
+            pin_open: true,
+        })
+    };
+    m.handle(&screw(1000, 10_000), 0);
+    m.handle(&next(2000, 20_000), 0); // at 3000
+    run(&mut m, 2999);
+    assert_eq!(m.screw_millirpm(), 10_000);
+    run(&mut m, 3001);
+    assert_eq!(m.screw_millirpm(), 20_000);
+    // A late command (start 2500, moved to its arrival at 3001) times the next from 2500.
+    m.handle(&screw(2500, 7_000), 3001);
+    m.handle(&next(1500, 9_000), 3001); // at 4000, not 4501
+    run(&mut m, 3999);
+    assert_eq!(m.screw_millirpm(), 7_000);
+    run(&mut m, 4001);
+    assert_eq!(m.screw_millirpm(), 9_000);
+    assert_eq!(m.fault(), FaultCode::None);
+    let mut m = machine();
+    m.handle(&next(10, 1), 0);
+    assert_eq!(m.fault(), FaultCode::BadSegment);
 }

@@ -30,8 +30,7 @@ impl NextSegment {
     /// converts has one; anything else goes as a full `QueueSegment`.
     pub fn new(duration_ticks: u32, tag_step: u32, flags: u8, segment: Segment) -> Option<Self> {
         let dominant = segment.dominant_axis as usize;
-        if flags & !SEGMENT_ENDS_AT_REST != 0 || dominant >= MAX_AXES || segment.negative_mask > 7
-        {
+        if flags & !SEGMENT_ENDS_AT_REST != 0 || dominant >= MAX_AXES || segment.negative_mask > 7 {
             return None;
         }
         let count = segment.step_counts[dominant] as u64;
@@ -176,10 +175,7 @@ impl CompactReader<'_> {
         }
     }
     fn word(&mut self, field: &'static str) -> Result<u64, MessageError> {
-        let (head, tail) = self
-            .rest
-            .split_first_chunk::<4>()
-            .ok_or(self.truncated())?;
+        let (head, tail) = self.rest.split_first_chunk::<4>().ok_or(self.truncated())?;
         self.rest = tail;
         let word = u32::from_le_bytes(*head);
         value_of(word).ok_or(MessageError::BadValue {
@@ -199,9 +195,14 @@ impl CompactReader<'_> {
 
 pub(super) fn write_next_segment(w: &mut CompactWriter, n: &NextSegment) {
     let s = &n.segment;
-    let mut head = (n.flags & SEGMENT_ENDS_AT_REST != 0) as u8 * HEAD_ENDS_AT_REST
-        | s.negative_mask << HEAD_NEGATIVE_SHIFT
-        | s.dominant_axis << HEAD_DOMINANT_SHIFT;
+    let at_rest = if n.flags & SEGMENT_ENDS_AT_REST != 0 {
+        HEAD_ENDS_AT_REST
+    } else {
+        0
+    };
+    let mut head = at_rest
+        | (s.negative_mask << HEAD_NEGATIVE_SHIFT)
+        | (s.dominant_axis << HEAD_DOMINANT_SHIFT);
     if n.tag_step != 1 {
         head |= HEAD_TAG_STEP;
     }
@@ -268,8 +269,7 @@ pub(super) fn read_next_segment(r: &mut CompactReader) -> Result<NextSegment, Me
     }
     let flags = (head & HEAD_ENDS_AT_REST != 0) as u8 * SEGMENT_ENDS_AT_REST;
     // Everything read has a compact form; `new` only restates the rules.
-    NextSegment::new(duration_ticks, tag_step, flags, segment)
-        .ok_or(r.bad("segment", count as u64))
+    NextSegment::new(duration_ticks, tag_step, flags, segment).ok_or(r.bad("segment", count as u64))
 }
 
 pub(super) fn write_screw_next(w: &mut CompactWriter, s: &ScrewNext) {
@@ -304,10 +304,13 @@ mod tests {
         assert_eq!(word_of(1 << 26), Some(1 << 26 | 1 << 25));
         assert_eq!(word_of((1 << 26) + 1), None); // 27 significant bits
         assert_eq!(word_of(1234 << 32), Some(17 << 26 | 1234 << 15)); // 1234 has 11 bits
-        // Non-canonical words are refused: a mantissa without its top bit, a shifted small one.
+                                                                      // Non-canonical words are refused: a mantissa without its top bit, a shifted small one.
         assert_eq!(value_of(1 << 26 | 1), None);
         assert_eq!(value_of(39 << 26 | 1 << 25), None); // 2^64: beyond u64
-        assert_eq!(value_of(38 << 26 | MANTISSA_MASK), Some((MANTISSA_MASK as u64) << 38));
+        assert_eq!(
+            value_of(38 << 26 | MANTISSA_MASK),
+            Some((MANTISSA_MASK as u64) << 38)
+        );
     }
 
     #[test]

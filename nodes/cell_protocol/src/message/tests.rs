@@ -165,8 +165,63 @@ fn any_segment() -> impl Strategy<Value = Segment> {
         })
 }
 
+/// A segment with a compact form: phases that add up, the timing rounded as the host rounds
+/// it (counts small and large, so the varints take 1 to 5 bytes).
+fn any_compact_segment() -> impl Strategy<Value = NextSegment> {
+    (
+        any::<u32>(),
+        prop_oneof![Just(1u32), any::<u32>()],
+        any::<bool>(),
+        prop::array::uniform3(prop_oneof![0u32..200, any::<u32>()]),
+        0u8..8,
+        0u8..3,
+        any::<[u32; 2]>(),
+        1u64 << 32..1 << 62,
+        0u64..1 << 61,
+    )
+        .prop_map(
+            |(duration, tag_step, at_rest, counts, mask, dominant, split, period, ramp)| {
+                let count = counts[dominant as usize];
+                let accelerate = split[0] % (count as u64 + 1) as u32;
+                let decelerate = split[1] % (count - accelerate + 1);
+                let cruise = count - accelerate - decelerate;
+                let timed = count > 0;
+                let ramped = accelerate + decelerate > 0;
+                let segment = Segment {
+                    step_counts: counts,
+                    negative_mask: mask,
+                    dominant_axis: dominant,
+                    accelerate_steps: accelerate,
+                    cruise_steps: cruise,
+                    decelerate_steps: decelerate,
+                    first_period_q32: if timed {
+                        step_core::round_significant(period)
+                    } else {
+                        0
+                    },
+                    first_ramp_q62: if timed && ramped {
+                        step_core::round_significant(ramp)
+                    } else {
+                        0
+                    },
+                };
+                NextSegment::new(duration, tag_step, at_rest as u8, segment)
+                    .expect("built to have a compact form")
+            },
+        )
+}
+
 fn any_host_message() -> impl Strategy<Value = HostMessage> {
     prop_oneof![
+        any_compact_segment().prop_map(HostMessage::NextSegment),
+        (any::<u32>(), any::<u32>(), any::<i32>(), any::<bool>()).prop_map(|(s, r, rpm, pin)| {
+            HostMessage::ScrewNext(ScrewNext {
+                start_step_ticks: s,
+                ramp_ticks: r,
+                target_millirpm: rpm,
+                pin_open: pin,
+            })
+        }),
         Just(HostMessage::Identify),
         any::<u32>().prop_map(|token| HostMessage::ClockQuery { token }),
         (any::<u32>(), any::<u32>()).prop_map(|(a, b)| HostMessage::Configure {
@@ -302,8 +357,102 @@ proptest! {
         let cut = 1 + (fraction * (bytes.len() - 1) as f64) as usize;
         let is_length_error = matches!(
             HostMessage::decode(&bytes[..cut]),
-            Err(MessageError::Length { .. })
+            Err(MessageError::Length { .. } | MessageError::Truncated { .. })
         );
         prop_assert!(is_length_error);
     }
+
+    /// A payload of several messages gives them back in order, each re-encoding to its bytes.
+    #[test]
+    fn packed_messages_come_back_in_order(messages in proptest::collection::vec(any_host_message(), 1..8)) {
+        let mut payload = Vec::new();
+        let mut packed = Vec::new();
+        for m in messages {
+            let bytes = encode_host(&m);
+            if payload.len() + bytes.len() <= MAX_PAYLOAD {
+                payload.extend_from_slice(&bytes);
+                packed.push(m);
+            }
+        }
+        let decoded: Result<Vec<_>, _> = host_messages(&payload).collect();
+        prop_assert_eq!(decoded, Ok(packed));
+    }
+
+    /// Any bytes as a payload: messages until the first that does not decode, then nothing;
+    /// each one decoded re-encodes to the bytes it came from.
+    #[test]
+    fn any_payload_splits_into_messages_or_stops_at_an_error(
+        bytes in proptest::collection::vec(any::<u8>(), 0..=MAX_PAYLOAD)
+    ) {
+        let mut at = 0;
+        let mut ended = false;
+        for m in host_messages(&bytes) {
+            prop_assert!(!ended, "a message after an error");
+            match m {
+                Ok(m) => {
+                    let encoded = encode_host(&m);
+                    prop_assert_eq!(&bytes[at..at + encoded.len()], &encoded[..]);
+                    at += encoded.len();
+                }
+                Err(_) => ended = true,
+            }
+        }
+        prop_assert!(ended || at == bytes.len());
+    }
+}
+
+#[test]
+fn next_segment_layout_is_the_documented_one() {
+    // PROTOCOL.md's example: 300 steps of the arm with 100 of the bed, accelerating 120 and
+    // decelerating 80, a 1234-tick first period, continuing with the next tag.
+    let segment = Segment {
+        step_counts: [100, 300, 0],
+        negative_mask: 0b001,
+        dominant_axis: 1,
+        accelerate_steps: 120,
+        cruise_steps: 100,
+        decelerate_steps: 80,
+        first_period_q32: 1234 << 32,
+        first_ramp_q62: 3 << 40,
+    };
+    let next = NextSegment::new(40_000, 1, SEGMENT_ENDS_AT_REST, segment).unwrap();
+    let bytes = encode_host(&HostMessage::NextSegment(next));
+    let expected = [
+        0x12,        // kind
+        0b0001_0011, // head: ends at rest, bed negative, dominant axis 1, tag step 1
+        0xC0,
+        0xB8,
+        0x02, // duration 40,000
+        100,
+        0xAC,
+        0x02,
+        0, // step counts 100, 300, 0
+        120,
+        80, // accelerate, decelerate (cruise = 300 − 200)
+        0x00,
+        0x00,
+        0x69,
+        0x46, // first period 1234 << 32 = (1234 << 15) << 17: 17 << 26 | 1234 << 15
+        0x00,
+        0x00,
+        0x00,
+        0x43, // ramp 3 << 40 (42 bits) = (1 << 25 | 1 << 24) << 16: 16 << 26 | 3 << 24
+    ];
+    assert_eq!(bytes, expected);
+    // Tag step 0 (a second segment of the same move) follows the duration.
+    let same_move = NextSegment::new(40_000, 0, 0, segment).unwrap();
+    let bytes = encode_host(&HostMessage::NextSegment(same_move));
+    assert_eq!(&bytes[1..6], &[0b0101_0010, 0xC0, 0xB8, 0x02, 0]);
+}
+
+#[test]
+fn screw_next_layout_is_the_documented_one() {
+    let bytes = encode_host(&HostMessage::ScrewNext(ScrewNext {
+        start_step_ticks: 20_000,
+        ramp_ticks: 2_000,
+        target_millirpm: -1_500,
+        pin_open: true,
+    }));
+    // kind, head (pin open), 20,000, 2,000, zigzag(−1,500) = 2,999.
+    assert_eq!(bytes, [0x13, 1, 0xA0, 0x9C, 0x01, 0xD0, 0x0F, 0xB7, 0x17]);
 }

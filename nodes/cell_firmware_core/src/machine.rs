@@ -274,28 +274,16 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 self.last_host_frame = now;
             }
             HostMessage::QueueSegment(queued) => self.queue_segment(queued),
+            // Without a schedule or a screw command to continue (none begun, or dropped by a
+            // fault or the host), a compact form is a bad segment (a no-op once faulted).
             HostMessage::NextSegment(next) => match self.schedule_end {
-                Some(end) => self.queue_segment(QueuedSegment {
-                    start_clock: end,
-                    duration_ticks: next.duration_ticks(),
-                    tag: self.schedule_tag.wrapping_add(next.tag_step()),
-                    flags: next.flags(),
-                    segment: *next.segment(),
-                }),
-                // No schedule to continue (none begun, or dropped by a fault or the host).
-                None if self.fault == FaultCode::None => self.latch(FaultCode::BadSegment, 0),
-                None => {}
+                Some(end) => self.queue_segment(next.queued_after(end, self.schedule_tag)),
+                None => self.latch(FaultCode::BadSegment, 0),
             },
             HostMessage::Screw(command) => self.queue_screw(command),
             HostMessage::ScrewNext(next) => match self.screw_reference {
-                Some(reference) => self.queue_screw(ScrewRamp {
-                    start_clock: reference.saturating_add(next.start_step_ticks as u64),
-                    ramp_ticks: next.ramp_ticks,
-                    target_millirpm: next.target_millirpm,
-                    pin_open: next.pin_open,
-                }),
-                None if self.fault == FaultCode::None => self.latch(FaultCode::BadSegment, 0),
-                None => {}
+                Some(reference) => self.queue_screw(next.ramp_after(reference)),
+                None => self.latch(FaultCode::BadSegment, 0),
             },
             HostMessage::FeedHold { rate_q32 } => {
                 if self.fault == FaultCode::None {

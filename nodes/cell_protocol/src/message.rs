@@ -280,6 +280,17 @@ impl Writer {
     fn u64(&mut self, v: u64) -> &mut Self {
         self.bytes(&v.to_le_bytes())
     }
+    /// A message in one of the compact forms, its fields written by `write`.
+    fn compact(kind: u8, write: impl FnOnce(&mut compact::CompactWriter)) -> Writer {
+        let mut w = Writer::new(kind);
+        let mut c = compact::CompactWriter {
+            out: &mut w.buf,
+            len: w.len,
+        };
+        write(&mut c);
+        w.len = c.len;
+        w
+    }
     fn finish(&self, out: &mut [u8; MAX_PAYLOAD]) -> usize {
         out[..self.len].copy_from_slice(&self.buf[..self.len]);
         self.len
@@ -464,25 +475,9 @@ impl HostMessage {
                 w
             }
             NextSegment(n) => {
-                let mut w = Writer::new(kind::NEXT_SEGMENT);
-                let mut c = compact::CompactWriter {
-                    out: &mut w.buf,
-                    len: w.len,
-                };
-                compact::write_next_segment(&mut c, n);
-                w.len = c.len;
-                w
+                Writer::compact(kind::NEXT_SEGMENT, |c| compact::write_next_segment(c, n))
             }
-            ScrewNext(s) => {
-                let mut w = Writer::new(kind::SCREW_NEXT);
-                let mut c = compact::CompactWriter {
-                    out: &mut w.buf,
-                    len: w.len,
-                };
-                compact::write_screw_next(&mut c, s);
-                w.len = c.len;
-                w
-            }
+            ScrewNext(s) => Writer::compact(kind::SCREW_NEXT, |c| compact::write_screw_next(c, s)),
             Screw(s) => {
                 let mut w = Writer::new(kind::SCREW);
                 w.u64(s.start_clock)

@@ -629,17 +629,10 @@ impl McuSession {
             let next = *next;
             // Continuing the schedule, the compact form (if the segment has one) leaves out
             // the start and the tag: the MCU knows both.
-            let continuing = self
-                .sent_end
-                .is_some_and(|(end, _)| end == next.start_clock);
-            let compact = self.last_sent_tag.filter(|_| continuing).and_then(|tag| {
-                NextSegment::new(
-                    next.duration_ticks,
-                    next.tag.wrapping_sub(tag),
-                    next.flags,
-                    next.segment,
-                )
-            });
+            let compact = match (self.sent_end, self.last_sent_tag) {
+                (Some((end, _)), Some(tag)) => NextSegment::after(end, tag, &next),
+                _ => None,
+            };
             self.endpoint.send(&match compact {
                 Some(compact) => HostMessage::NextSegment(compact),
                 None => HostMessage::QueueSegment(next),
@@ -673,16 +666,11 @@ impl McuSession {
                 ramp.ramp_ticks = end.saturating_sub(earliest).min(u32::MAX as u64) as u32;
                 ramp.start_clock = earliest;
             }
-            let step = self
+            let compact = self
                 .last_screw_sent_start
-                .and_then(|last| u32::try_from(ramp.start_clock.checked_sub(last)?).ok());
-            self.endpoint.send(&match step {
-                Some(start_step_ticks) => HostMessage::ScrewNext(ScrewNext {
-                    start_step_ticks,
-                    ramp_ticks: ramp.ramp_ticks,
-                    target_millirpm: ramp.target_millirpm,
-                    pin_open: ramp.pin_open,
-                }),
+                .and_then(|last| ScrewNext::after(last, &ramp));
+            self.endpoint.send(&match compact {
+                Some(compact) => HostMessage::ScrewNext(compact),
                 None => HostMessage::Screw(ramp),
             })?;
             self.last_screw_sent_start = Some(ramp.start_clock);

@@ -9,7 +9,7 @@
 
 use step_core::{Segment, MAX_AXES, SIGNIFICANT_BITS};
 
-use super::{MessageError, SEGMENT_ENDS_AT_REST};
+use super::{MessageError, QueuedSegment, ScrewRamp, SEGMENT_ENDS_AT_REST};
 
 /// A step segment that continues the schedule: it starts at the end of the segment queued
 /// before it, and its tag is that segment's plus `tag_step`. Built only through
@@ -53,6 +53,32 @@ impl NextSegment {
         })
     }
 
+    /// The compact form of `queued` sent after a segment that ends at `previous_end` with tag
+    /// `previous_tag`: only if it starts there (and has a compact form at all).
+    pub fn after(previous_end: u64, previous_tag: u32, queued: &QueuedSegment) -> Option<Self> {
+        if queued.start_clock != previous_end {
+            return None;
+        }
+        NextSegment::new(
+            queued.duration_ticks,
+            queued.tag.wrapping_sub(previous_tag),
+            queued.flags,
+            queued.segment,
+        )
+    }
+
+    /// The segment it stands for, after one that ends at `previous_end` with tag
+    /// `previous_tag` (the inverse of [`NextSegment::after`]).
+    pub fn queued_after(&self, previous_end: u64, previous_tag: u32) -> QueuedSegment {
+        QueuedSegment {
+            start_clock: previous_end,
+            duration_ticks: self.duration_ticks,
+            tag: previous_tag.wrapping_add(self.tag_step),
+            flags: self.flags,
+            segment: self.segment,
+        }
+    }
+
     pub fn duration_ticks(&self) -> u32 {
         self.duration_ticks
     }
@@ -79,6 +105,31 @@ pub struct ScrewNext {
     pub ramp_ticks: u32,
     pub target_millirpm: i32,
     pub pin_open: bool,
+}
+
+impl ScrewNext {
+    /// The compact form of `ramp` sent after a screw command that started at
+    /// `previous_start`: only if it starts no earlier, within 2³² ticks.
+    pub fn after(previous_start: u64, ramp: &ScrewRamp) -> Option<Self> {
+        let step = ramp.start_clock.checked_sub(previous_start)?;
+        Some(ScrewNext {
+            start_step_ticks: u32::try_from(step).ok()?,
+            ramp_ticks: ramp.ramp_ticks,
+            target_millirpm: ramp.target_millirpm,
+            pin_open: ramp.pin_open,
+        })
+    }
+
+    /// The ramp it stands for, after a command that started at `previous_start` (the inverse
+    /// of [`ScrewNext::after`]).
+    pub fn ramp_after(&self, previous_start: u64) -> ScrewRamp {
+        ScrewRamp {
+            start_clock: previous_start.saturating_add(self.start_step_ticks as u64),
+            ramp_ticks: self.ramp_ticks,
+            target_millirpm: self.target_millirpm,
+            pin_open: self.pin_open,
+        }
+    }
 }
 
 /// Head byte of a `NEXT_SEGMENT`.
@@ -320,6 +371,45 @@ mod tests {
         assert_eq!(zigzag(1), 2);
         assert_eq!(zigzag(i32::MIN), u32::MAX);
         assert_eq!(unzigzag(u32::MAX), i32::MIN);
+    }
+
+    #[test]
+    fn the_compact_forms_stand_for_what_they_were_made_from() {
+        let queued = QueuedSegment {
+            start_clock: 5_000,
+            duration_ticks: 700,
+            tag: 3,
+            flags: SEGMENT_ENDS_AT_REST,
+            segment: Segment {
+                step_counts: [7, 0, 0],
+                cruise_steps: 7,
+                first_period_q32: 100 << 32,
+                ..Segment::default()
+            },
+        };
+        let next = NextSegment::after(5_000, u32::MAX, &queued).unwrap();
+        assert_eq!(next.tag_step(), 4); // wrapping from u32::MAX to 3
+        assert_eq!(next.queued_after(5_000, u32::MAX), queued);
+        assert_eq!(
+            NextSegment::after(4_999, 2, &queued),
+            None,
+            "not where it starts"
+        );
+        let ramp = ScrewRamp {
+            start_clock: 9_000,
+            ramp_ticks: 20,
+            target_millirpm: -5,
+            pin_open: true,
+        };
+        let next = ScrewNext::after(8_000, &ramp).unwrap();
+        assert_eq!(next.start_step_ticks, 1_000);
+        assert_eq!(next.ramp_after(8_000), ramp);
+        assert_eq!(ScrewNext::after(9_001, &ramp), None, "before the previous");
+        let far = ScrewRamp {
+            start_clock: 8_000 + (1 << 32),
+            ..ramp
+        };
+        assert_eq!(ScrewNext::after(8_000, &far), None, "2^32 ticks on");
     }
 
     proptest! {

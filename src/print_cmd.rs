@@ -373,8 +373,27 @@ pub async fn run_job(
                     let depth = cell_bag::node::executed_reader_depth(speed, horizon_s);
                     vec![param("reader_depth", depth.to_string())]
                 }
-                // No machine: the bag is the plan's slowest consumer, and grants the credit.
-                None => vec![param("grant_credit", "true".into())],
+                // No machine: the bag is the plan's slowest consumer, and grants the credit;
+                // what is in flight to it is then bounded, and so is its history.
+                None => {
+                    let ours = vec![param("grant_credit", "true".into())];
+                    let args = args_for(
+                        ros_args,
+                        cell_bag::node::NODE_NAME,
+                        &recorder_specs,
+                        ours.clone(),
+                    );
+                    let (_, recorder) = cell_runtime::resolve_node(
+                        cell_bag::node::NODE_NAME,
+                        &recorder_specs,
+                        &args,
+                    )?;
+                    let depth = cell_bag::node::CREDITED_READER_DEPTH;
+                    match cell_bag::node::grants_credit(&recorder) {
+                        true => [ours, vec![param("reader_depth", depth.to_string())]].concat(),
+                        false => ours,
+                    }
+                }
             },
         ]
         .concat(),
@@ -382,17 +401,24 @@ pub async fn run_job(
     let bag_grants_credit =
         options.execution.is_none() && cell_bag::node::grants_credit(&recorder_node.params);
     let recorder_name = recorder_node.fully_qualified_name();
+    let recorder_node_params = recorder_node.params.clone();
     let recorder = Recorder::start(recorder_node)?;
     let (executor_overrides, planner_extra, screw_extra) =
         match (options.execution, bag_grants_credit) {
             (Some(speed), _) => execution_overrides(ros_args, speed, options.device.is_some())?,
-            // The screw driver keeps its own chunks: cut at a quarter horizon, test_screw saw
-            // commands out of time order (by 1 ns: stamps rounded from plan time).
-            (None, true) => (
-                vec![],
-                vec![param("follow_execution", "true".into())],
-                vec![],
-            ),
+            // The screw driver's chunks are cut at a quarter of the credit's horizon, as at
+            // machine pace: a minute of commands at once would outrun the bag's history.
+            (None, true) => {
+                let credit_horizon_s = recorder_node_params.f64("credit_horizon_s");
+                (
+                    vec![],
+                    vec![param("follow_execution", "true".into())],
+                    vec![param(
+                        "max_buffer_s",
+                        format!("{:?}", (credit_horizon_s / 4.0).max(0.1)),
+                    )],
+                )
+            }
             (None, false) => (vec![], vec![], vec![]),
         };
     let mut screw_extra = screw_extra;

@@ -220,6 +220,8 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let mut last_input = Instant::now();
     // Times are kept relative to the first trajectory's stamp (integer ns).
     let mut base_ns: Option<i64> = None;
+    // Stamp of the last command published: stamps never go back.
+    let mut last_stamp_ns = i64::MIN;
     let mut tick = tokio::time::interval(Duration::from_millis(10));
     cell_runtime::cell_log!(
         node,
@@ -302,7 +304,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             let commands = chunk_commands(&chunk, &options, &mut pin, flush_all, command_period_s);
             let base = base_ns.unwrap_or(0);
             for c in &commands {
-                let message = command_message(c, &options, base);
+                let mut message = command_message(c, &options, base);
+                // A chunk's first command can round to a nanosecond before the previous
+                // chunk's last (its time comes from another sum of the same plan): the
+                // same instant, kept in order.
+                let stamp_ns = message.header.stamp.as_nanos().max(last_stamp_ns);
+                message.header.stamp = Time::from_nanos(stamp_ns);
+                last_stamp_ns = stamp_ns;
                 publish(&commands_pub, message, PUBLISH_PATIENCE)
                     .await
                     .context("/screw/command")?;

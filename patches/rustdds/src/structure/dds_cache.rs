@@ -340,8 +340,12 @@ impl TopicCache {
   fn add_change_internal(
     &mut self,
     instant: &Timestamp,
-    cache_change: CacheChange,
+    mut cache_change: CacheChange,
   ) -> Option<CacheChange> {
+    // Copied out of the receive buffer at once: a sample kept in the cache would otherwise
+    // hold the whole buffer chunk (256 KiB) its datagram arrived in until the deferred
+    // reallocation below, and a fast stream of small samples kept thousands of chunks.
+    cache_change.reallocate();
     // First, do garbage collection.
     // But not at every insert, just to save time and effort.
     // Some heuristic to decide if we should collect now.
@@ -586,14 +590,8 @@ impl TopicCache {
     // Take max to avoid crash if clock jumps backward.
     let reallocate_limit = max(now - reallocate_timeout, self.changes_reallocated_up_to);
 
-    self
-      .changes
-      .range_mut((
-        Excluded(self.changes_reallocated_up_to),
-        Included(reallocate_limit),
-      ))
-      .for_each(|(_, cc)| cc.reallocate());
-
+    // polar-cell patch: samples are copied out of the receive buffer as they come
+    // (`add_change_internal`); the mark still tells `garbage_collect` what is new.
     self.changes_reallocated_up_to = reallocate_limit;
   }
 
@@ -768,6 +766,34 @@ mod tests {
       ),
     );
     topic_cache.mark_reliably_received_before(writer, SequenceNumber::new(1));
+  }
+
+  // polar-cell patch: a sample in the cache owns its bytes, so the receive
+  // buffer chunk its datagram arrived in is free as soon as the datagram is
+  // handled (a sample slicing it kept the whole chunk).
+  #[test]
+  fn cached_samples_do_not_hold_the_receive_buffer() {
+    let mut topic_cache = keep_all_topic_cache();
+    let receive_buffer = bytes::Bytes::from(vec![7u8; 4096]);
+    let buffer_range = receive_buffer.as_ptr_range();
+    topic_cache.add_change(
+      &Timestamp::now(),
+      CacheChange::new(
+        user_writer(),
+        SequenceNumber::new(1),
+        WriteOptions::default(),
+        DDSData::new(SerializedPayload::new_from_bytes(
+          RepresentationIdentifier::CDR_LE,
+          receive_buffer.slice(100..164),
+        )),
+      ),
+    );
+    let payload = match &topic_cache.changes.values().next().unwrap().data_value {
+      DDSData::Data { serialized_payload } => serialized_payload.value.clone(),
+      other => panic!("not data: {other:?}"),
+    };
+    assert_eq!(&payload[..], &[7u8; 64][..]);
+    assert!(!buffer_range.contains(&payload.as_ptr()));
   }
 
   #[test]

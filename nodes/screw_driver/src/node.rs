@@ -27,8 +27,8 @@ use crate::compensation::FlowModel;
 use crate::fir::{FILTER_1, FILTER_2, FILTER_2_60DB};
 use crate::joint::{Hold, ScrewAngle, ScrewSample};
 use crate::screw::{
-    chunk_commands, position_after, Command, PinState, PinStrategy, RpmModel, ScrewOptions,
-    TimedMove,
+    chunk_commands, position_after, Command, PinState, PinStrategy, RepeatFilter, RpmModel,
+    ScrewOptions, TimedMove,
 };
 
 /// Default node name.
@@ -222,6 +222,8 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let mut base_ns: Option<i64> = None;
     // Stamp of the last command published: stamps never go back.
     let mut last_stamp_ns = i64::MIN;
+    let hold = command_hold(&options, command_period_s);
+    let mut repeats = RepeatFilter::default();
     let mut tick = tokio::time::interval(Duration::from_millis(10));
     cell_runtime::cell_log!(
         node,
@@ -303,7 +305,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             let chunk: Vec<TimedMove> = timed.drain(..cut).collect();
             let commands = chunk_commands(&chunk, &options, &mut pin, flush_all, command_period_s);
             let base = base_ns.unwrap_or(0);
-            for c in &commands {
+            for c in commands.iter().filter(|c| repeats.keep(c, hold)) {
                 let mut message = command_message(c, &options, base);
                 // A chunk's first command can round to a nanosecond before the previous
                 // chunk's last (its time comes from another sum of the same plan): the

@@ -21,6 +21,7 @@
 
 use crate::compensation::{CompensatorState, FlowModel};
 use crate::fir::filter_zero_phase;
+use crate::joint::Hold;
 
 /// How rpm follows the plan.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -523,6 +524,42 @@ pub fn smooth(commands: &[Command], taps: &[f64], period_s: f64) -> Vec<Command>
         .collect()
 }
 
+/// How far a held command's rpm may be from the last one kept and still count as a repeat:
+/// the compensation's filters leave values that differ from the plateau they settle on by
+/// float rounding (finger.gcode: 48,576 consecutive commands less than 1e-9 rpm apart). A
+/// thousandth of the MCU's resolution (1e-3 rpm); over a 10-minute plateau it is 1e-5 of a
+/// revolution.
+pub const REPEAT_TOLERANCE_RPM: f64 = 1e-6;
+
+/// Drops held commands that change nothing. A flow-compensated or resampled stream puts a
+/// command on every period (500 a second at 2 ms) and most of them repeat the one before
+/// (finger.gcode: 81,402 commands, 7,185 changes of at least 1e-3 rpm); each is a DDS sample
+/// to every consumer and a record in the bag. Under [`Hold::ZeroOrder`] a command with the
+/// same pin and source line as the last one kept, and its rpm within
+/// [`REPEAT_TOLERANCE_RPM`], holds what was already held, so leaving it out changes the
+/// profile by at most that tolerance. Linear (first-order) commands are all kept: a repeat
+/// there ends a ramp.
+#[derive(Debug, Default)]
+pub struct RepeatFilter {
+    last_kept: Option<(f64, bool, u32)>,
+}
+
+impl RepeatFilter {
+    /// Whether `command` (the next in time order) must be published.
+    pub fn keep(&mut self, command: &Command, hold: Hold) -> bool {
+        let repeat = hold == Hold::ZeroOrder
+            && self.last_kept.is_some_and(|(rpm, pin_open, source_line)| {
+                pin_open == command.pin_open
+                    && source_line == command.source_line
+                    && (rpm - command.rpm).abs() <= REPEAT_TOLERANCE_RPM
+            });
+        if !repeat {
+            self.last_kept = Some((command.rpm, command.pin_open, command.source_line));
+        }
+        !repeat
+    }
+}
+
 /// rpm·s fed between `a` and `b` by held (zero-order) commands.
 pub fn integral_held(commands: &[Command], a: f64, b: f64) -> f64 {
     windows_over(commands, a, b)
@@ -540,6 +577,80 @@ pub fn integral_held(commands: &[Command], a: f64, b: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn held(rpm: f64, pin_open: bool, source_line: u32, t: f64) -> Command {
+        Command {
+            t,
+            rpm,
+            pin_open,
+            source_line,
+            sequence: 0,
+        }
+    }
+
+    #[test]
+    fn repeated_held_commands_are_dropped_and_every_change_kept() {
+        let stream = [
+            held(0.0, false, 1, 0.000),
+            held(0.0, false, 1, 0.002), // repeat
+            held(0.0, true, 1, 0.004),  // the pin opens
+            held(12.5, true, 1, 0.006),
+            held(12.5, true, 1, 0.008), // repeat
+            held(12.5, true, 2, 0.010), // the next line, same rpm
+            held(12.5, true, 2, 0.012), // repeat
+            held(12.25, true, 2, 0.014),
+            held(12.25 + 0.5e-6, true, 2, 0.015), // within the tolerance of the last kept
+            held(12.25 + 1.5e-6, true, 2, 0.0155), // 1.5e-6 from the last kept: a change
+            held(12.5, true, 2, 0.016),           // back to an earlier value: a change
+        ];
+        let mut filter = RepeatFilter::default();
+        let kept: Vec<f64> = stream
+            .iter()
+            .filter(|c| filter.keep(c, Hold::ZeroOrder))
+            .map(|c| c.t)
+            .collect();
+        assert_eq!(kept, [0.000, 0.004, 0.006, 0.010, 0.014, 0.0155, 0.016]);
+        // Linear commands: a repeat ends a ramp, so all stay.
+        let mut filter = RepeatFilter::default();
+        assert!(stream.iter().all(|c| filter.keep(c, Hold::FirstOrder)));
+    }
+
+    proptest::proptest! {
+        /// What the held commands feed over any interval is the same with or without the
+        /// repeats, to the tolerance times the interval (the profile is kept, not merely its
+        /// total).
+        #[test]
+        fn dropping_repeats_keeps_the_held_profile(
+            values in proptest::collection::vec((0u8..3, 0u8..2, -2i8..3), 1..60),
+            a in 0.0f64..0.13,
+            length in 0.0f64..0.13,
+        ) {
+            let commands: Vec<Command> = values
+                .iter()
+                .enumerate()
+                .map(|(k, &(rpm, line, noise))| {
+                    let rpm_value = f64::from(rpm) * 5.0 + f64::from(noise) * 0.4e-6;
+                    held(rpm_value, rpm > 0, u32::from(line), k as f64 * 0.002)
+                })
+                .collect();
+            let mut filter = RepeatFilter::default();
+            let kept: Vec<Command> =
+                commands.iter().copied().filter(|c| filter.keep(c, Hold::ZeroOrder)).collect();
+            // The last command holds to the end of the stream as in the full one.
+            let mut kept_closed = kept.clone();
+            kept_closed.push(held(0.0, false, 0, values.len() as f64 * 0.002));
+            let mut full_closed = commands.clone();
+            full_closed.push(held(0.0, false, 0, values.len() as f64 * 0.002));
+            let (full, fewer) = (
+                integral_held(&full_closed, a, a + length),
+                integral_held(&kept_closed, a, a + length),
+            );
+            proptest::prop_assert!(
+                (full - fewer).abs() <= REPEAT_TOLERANCE_RPM * length + 1e-12,
+                "{full} vs {fewer}"
+            );
+        }
+    }
 
     proptest::proptest! {
         /// The searched integrals equal the sum over every pair of breakpoints (the closed

@@ -305,7 +305,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             let chunk: Vec<TimedMove> = timed.drain(..cut).collect();
             let commands = chunk_commands(&chunk, &options, &mut pin, flush_all, command_period_s);
             let base = base_ns.unwrap_or(0);
-            for c in commands.iter().filter(|c| repeats.keep(c, hold)) {
+            for c in repeats.chunk(&commands, hold) {
                 let mut message = command_message(c, &options, base);
                 // A chunk's first command can round to a nanosecond before the previous
                 // chunk's last (its time comes from another sum of the same plan): the

@@ -538,16 +538,20 @@ pub const REPEAT_TOLERANCE_RPM: f64 = 1e-6;
 /// same pin and source line as the last one kept, and its rpm within
 /// [`REPEAT_TOLERANCE_RPM`], holds what was already held, so leaving it out changes the
 /// profile by at most that tolerance. Linear (first-order) commands are all kept: a repeat
-/// there ends a ramp.
+/// there ends a ramp. A chunk's last command is kept too: it marks how far the commanded
+/// timeline reaches (the planned screw angle and whoever integrates a flow after the screw
+/// run to it).
 #[derive(Debug, Default)]
 pub struct RepeatFilter {
     last_kept: Option<(f64, bool, u32)>,
 }
 
 impl RepeatFilter {
-    /// Whether `command` (the next in time order) must be published.
-    pub fn keep(&mut self, command: &Command, hold: Hold) -> bool {
+    /// Whether `command` (the next in time order) must be published; `ends_chunk` for the
+    /// last command of a chunk.
+    pub fn keep(&mut self, command: &Command, hold: Hold, ends_chunk: bool) -> bool {
         let repeat = hold == Hold::ZeroOrder
+            && !ends_chunk
             && self.last_kept.is_some_and(|(rpm, pin_open, source_line)| {
                 pin_open == command.pin_open
                     && source_line == command.source_line
@@ -557,6 +561,20 @@ impl RepeatFilter {
             self.last_kept = Some((command.rpm, command.pin_open, command.source_line));
         }
         !repeat
+    }
+
+    /// The commands of a chunk that must be published, in order.
+    pub fn chunk<'a>(
+        &'a mut self,
+        commands: &'a [Command],
+        hold: Hold,
+    ) -> impl Iterator<Item = &'a Command> + 'a {
+        let last = commands.len().saturating_sub(1);
+        commands
+            .iter()
+            .enumerate()
+            .filter(move |&(k, c)| self.keep(c, hold, k == last))
+            .map(|(_, c)| c)
     }
 }
 
@@ -602,23 +620,33 @@ mod tests {
             held(12.25 + 0.5e-6, true, 2, 0.015), // within the tolerance of the last kept
             held(12.25 + 1.5e-6, true, 2, 0.0155), // 1.5e-6 from the last kept: a change
             held(12.5, true, 2, 0.016),           // back to an earlier value: a change
+            held(12.5, true, 2, 0.018),           // a repeat, but the chunk's last
         ];
         let mut filter = RepeatFilter::default();
-        let kept: Vec<f64> = stream
-            .iter()
-            .filter(|c| filter.keep(c, Hold::ZeroOrder))
+        let kept: Vec<f64> = filter
+            .chunk(&stream, Hold::ZeroOrder)
             .map(|c| c.t)
             .collect();
-        assert_eq!(kept, [0.000, 0.004, 0.006, 0.010, 0.014, 0.0155, 0.016]);
+        assert_eq!(
+            kept,
+            [0.000, 0.004, 0.006, 0.010, 0.014, 0.0155, 0.016, 0.018]
+        );
+        // The next chunk continues from the last kept: its repeat is dropped.
+        let next = [held(12.5, true, 2, 0.020), held(0.0, false, 2, 0.022)];
+        let kept: Vec<f64> = filter.chunk(&next, Hold::ZeroOrder).map(|c| c.t).collect();
+        assert_eq!(kept, [0.022]);
         // Linear commands: a repeat ends a ramp, so all stay.
         let mut filter = RepeatFilter::default();
-        assert!(stream.iter().all(|c| filter.keep(c, Hold::FirstOrder)));
+        assert_eq!(
+            filter.chunk(&stream, Hold::FirstOrder).count(),
+            stream.len()
+        );
     }
 
     proptest::proptest! {
         /// What the held commands feed over any interval is the same with or without the
         /// repeats, to the tolerance times the interval (the profile is kept, not merely its
-        /// total).
+        /// total), and the stream still ends where it ended.
         #[test]
         fn dropping_repeats_keeps_the_held_profile(
             values in proptest::collection::vec((0u8..3, 0u8..2, -2i8..3), 1..60),
@@ -634,16 +662,11 @@ mod tests {
                 })
                 .collect();
             let mut filter = RepeatFilter::default();
-            let kept: Vec<Command> =
-                commands.iter().copied().filter(|c| filter.keep(c, Hold::ZeroOrder)).collect();
-            // The last command holds to the end of the stream as in the full one.
-            let mut kept_closed = kept.clone();
-            kept_closed.push(held(0.0, false, 0, values.len() as f64 * 0.002));
-            let mut full_closed = commands.clone();
-            full_closed.push(held(0.0, false, 0, values.len() as f64 * 0.002));
+            let kept: Vec<Command> = filter.chunk(&commands, Hold::ZeroOrder).copied().collect();
+            proptest::prop_assert_eq!(kept.last().map(|c| c.t), commands.last().map(|c| c.t));
             let (full, fewer) = (
-                integral_held(&full_closed, a, a + length),
-                integral_held(&kept_closed, a, a + length),
+                integral_held(&commands, a, a + length),
+                integral_held(&kept, a, a + length),
             );
             proptest::prop_assert!(
                 (full - fewer).abs() <= REPEAT_TOLERANCE_RPM * length + 1e-12,

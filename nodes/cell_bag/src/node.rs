@@ -445,6 +445,10 @@ fn spawn_moves_consumer(
     let mut producer = cell_runtime::graph::Producer::of(node, true)?;
     Ok(tokio::spawn(async move {
         let mut tick = tokio::time::interval(Duration::from_millis(20));
+        // The tick is 20 ms; an unchanged acknowledgement is repeated every
+        // `UNCHANGED_ACK_REPEAT` (every 40 ms, it was 25 samples a second of an idle print).
+        const IDLE_ACK_EVERY_TICKS: u32 =
+            (cell_runtime::flow::UNCHANGED_ACK_REPEAT.as_millis() / 20) as u32;
         let mut idle_ticks = 0u32;
         loop {
             tokio::select! {
@@ -486,8 +490,9 @@ fn spawn_moves_consumer(
                     idle_ticks += 1;
                     if tracker.needs_hello() {
                         let _ = acks.publish(GcodeAck::from(tracker.hello()));
-                    } else if idle_ticks >= 2 {
-                        // Idle: repeat the acknowledgement (recovers a lost one, reports gaps).
+                    } else if idle_ticks >= 2 && (idle_ticks - 2) % IDLE_ACK_EVERY_TICKS == 0 {
+                        // Idle: repeat the acknowledgement (recovers a lost one, reports gaps),
+                        // at once and then as often as any consumer repeats one.
                         if let Some(ack) = tracker.ack_due(true) {
                             let _ = acks.publish(GcodeAck::from(ack));
                         }

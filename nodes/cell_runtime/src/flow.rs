@@ -308,8 +308,17 @@ pub struct AckTracker {
     next_expected: u64,
     ack_every: u64,
     last_acked: u64,
+    /// When [`Self::ack_processed`] last published (the caller's monotonic clock).
+    last_published: Option<Duration>,
     resume_point_known: bool,
 }
+
+/// How often a consumer repeats an acknowledgement that has not changed. A repeat only
+/// recovers a lost one (or tells a restarted streamer where the consumer stands); the
+/// planner and the screw driver used to repeat theirs on every 10 ms tick, 42,354
+/// acknowledgements for finger.gcode's 1,778 moves at 1×, each a DDS sample to the streamer
+/// and the recorder.
+pub const UNCHANGED_ACK_REPEAT: Duration = Duration::from_millis(250);
 
 impl AckTracker {
     /// A tracker for `consumer` (its fully qualified node name) that acknowledges at least
@@ -320,6 +329,7 @@ impl AckTracker {
             next_expected: 0,
             ack_every: ack_every.max(1),
             last_acked: 0,
+            last_published: None,
             resume_point_known: false,
         }
     }
@@ -394,13 +404,21 @@ impl AckTracker {
     /// Acknowledge everything before `processed_until` — for consumers that finish a move
     /// later than they receive it (a planner's lookahead): only finished moves are
     /// acknowledged, so a restart resumes with the unfinished ones. Never beyond what was
-    /// received.
-    pub fn ack_processed(&mut self, processed_until: u64) -> Option<Ack> {
+    /// received. Published at `now` (a monotonic clock) when it advanced, or unchanged once
+    /// [`UNCHANGED_ACK_REPEAT`] has passed since the last one.
+    pub fn ack_processed(&mut self, processed_until: u64, now: Duration) -> Option<Ack> {
         if !self.resume_point_known {
             return None;
         }
         let next_expected = processed_until.min(self.next_expected).max(self.last_acked);
+        let repeat_due = self
+            .last_published
+            .is_none_or(|at| now.saturating_sub(at) >= UNCHANGED_ACK_REPEAT);
+        if next_expected == self.last_acked && !repeat_due {
+            return None;
+        }
         self.last_acked = next_expected;
+        self.last_published = Some(now);
         Some(Ack {
             consumer: self.consumer.clone(),
             next_expected,
@@ -453,14 +471,15 @@ impl Intake {
         }
     }
 
-    /// What to publish now, given that every move before `processed_until` is finished: the
-    /// announcement until the resume point is known, then the acknowledgement.
-    pub fn ack(&mut self, processed_until: u64) -> Option<Ack> {
+    /// What to publish at `now` (a monotonic clock), given that every move before
+    /// `processed_until` is finished: the announcement until the resume point is known, then
+    /// the acknowledgement when it advanced or a repeat is due.
+    pub fn ack(&mut self, processed_until: u64, now: Duration) -> Option<Ack> {
         let t = self.tracker.as_mut()?;
         if t.needs_hello() {
             Some(t.hello())
         } else {
-            t.ack_processed(processed_until)
+            t.ack_processed(processed_until, now)
         }
     }
 }
@@ -639,14 +658,28 @@ mod tests {
     fn intake_with_and_without_acknowledgements() {
         let mut replay = Intake::new("/p", false);
         assert!(replay.accept(0) && !replay.accept(2) && replay.accept(1));
-        assert_eq!(replay.ack(2), None, "no acknowledgements when replaying");
+        assert_eq!(
+            replay.ack(2, ms(0)),
+            None,
+            "no acknowledgements when replaying"
+        );
         let mut live = Intake::new("/p", true);
-        assert!(live.ack(0).unwrap().resume, "announces itself first");
+        assert!(live.ack(0, ms(0)).unwrap().resume, "announces itself first");
         assert!(!live.accept(0), "resume point unknown");
         let confirm = live.on_progress(&["/p".into()], &[3]).unwrap();
         assert_eq!((confirm.next_expected, confirm.resume), (3, false));
         assert!(live.accept(3) && live.accept(4));
-        assert_eq!(live.ack(4).unwrap().next_expected, 4);
+        assert_eq!(live.ack(4, ms(10)).unwrap().next_expected, 4);
+        // Nothing new: repeated only after UNCHANGED_ACK_REPEAT.
+        assert_eq!(live.ack(4, ms(20)), None);
+        assert_eq!(live.ack(4, ms(259)), None);
+        assert_eq!(live.ack(4, ms(260)).unwrap().next_expected, 4);
+        assert!(live.accept(5));
+        assert_eq!(
+            live.ack(5, ms(270)).unwrap().next_expected,
+            5,
+            "an advance goes at once"
+        );
     }
 
     #[test]
@@ -668,15 +701,20 @@ mod tests {
         assert_eq!(t.ack_due(false).unwrap().next_expected, 4);
         // A consumer that finished only two of them acknowledges two; never more than received.
         let mut t = AckTracker::new("/p", 8);
-        assert_eq!(t.ack_processed(5), None, "resume point unknown");
+        assert_eq!(t.ack_processed(5, ms(0)), None, "resume point unknown");
         t.on_progress(&["/p".into()], &[10]);
         for s in 10..15 {
             assert_eq!(t.accept(s), Verdict::Process);
         }
-        assert_eq!(t.ack_processed(12).unwrap().next_expected, 12);
-        assert_eq!(t.ack_processed(99).unwrap().next_expected, 15);
+        assert_eq!(t.ack_processed(12, ms(1)).unwrap().next_expected, 12);
+        assert_eq!(t.ack_processed(99, ms(2)).unwrap().next_expected, 15);
         assert_eq!(
-            t.ack_processed(11).unwrap().next_expected,
+            t.ack_processed(11, ms(3)),
+            None,
+            "unchanged, not yet repeated"
+        );
+        assert_eq!(
+            t.ack_processed(11, ms(300)).unwrap().next_expected,
             15,
             "never goes back"
         );

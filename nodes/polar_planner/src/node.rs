@@ -217,6 +217,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     // Sequence after the last move whose plan is published (what may be acknowledged).
     let mut planned_until = 0u64;
     let mut pending = 0usize;
+    let started = Instant::now();
     let mut last_diagnostics = Instant::now();
     let mut last_move = Instant::now();
     let mut tick = tokio::time::interval(Duration::from_millis(10));
@@ -256,7 +257,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 }
                 // Announce until the resume point is known; then repeat the acknowledgement
                 // (recovers a lost one).
-                if let Some(ack) = intake.ack(planned_until) {
+                if let Some(ack) = intake.ack(planned_until, started.elapsed()) {
                     let _ = acks.publish(GcodeAck::from(ack));
                 }
             }
@@ -317,7 +318,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             continue;
         }
         // Acknowledge what is planned and published; the lookahead queue is not.
-        if let Some(ack) = intake.ack(planned_until) {
+        if let Some(ack) = intake.ack(planned_until, started.elapsed()) {
             let _ = acks.publish(GcodeAck::from(ack));
         }
         if last_diagnostics.elapsed() >= Duration::from_secs(1) {

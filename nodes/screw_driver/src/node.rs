@@ -217,6 +217,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let mut from = [0.0f64; 3];
     let mut done_until = 0u64;
     let mut pin = PinState::default();
+    let started = Instant::now();
     let mut last_input = Instant::now();
     // Times are kept relative to the first trajectory's stamp (integer ns).
     let mut base_ns: Option<i64> = None;
@@ -271,7 +272,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 let stalled = last_input.elapsed() >= stall_flush;
                 flush_all = idle && (options.compensation.is_none() || stream_finished || stalled);
                 idle_cut = idle && !flush_all;
-                if let Some(ack) = intake.ack(done_until) {
+                if let Some(ack) = intake.ack(done_until, started.elapsed()) {
                     let _ = acks.publish(GcodeAck::from(ack));
                 }
             }
@@ -329,7 +330,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     .context("/polar/planned_joint_states")?;
                 }
             }
-            if let Some(ack) = intake.ack(done_until) {
+            if let Some(ack) = intake.ack(done_until, started.elapsed()) {
                 let _ = acks.publish(GcodeAck::from(ack));
             }
         }

@@ -490,7 +490,7 @@ fn spawn_moves_consumer(
                     idle_ticks += 1;
                     if tracker.needs_hello() {
                         let _ = acks.publish(GcodeAck::from(tracker.hello()));
-                    } else if idle_ticks >= 2 && (idle_ticks - 2) % IDLE_ACK_EVERY_TICKS == 0 {
+                    } else if idle_ticks >= 2 && (idle_ticks - 2).is_multiple_of(IDLE_ACK_EVERY_TICKS) {
                         // Idle: repeat the acknowledgement (recovers a lost one, reports gaps),
                         // at once and then as often as any consumer repeats one.
                         if let Some(ack) = tracker.ack_due(true) {

@@ -130,10 +130,10 @@ pub(crate) struct TopicCache {
   // returns the same instant for two back-to-back receives cannot collide.
   changes: BTreeMap<Timestamp, CacheChange>,
 
-  // The underlying Bytes buffers are reallocated after some time (once for each) in
-  // order to release the original receive buffer. The idea behind this is that if a CacheChange
-  // persists in the TopicCaceh for some time, it should no longer hold onto the receive buffer,
-  // so we can recycle the buffers. Otherwise, we (practically) leak memory.
+  // Upstream, the Bytes buffers were reallocated here after some time to release the
+  // receive buffer. polar-cell patch: samples are copied out as they are taken in
+  // (`add_change_internal`); this mark now only tells `garbage_collect` whether
+  // anything arrived since the last collection.
   changes_reallocated_up_to: Timestamp,
 
   // The largest key ever inserted into `changes`. Used to keep the keys strictly
@@ -342,10 +342,6 @@ impl TopicCache {
     instant: &Timestamp,
     mut cache_change: CacheChange,
   ) -> Option<CacheChange> {
-    // Copied out of the receive buffer at once: a sample kept in the cache would otherwise
-    // hold the whole buffer chunk (256 KiB) its datagram arrived in until the deferred
-    // reallocation below, and a fast stream of small samples kept thousands of chunks.
-    cache_change.reallocate();
     // First, do garbage collection.
     // But not at every insert, just to save time and effort.
     // Some heuristic to decide if we should collect now.
@@ -398,6 +394,11 @@ impl TopicCache {
       };
       self.last_added_instant = key;
 
+      // polar-cell patch: copied out of the receive buffer as it is taken in (a
+      // duplicate above is not copied). A sample kept in the cache would otherwise
+      // hold the whole buffer chunk (256 KiB) its datagram arrived in, and a fast
+      // stream of small samples kept thousands of chunks.
+      cache_change.reallocate();
       self.insert_sn(key, &cache_change);
       self.changes.insert(key, cache_change).inspect(|old_cc| {
         // Should be unreachable now that keys are strictly monotonic, but keep the
@@ -583,15 +584,14 @@ impl TopicCache {
       to_remove.values().for_each(|r| self.remove_sn(r));
     }
 
-    // Now, reallocate old cache changes
+    // The mark `garbage_collect` compares with (upstream, changes older than it were
+    // reallocated here; polar-cell patch: they are copied as they come, in
+    // `add_change_internal`).
     let reallocate_timeout = crate::Duration::from_secs(5);
     let now = Timestamp::now();
 
     // Take max to avoid crash if clock jumps backward.
     let reallocate_limit = max(now - reallocate_timeout, self.changes_reallocated_up_to);
-
-    // polar-cell patch: samples are copied out of the receive buffer as they come
-    // (`add_change_internal`); the mark still tells `garbage_collect` what is new.
     self.changes_reallocated_up_to = reallocate_limit;
   }
 

@@ -408,6 +408,9 @@ fn check_screw(
         earliest_pin_ns = earliest_pin_ns.min(late);
         latest_pin_ns = latest_pin_ns.max(late);
     }
+    if changes.is_empty() {
+        (earliest_pin_ns, latest_pin_ns) = (0.0, 0.0);
+    }
     let speed_ok = compared > 0 && worst_rpm <= SCREW_TOLERANCE_RPM;
     println!(
         "screw: {} commands; speed: {compared} PWM periods, worst {worst_rpm:.3} rpm from the \
@@ -416,16 +419,8 @@ fn check_screw(
         if speed_ok { "" } else { "  <-- FAILED" },
         changes.len(),
         wanted.len(),
-        if changes.is_empty() {
-            0.0
-        } else {
-            earliest_pin_ns * 1e-6
-        },
-        if changes.is_empty() {
-            0.0
-        } else {
-            latest_pin_ns * 1e-6
-        },
+        earliest_pin_ns * 1e-6,
+        latest_pin_ns * 1e-6,
         if pin_ok { "" } else { "  <-- FAILED" }
     );
     speed_ok && pin_ok

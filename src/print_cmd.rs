@@ -401,24 +401,18 @@ pub async fn run_job(
     let bag_grants_credit =
         options.execution.is_none() && cell_bag::node::grants_credit(&recorder_node.params);
     let recorder_name = recorder_node.fully_qualified_name();
-    let recorder_node_params = recorder_node.params.clone();
+    let credit_horizon_s = recorder_node.params.f64("credit_horizon_s");
     let recorder = Recorder::start(recorder_node)?;
     let (executor_overrides, planner_extra, screw_extra) =
         match (options.execution, bag_grants_credit) {
             (Some(speed), _) => execution_overrides(ros_args, speed, options.device.is_some())?,
             // The screw driver's chunks are cut at a quarter of the credit's horizon, as at
             // machine pace: a minute of commands at once would outrun the bag's history.
-            (None, true) => {
-                let credit_horizon_s = recorder_node_params.f64("credit_horizon_s");
-                (
-                    vec![],
-                    vec![param("follow_execution", "true".into())],
-                    vec![param(
-                        "max_buffer_s",
-                        format!("{:?}", (credit_horizon_s / 4.0).max(0.1)),
-                    )],
-                )
-            }
+            (None, true) => (
+                vec![],
+                vec![param("follow_execution", "true".into())],
+                vec![screw_chunk_for(credit_horizon_s)],
+            ),
             (None, false) => (vec![], vec![], vec![]),
         };
     let mut screw_extra = screw_extra;
@@ -789,10 +783,17 @@ fn execution_overrides(
     let horizon_s = executor.f64("horizon_s");
     let planner_extra = vec![param("follow_execution", "true".into())];
     screw_extra.extend([
-        param("max_buffer_s", format!("{:?}", (horizon_s / 4.0).max(0.1))),
+        screw_chunk_for(horizon_s),
         param("stall_flush_s", "3600.0".into()),
     ]);
     Ok((executor_overrides, planner_extra, screw_extra))
+}
+
+/// The screw driver's chunk for producers `horizon_s` of plan ahead of their consumer (the
+/// machine, or a dry run's bag): a quarter of the horizon, so its commands never outrun
+/// what the consumer holds.
+fn screw_chunk_for(horizon_s: f64) -> ParamOverride {
+    param("max_buffer_s", format!("{:?}", (horizon_s / 4.0).max(0.1)))
 }
 
 /// Executing: over the plan's machine time; dry run: over the moves (from the pre-flight;

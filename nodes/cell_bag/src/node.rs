@@ -444,11 +444,12 @@ fn spawn_moves_consumer(
     // Moves and progress only from the streamer: the bag holds the print's moves, once each.
     let mut producer = cell_runtime::graph::Producer::of(node, true)?;
     Ok(tokio::spawn(async move {
-        let mut tick = tokio::time::interval(Duration::from_millis(20));
-        // The tick is 20 ms; an unchanged acknowledgement is repeated every
-        // `UNCHANGED_ACK_REPEAT` (every 40 ms, it was 25 samples a second of an idle print).
+        const TICK: Duration = Duration::from_millis(20);
+        // An unchanged acknowledgement is repeated every `UNCHANGED_ACK_REPEAT` (every
+        // other tick, it was 25 samples a second of an idle print).
         const IDLE_ACK_EVERY_TICKS: u32 =
-            (cell_runtime::flow::UNCHANGED_ACK_REPEAT.as_millis() / 20) as u32;
+            (cell_runtime::flow::UNCHANGED_ACK_REPEAT.as_millis() / TICK.as_millis()) as u32;
+        let mut tick = tokio::time::interval(TICK);
         let mut idle_ticks = 0u32;
         loop {
             tokio::select! {

@@ -65,6 +65,8 @@ class GcodeAck(IdlStruct, typename="polar_cell_msgs::msg::dds_::GcodeAck_"):
     consumer: str
     next_expected: t.uint64
     resume: bool
+    # What has arrived at the consumer; 0 = not told (the streamer then goes by next_expected).
+    received_until: t.uint64 = 0
 
 
 @dataclass

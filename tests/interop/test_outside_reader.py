@@ -100,7 +100,7 @@ def stamp(m):
 TOPICS = {
     "/gcode/moves": (GcodeMove, lambda m: (m.sequence, m.source_line, m.x_m, m.y_m, m.z_m)),
     "/gcode/progress": (GcodeProgress, lambda m: (stamp(m), m.lines_read, m.moves_published)),
-    "/gcode/ack": (GcodeAck, lambda m: (m.consumer, m.next_expected, m.resume)),
+    "/gcode/ack": (GcodeAck, lambda m: (m.consumer, m.next_expected, m.resume, m.received_until)),
     "/polar/trajectory": (
         JointTrajectory,
         lambda m: (stamp(m), len(m.points), tuple(m.points[-1].positions) if m.points else ()),

@@ -444,7 +444,7 @@ fn spawn_moves_consumer(
     // Moves and progress only from the streamer: the bag holds the print's moves, once each.
     let mut producer = cell_runtime::graph::Producer::of(node, true)?;
     Ok(tokio::spawn(async move {
-        const TICK: Duration = Duration::from_millis(20);
+        const TICK: Duration = cell_runtime::flow::LOOK_PERIOD;
         // An unchanged acknowledgement is repeated every `UNCHANGED_ACK_REPEAT` (every
         // other tick, it was 25 samples a second of an idle print).
         const IDLE_ACK_EVERY_TICKS: u32 =

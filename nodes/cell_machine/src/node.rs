@@ -339,12 +339,13 @@ pub async fn run<M: Machine>(
     let mut last_status = Instant::now();
     let mut reported_underruns = 0u64;
     // The loop's own period (wall time). The core steps σ every control period whatever
-    // the loop's period (it advances period by period to "now"), samples land on their grid,
-    // and commands and messages wake the loop at once: the tick only bounds how stale the
-    // published state and credit may be. 1 ms cost a fifth of a core in timer wake-ups.
+    // the loop's period (it advances period by period to "now"), and commands and messages
+    // wake the loop at once: the period only bounds how stale the published credit and
+    // status may be. The loop also wakes at each instant of the sample grid, so a sample
+    // goes out when it is due rather than up to a period late. 1 ms cost a fifth of a core
+    // in timer wake-ups.
     let period = Duration::from_secs_f64(node.params.f64("tick_period_s"));
-    let mut tick = tokio::time::interval(period);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut wake = Instant::now();
     loop {
         // A command, and the service request to answer if it came from one.
         let mut requested: Option<(Command, Option<(usize, ros2_client::RmwRequestId)>)> = None;
@@ -391,7 +392,7 @@ pub async fn run<M: Machine>(
                     requested = Some((servers[index].1, Some((index, id))));
                 }
             }
-            _ = tick.tick() => {}
+            _ = tokio::time::sleep_until(wake.into()) => {}
         }
         if let Some((command, caller)) = requested {
             let (success, message) = apply(executor, command);
@@ -497,6 +498,10 @@ pub async fn run<M: Machine>(
         if let Err(e) = executor.on_tick(machine_now) {
             fault.get_or_insert(e.to_string());
         }
+        let to_next_sample = Duration::from_nanos(
+            ((next_sample_ns - machine_now).max(0) as f64 / speed).ceil() as u64,
+        );
+        wake = now + period.min(to_next_sample);
         if fault.is_some() && executor.state().state != PlayerState::Stopped {
             executor.emergency_stop();
         }

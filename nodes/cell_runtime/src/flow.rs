@@ -6,7 +6,12 @@
 //! processes moves strictly in sequence order, drops duplicates, and on a gap (a move lost
 //! before the DDS reader matched, say) keeps acknowledging the first missing sequence number.
 //! When acknowledgements stop advancing for `resend_after`, the streamer goes back to the
-//! oldest unacknowledged move and sends again. A consumer that (re)starts announces itself
+//! oldest move some consumer has not *received* and sends again. A consumer acknowledges two
+//! points: what it has finished (`next_expected`: a restart resumes there) and what it has
+//! received in order (`received_until`: beyond it a move may be lost). A consumer that holds
+//! moves on purpose (a planner paced by the machine) has received them, so the streamer waits
+//! instead of sending them again; one that lost a move is stuck below what was sent, and gets
+//! everything from the loss again. A consumer that (re)starts announces itself
 //! with `resume = true` and learns its resume point from the per-consumer acknowledgements in
 //! `/gcode/progress` ([`SendWindow::consumer_acks`]), then confirms it with a plain
 //! acknowledgement; only then does the streamer send (again) everything after that point, so a
@@ -28,14 +33,18 @@ impl Sequenced for GcodeMove {
     }
 }
 
-/// A consumer's acknowledgement: everything before `next_expected` is done; `resume`
-/// announces a (re)started consumer that wants to learn its resume point.
+/// A consumer's acknowledgement: everything before `next_expected` is done, everything
+/// before `received_until` has arrived; `resume` announces a (re)started consumer that wants
+/// to learn its resume point.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Ack {
     /// The consumer's fully qualified node name.
     pub consumer: String,
     pub next_expected: u64,
     pub resume: bool,
+    /// Every move before it has arrived (in order), finished or not; never below
+    /// `next_expected` in effect (a peer that does not fill it in sends 0).
+    pub received_until: u64,
 }
 
 impl From<&GcodeAck> for Ack {
@@ -44,6 +53,7 @@ impl From<&GcodeAck> for Ack {
             consumer: ack.consumer.clone(),
             next_expected: ack.next_expected,
             resume: ack.resume,
+            received_until: ack.received_until,
         }
     }
 }
@@ -54,6 +64,7 @@ impl From<Ack> for GcodeAck {
             consumer: ack.consumer,
             next_expected: ack.next_expected,
             resume: ack.resume,
+            received_until: ack.received_until,
         }
     }
 }
@@ -79,7 +90,8 @@ pub enum AckOutcome {
 pub struct WindowOptions {
     /// Most messages in flight (sent or queued, not acknowledged by every consumer).
     pub window: usize,
-    /// Go back to the oldest unacknowledged move when no acknowledgement advanced for this long.
+    /// Go back to the oldest move not received by every consumer when no acknowledgement
+    /// advanced for this long.
     pub resend_after: Duration,
 }
 
@@ -96,6 +108,8 @@ impl Default for WindowOptions {
 struct ConsumerState {
     name: String,
     next_expected: u64,
+    /// Everything before it has arrived there (at least `next_expected`).
+    received_until: u64,
     /// Has announced itself (a `resume` acknowledgement) since the streamer started.
     present: bool,
     /// Has confirmed its resume point (a plain acknowledgement after its announcement); moves
@@ -134,6 +148,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
                 .map(|name| ConsumerState {
                     name: name.clone(),
                     next_expected: 0,
+                    received_until: 0,
                     present: false,
                     ready: false,
                 })
@@ -203,6 +218,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
             c.present = true;
             c.ready = false;
             // Everything after this consumer's last acknowledgement goes again.
+            c.received_until = c.next_expected;
             self.next_to_send = self.next_to_send.min(c.next_expected.max(self.base));
             self.last_progress = now;
         } else {
@@ -212,6 +228,14 @@ impl<T: Sequenced + Clone> SendWindow<T> {
                 self.last_progress = now;
                 self.stalled_resends = 0;
             }
+            // What arrived, never beyond what was sent (a claim beyond is not believed).
+            let received_until = ack.received_until.min(self.sent_end).max(c.next_expected);
+            if received_until > c.received_until {
+                c.received_until = received_until;
+                self.last_progress = now;
+                self.stalled_resends = 0;
+            }
+            c.received_until = c.received_until.max(c.next_expected);
         }
         let new_base = self
             .consumers
@@ -227,18 +251,26 @@ impl<T: Sequenced + Clone> SendWindow<T> {
         AckOutcome::Applied
     }
 
-    /// Call periodically: goes back to the oldest unacknowledged move when acknowledgements
-    /// stalled for `resend_after`. Returns true when it did.
+    /// Call periodically: goes back to the oldest move some consumer has not received when
+    /// acknowledgements stalled for `resend_after`. Returns true when it did.
     ///
-    /// Each further resend without progress waits twice as long (up to 16 × `resend_after`):
-    /// a consumer that holds moves on purpose (a planner waiting for the executor's credit)
-    /// acknowledges slowly, and going back over the whole window every `resend_after` would
-    /// flood it with duplicates (306 go-backs in a 168 s executed print before this).
+    /// A consumer that has received everything sent is not sent anything again, however
+    /// long it takes to finish (a planner waiting for the executor's credit): going back over
+    /// the whole unacknowledged window there cost 108 go-backs and a fifth of the graph's CPU
+    /// on finger.gcode at 1×. Each further resend without progress waits twice as long (up to
+    /// 16 × `resend_after`).
     pub fn on_tick(&mut self, now: Duration) -> bool {
-        let outstanding = self.next_to_send > self.base;
+        let resend_from = self
+            .consumers
+            .iter()
+            .map(|c| c.received_until.max(c.next_expected))
+            .min()
+            .unwrap_or(self.next_to_send)
+            .max(self.base);
+        let outstanding = self.next_to_send > resend_from;
         let wait = self.options.resend_after * (1u32 << self.stalled_resends.min(4));
         if outstanding && now.saturating_sub(self.last_progress) >= wait {
-            self.next_to_send = self.base;
+            self.next_to_send = resend_from;
             self.last_progress = now;
             self.resends += 1;
             self.stalled_resends += 1;
@@ -308,6 +340,8 @@ pub struct AckTracker {
     next_expected: u64,
     ack_every: u64,
     last_acked: u64,
+    /// The `received_until` last published.
+    last_received_acked: u64,
     /// When [`Self::ack_processed`] last published (the caller's monotonic clock).
     last_published: Option<Duration>,
     resume_point_known: bool,
@@ -320,6 +354,11 @@ pub struct AckTracker {
 /// and the recorder.
 pub const UNCHANGED_ACK_REPEAT: Duration = Duration::from_millis(250);
 
+/// How often a consumer with nothing arriving looks whether an announcement or a repeated
+/// acknowledgement is due: a fifth of [`UNCHANGED_ACK_REPEAT`]. A consumer's other deadlines
+/// (an idle flush) get timers of their own, so an idle node wakes 20 times a second, not 100.
+pub const LOOK_PERIOD: Duration = Duration::from_millis(50);
+
 impl AckTracker {
     /// A tracker for `consumer` (its fully qualified node name) that acknowledges at least
     /// every `ack_every` processed moves.
@@ -329,6 +368,7 @@ impl AckTracker {
             next_expected: 0,
             ack_every: ack_every.max(1),
             last_acked: 0,
+            last_received_acked: 0,
             last_published: None,
             resume_point_known: false,
         }
@@ -340,6 +380,7 @@ impl AckTracker {
             consumer: self.consumer.clone(),
             next_expected: self.next_expected,
             resume: true,
+            received_until: self.next_expected,
         }
     }
 
@@ -363,6 +404,7 @@ impl AckTracker {
         };
         self.next_expected = n;
         self.last_acked = n;
+        self.last_received_acked = n;
         self.resume_point_known = true;
         true
     }
@@ -394,10 +436,12 @@ impl AckTracker {
             return None;
         }
         self.last_acked = self.next_expected;
+        self.last_received_acked = self.next_expected;
         Some(Ack {
             consumer: self.consumer.clone(),
             next_expected: self.next_expected,
             resume: false,
+            received_until: self.next_expected,
         })
     }
 
@@ -414,15 +458,21 @@ impl AckTracker {
         let repeat_due = self
             .last_published
             .is_none_or(|at| now.saturating_sub(at) >= UNCHANGED_ACK_REPEAT);
-        if next_expected == self.last_acked && !repeat_due {
+        // What arrived is news only once it is not far ahead of what was said: a burst of
+        // moves taken in is one acknowledgement, not one per move.
+        let received_news = self.next_expected >= self.last_received_acked + self.ack_every
+            || (self.next_expected > self.last_received_acked && next_expected > self.last_acked);
+        if next_expected == self.last_acked && !received_news && !repeat_due {
             return None;
         }
         self.last_acked = next_expected;
+        self.last_received_acked = self.next_expected;
         self.last_published = Some(now);
         Some(Ack {
             consumer: self.consumer.clone(),
             next_expected,
             resume: false,
+            received_until: self.next_expected,
         })
     }
 
@@ -585,6 +635,102 @@ mod tests {
         assert_eq!(p, (0..3_000).collect::<Vec<_>>());
     }
 
+    /// A window with one announced, confirmed consumer "/c" and moves 0..n sent.
+    fn sent_window(n: u64) -> SendWindow<GcodeMove> {
+        let options = WindowOptions {
+            window: 64,
+            resend_after: ms(100),
+        };
+        let mut w = SendWindow::new(options, &["/c".to_string()]);
+        let mut c = AckTracker::new("/c", 8);
+        w.on_ack(&c.hello(), ms(0));
+        let (names, acks) = w.consumer_acks();
+        assert!(c.on_progress(&names, &acks));
+        w.on_ack(&c.ack_due(true).unwrap(), ms(0));
+        for k in 0..n {
+            w.push(mv(k));
+            w.next_to_send().unwrap();
+        }
+        w
+    }
+
+    /// A consumer that has received everything and finishes slowly on purpose (a planner
+    /// paced by the machine) is sent nothing again, however long it takes.
+    #[test]
+    fn a_consumer_holding_what_it_received_is_not_sent_it_again() {
+        let mut w = sent_window(20);
+        let mut c = AckTracker::new("/c", 8);
+        c.on_progress(&["/c".to_string()], &[0]);
+        for k in 0..20 {
+            assert_eq!(c.accept(k), Verdict::Process);
+        }
+        // Finished 3 of them; the acknowledgement says all 20 arrived.
+        let ack = c.ack_processed(3, ms(1)).unwrap();
+        assert_eq!((ack.next_expected, ack.received_until), (3, 20));
+        w.on_ack(&ack, ms(1));
+        for t in (0..60_000).step_by(10) {
+            assert!(!w.on_tick(ms(t)), "went back at {t} ms");
+            if let Some(ack) = c.ack_processed(3, ms(t)) {
+                w.on_ack(&ack, ms(t));
+            }
+        }
+        assert_eq!(w.resends(), 0);
+        assert_eq!(w.peek_next().map(|m| m.sequence), None);
+        assert_eq!(w.acknowledged(), 3);
+    }
+
+    /// A consumer that lost a move in the middle gets everything from the lost one again,
+    /// not what it had already received; one that does not say what it received (0, an older
+    /// peer) gets everything from its acknowledgement, as before.
+    #[test]
+    fn going_back_starts_at_the_first_move_a_consumer_did_not_receive() {
+        let mut w = sent_window(20);
+        let told = |received_until| Ack {
+            consumer: "/c".into(),
+            next_expected: 3,
+            resume: false,
+            received_until,
+        };
+        w.on_ack(&told(12), ms(1));
+        assert!(!w.on_tick(ms(50)));
+        assert!(w.on_tick(ms(101)));
+        assert_eq!(w.peek_next().map(|m| m.sequence), Some(12));
+
+        let mut w = sent_window(20);
+        w.on_ack(&told(0), ms(1));
+        assert!(w.on_tick(ms(101)));
+        assert_eq!(w.peek_next().map(|m| m.sequence), Some(3));
+
+        // A claim beyond what was sent is not believed beyond it.
+        let mut w = sent_window(20);
+        w.on_ack(&told(1_000), ms(1));
+        assert!(!w.on_tick(ms(10_000)));
+        w.push(mv(20));
+        w.next_to_send().unwrap();
+        assert!(w.on_tick(ms(20_000)));
+        assert_eq!(w.peek_next().map(|m| m.sequence), Some(20));
+    }
+
+    /// Moves taken in but not finished are told once a batch has arrived, and with every
+    /// repeat; not one acknowledgement per move.
+    #[test]
+    fn what_arrived_is_told_in_batches_and_with_repeats() {
+        let mut c = AckTracker::new("/c", 8);
+        c.on_progress(&["/c".to_string()], &[0]);
+        let mut published = Vec::new();
+        for k in 0..20 {
+            c.accept(k);
+            if let Some(ack) = c.ack_processed(0, ms(k)) {
+                published.push((k, ack.next_expected, ack.received_until));
+            }
+        }
+        // The first (nothing published yet), then one once 8 more had arrived, and so on.
+        assert_eq!(published, vec![(0, 0, 1), (8, 0, 9), (16, 0, 17)]);
+        assert_eq!(c.ack_processed(0, ms(100)), None);
+        let repeat = c.ack_processed(0, ms(300)).unwrap();
+        assert_eq!((repeat.next_expected, repeat.received_until), (0, 20));
+    }
+
     #[test]
     fn window_bounds_unacknowledged_moves_and_slowest_consumer_gates() {
         let consumers = ["/a".to_string(), "/b".to_string()];
@@ -603,6 +749,7 @@ mod tests {
             consumer: name.into(),
             next_expected: n,
             resume: false,
+            received_until: 0,
         };
         assert_eq!(
             w.consumer_acks().0,
@@ -728,6 +875,7 @@ mod tests {
             consumer: name.into(),
             next_expected: n,
             resume: false,
+            received_until: 0,
         };
         let mut w: SendWindow<GcodeMove> =
             SendWindow::new(WindowOptions::default(), &["/a".to_string()]);

@@ -318,10 +318,14 @@ pub async fn stream(
         if !sent_any {
             // Nothing to do until an acknowledgement arrives (or the parser catches up: with
             // room in the window, look again soon; a full window waits for acknowledgements,
-            // which wake this at once, and looks again only for the resend timer).
-            let patience = if window.has_room() && !eof { 2 } else { 20 };
-            let wait =
-                tokio::time::timeout(Duration::from_millis(patience), acks.async_take()).await;
+            // which wake this at once, and looks again only for the resend timer and the
+            // progress report).
+            let patience = if window.has_room() && !eof {
+                Duration::from_millis(2)
+            } else {
+                cell_runtime::flow::LOOK_PERIOD
+            };
+            let wait = tokio::time::timeout(patience, acks.async_take()).await;
             if let Ok(Ok((ack, info))) = wait {
                 let now = start.elapsed();
                 progress_due |= apply_ack(node, &mut window, &mut ack_checks, &ack, &info, now);

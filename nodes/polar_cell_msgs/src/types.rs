@@ -333,6 +333,7 @@ pub struct GcodeAck {
     pub consumer: String,
     pub next_expected: u64,
     pub resume: bool,
+    pub received_until: u64,
 }
 ros_message!(GcodeAck => schema::GCODE_ACK);
 
@@ -547,6 +548,7 @@ mod tests {
             consumer: "/p".into(),
             next_expected: 0x0102030405060708,
             resume: true,
+            received_until: 0x1112131415161718,
         };
         let bytes = cdr::encode(&ack).unwrap();
         let expected: Vec<u8> = [
@@ -555,6 +557,8 @@ mod tests {
             &[0],
             &[8, 7, 6, 5, 4, 3, 2, 1],
             &[1],
+            &[0; 7],
+            &[0x18, 0x17, 0x16, 0x15, 0x14, 0x13, 0x12, 0x11],
         ]
         .concat();
         assert_eq!(bytes, expected);

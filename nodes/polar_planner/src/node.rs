@@ -21,7 +21,7 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
-use cell_runtime::flow::Intake;
+use cell_runtime::flow::{Intake, LOOK_PERIOD};
 use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
     now_ns, publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
@@ -220,7 +220,11 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let started = Instant::now();
     let mut last_diagnostics = Instant::now();
     let mut last_move = Instant::now();
-    let mut tick = tokio::time::interval(Duration::from_millis(10));
+    // Acknowledgement repeats and announcements are looked at every LOOK_PERIOD; the idle
+    // flush has a deadline of its own, so this loop wakes only when something is due.
+    let mut tick = tokio::time::interval(LOOK_PERIOD);
+    // Whether the queue was planned to a stop since the last move came.
+    let mut flushed_since_move = false;
     let (mut moves_planned, mut plan_time) = (0u64, 0.0f64);
     cell_runtime::cell_log!(node, LogLevel::Info, "planning /gcode/moves");
     loop {
@@ -231,6 +235,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     && intake.accept(m.sequence)
                 {
                     last_move = Instant::now();
+                    flushed_since_move = false;
                     held.push_back(m);
                 }
             }
@@ -251,10 +256,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     }
                 }
             }
+            _ = tokio::time::sleep_until((last_move + idle_flush).into()),
+                if pending > 0 && held.is_empty() && !flushed_since_move =>
+            {
+                flushed_since_move = true;
+                planner.flush(&mut planned);
+            }
             _ = tick.tick() => {
-                if pending > 0 && held.is_empty() && last_move.elapsed() >= idle_flush {
-                    planner.flush(&mut planned);
-                }
                 // Announce until the resume point is known; then repeat the acknowledgement
                 // (recovers a lost one).
                 if let Some(ack) = intake.ack(planned_until, started.elapsed()) {

@@ -14,7 +14,7 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _};
-use cell_runtime::flow::Intake;
+use cell_runtime::flow::{Intake, LOOK_PERIOD};
 use cell_runtime::topics::{publisher_qos, DEFAULT_MOVE_WINDOW};
 use cell_runtime::{
     publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, PUBLISH_PATIENCE,
@@ -225,7 +225,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let mut last_stamp_ns = i64::MIN;
     let hold = command_hold(&options, command_period_s);
     let mut repeats = RepeatFilter::default();
-    let mut tick = tokio::time::interval(Duration::from_millis(10));
+    // Acknowledgement repeats and announcements are looked at every LOOK_PERIOD; the idle and
+    // stall cuts have deadlines of their own, so this loop wakes only when something is due.
+    let mut tick = tokio::time::interval(LOOK_PERIOD);
+    let mut last_look = Instant::now();
     cell_runtime::cell_log!(
         node,
         LogLevel::Info,
@@ -237,6 +240,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     loop {
         let mut flush_all = false;
         let mut idle_cut = false;
+        let mut look = false;
+        let cut_deadline = [idle_flush, stall_flush]
+            .into_iter()
+            .map(|after| last_input + after)
+            .filter(|&at| at > last_look)
+            .min()
+            .filter(|_| !timed.is_empty());
         tokio::select! {
             taken = moves_sub.async_take() => {
                 let (m, info) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
@@ -263,18 +273,23 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     }
                 }
             }
-            _ = tick.tick() => {
-                let idle = !timed.is_empty() && last_input.elapsed() >= idle_flush;
-                // With flow compensation a cut inside a run would close the pin mid-run (and
-                // its reopening delay would starve the next moves): when input pauses, cut
-                // at a closed-pin gap and wait for more, unless the file is all here or the
-                // pause has become a stall.
-                let stalled = last_input.elapsed() >= stall_flush;
-                flush_all = idle && (options.compensation.is_none() || stream_finished || stalled);
-                idle_cut = idle && !flush_all;
-                if let Some(ack) = intake.ack(done_until, started.elapsed()) {
-                    let _ = acks.publish(GcodeAck::from(ack));
-                }
+            _ = tick.tick() => look = true,
+            _ = tokio::time::sleep_until(cut_deadline.unwrap_or(last_look).into()), if cut_deadline.is_some() => {
+                look = true;
+            }
+        }
+        if look {
+            last_look = Instant::now();
+            let idle = !timed.is_empty() && last_input.elapsed() >= idle_flush;
+            // With flow compensation a cut inside a run would close the pin mid-run (and
+            // its reopening delay would starve the next moves): when input pauses, cut
+            // at a closed-pin gap and wait for more, unless the file is all here or the
+            // pause has become a stall.
+            let stalled = last_input.elapsed() >= stall_flush;
+            flush_all = idle && (options.compensation.is_none() || stream_finished || stalled);
+            idle_cut = idle && !flush_all;
+            if let Some(ack) = intake.ack(done_until, started.elapsed()) {
+                let _ = acks.publish(GcodeAck::from(ack));
             }
         }
         // The k-th trajectory is the plan of the k-th move, whichever arrives first.

@@ -35,6 +35,21 @@ pub struct HostEndpoint {
     pending: [u8; MAX_PAYLOAD],
     pending_len: usize,
     pending_asks_reply: bool,
+    sent: SentBytes,
+}
+
+/// What the host's sequenced messages cost, by what they carry (message bytes, before
+/// framing): where a print's bytes on the line go.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SentBytes {
+    /// QUEUE_SEGMENT and NEXT_SEGMENT.
+    pub segments: u64,
+    /// SCREW and SCREW_NEXT.
+    pub screw: u64,
+    /// Everything else (clock queries, holds, configuration, queries).
+    pub control: u64,
+    /// Sequenced frames made (each first copy; resends are the link's counters).
+    pub frames: u64,
 }
 
 impl HostEndpoint {
@@ -50,7 +65,13 @@ impl HostEndpoint {
             pending: [0; MAX_PAYLOAD],
             pending_len: 0,
             pending_asks_reply: false,
+            sent: SentBytes::default(),
         }
+    }
+
+    /// Message bytes and frames sent so far.
+    pub fn sent_bytes(&self) -> SentBytes {
+        self.sent
     }
 
     pub fn link(&self) -> &Link<HOST_WINDOW> {
@@ -77,6 +98,12 @@ impl HostEndpoint {
         let mut payload = [0; MAX_PAYLOAD];
         let len = message.encode(&mut payload);
         let asks_reply = message.asks_reply();
+        let class = match message {
+            HostMessage::QueueSegment(_) | HostMessage::NextSegment(_) => &mut self.sent.segments,
+            HostMessage::Screw(_) | HostMessage::ScrewNext(_) => &mut self.sent.screw,
+            _ => &mut self.sent.control,
+        };
+        *class += len as u64;
         if self.pending_len + len > MAX_PAYLOAD || (asks_reply && self.pending_asks_reply) {
             self.seal()?;
         }
@@ -90,6 +117,7 @@ impl HostEndpoint {
     fn seal(&mut self) -> Result<(), LinkError> {
         if self.pending_len > 0 {
             self.link.send(&self.pending[..self.pending_len])?;
+            self.sent.frames += 1;
             self.pending_len = 0;
             self.pending_asks_reply = false;
         }

@@ -516,6 +516,11 @@ impl<L: McuLink> Machine for McuMachine<L> {
             ));
         }
         values.push(("link_bytes_sent", self.bytes_sent.to_string()));
+        let sent = self.session.endpoint().sent_bytes();
+        values.push(("link_segment_bytes", sent.segments.to_string()));
+        values.push(("link_screw_bytes", sent.screw.to_string()));
+        values.push(("link_control_bytes", sent.control.to_string()));
+        values.push(("link_frames", sent.frames.to_string()));
         let counters = self.session.endpoint().link().counters();
         values.push(("link_retransmits", counters.retransmits.to_string()));
         values.push(("link_naks", counters.naks_sent.to_string()));

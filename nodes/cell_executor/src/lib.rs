@@ -20,12 +20,12 @@ pub mod screw;
 pub mod session;
 
 /// Seconds as Q32 timer ticks of a `timer_hz` timer (rounded; ≥ 0 assumed).
-pub(crate) fn seconds_to_q32(seconds: f64, timer_hz: f64) -> u64 {
-    (seconds * timer_hz * step_core::ONE_TICK_Q32 as f64).round() as u64
+pub(crate) fn seconds_to_q32(seconds: f64, timer_hz: f64) -> u128 {
+    (seconds * timer_hz * step_core::ONE_TICK_Q32 as f64).round() as u128
 }
 
 /// Q32 timer ticks of a `timer_hz` timer as seconds.
-pub(crate) fn q32_to_seconds(q32: u64, timer_hz: f64) -> f64 {
+pub(crate) fn q32_to_seconds(q32: u128, timer_hz: f64) -> f64 {
     q32 as f64 / step_core::ONE_TICK_Q32 as f64 / timer_hz
 }
 

@@ -92,7 +92,7 @@ pub struct SegmentJob {
     pub segment: Segment,
     /// Length on the plan clock (Q32 ticks): pulses may end a little before it (a pause
     /// segment has none at all).
-    pub duration_q32: u64,
+    pub duration_q32: u128,
     pub move_sequence: u64,
     pub source_line: u32,
 }
@@ -114,7 +114,7 @@ impl SegmentJob {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Edge {
     /// Machine time (Q32 ticks).
-    pub time_q32: u64,
+    pub time_q32: u128,
     /// Bit `k`: axis `k` steps.
     pub axes: u8,
     /// Bit `k`: axis `k` steps in the negative direction (meaningful where `axes` is set).
@@ -128,7 +128,7 @@ struct Active {
     job: SegmentJob,
     train: PulseTrain,
     /// Plan time at the segment's start (Q32 ticks).
-    plan_start_q32: u64,
+    plan_start_q32: u128,
 }
 
 /// Plays queued segments against the caller's clock.
@@ -136,19 +136,19 @@ struct Active {
 pub struct Player {
     options: PlayerOptions,
     queue: VecDeque<SegmentJob>,
-    queued_q32: u64,
+    queued_q32: u128,
     active: Option<Active>,
     position_steps: [i64; MAX_AXES],
     state: PlayerState,
     /// The plan clock τ (Q32 ticks); with no segment playing, where the next one starts.
-    plan_q32: u64,
-    now_q32: u64,
-    last_edge_q32: u64,
+    plan_q32: u128,
+    now_q32: u128,
+    last_edge_q32: u128,
     /// Feed scale σ; it heads for 0 while `hold` is set, else for 1.
     feed: f64,
     hold: Option<HoldReason>,
     /// A resume waits until this machine time (the pin's opening delay) before σ rises.
-    resume_at_q32: u64,
+    resume_at_q32: u128,
     completed: u64,
     last_completed: Option<(u64, u32)>,
     underruns: u64,
@@ -208,7 +208,7 @@ impl Player {
     }
 
     /// Plan time queued but not executed yet (Q32 ticks): the plan-ahead.
-    pub fn ahead_q32(&self) -> u64 {
+    pub fn ahead_q32(&self) -> u128 {
         let remaining = self.active.as_ref().map_or(0, |a| {
             (a.plan_start_q32 + a.job.duration_q32).saturating_sub(self.plan_q32)
         });
@@ -262,13 +262,16 @@ impl Player {
         self.feed
     }
 
-    fn ticks_q32(&self, seconds: f64) -> u64 {
+    fn ticks_q32(&self, seconds: f64) -> u128 {
         seconds_to_q32(seconds, self.options.steps.timer_hz)
     }
 
     /// The dominant axis's step rate in plan time (steps/s) of a playing segment.
     fn dominant_rate(&self, active: &Active) -> f64 {
-        1.0 / q32_to_seconds(active.train.period_q32(), self.options.steps.timer_hz)
+        1.0 / q32_to_seconds(
+            active.train.period_q32().into(),
+            self.options.steps.timer_hz,
+        )
     }
 
     /// Start the next queued segment if none is playing; false if there is none.
@@ -321,7 +324,7 @@ impl Player {
 
     /// Plan time a hold begun now with σ̇ = `lo` would still consume before rest, with a
     /// margin (the constraint ahead may be tighter than here), in Q32 ticks.
-    fn stopping_plan_q32(&self, lo: f64) -> u64 {
+    fn stopping_plan_q32(&self, lo: f64) -> u128 {
         if !lo.is_finite() || lo >= 0.0 {
             return 0;
         }
@@ -334,7 +337,7 @@ impl Player {
     /// instant's pulses to `on_edge` in time order.
     pub fn advance_to(
         &mut self,
-        now_q32: u64,
+        now_q32: u128,
         mut on_edge: impl FnMut(Edge),
     ) -> Result<(), PlayerError> {
         if self.state == PlayerState::Idle {
@@ -367,8 +370,8 @@ impl Player {
     /// One control period `[t0, t1]` of machine time.
     fn step_feed(
         &mut self,
-        t0: u64,
-        t1: u64,
+        t0: u128,
+        t1: u128,
         on_edge: &mut impl FnMut(Edge),
     ) -> Result<(), PlayerError> {
         let (lo, hi) = self.feed_rate_bounds();
@@ -395,7 +398,7 @@ impl Player {
         } else {
             feed0
         };
-        let advance_q32 = ((feed0 + self.feed) / 2.0 * (t1 - t0) as f64) as u64;
+        let advance_q32 = ((feed0 + self.feed) / 2.0 * (t1 - t0) as f64) as u128;
         if self.hold == Some(HoldReason::Cancel) && self.feed == 0.0 && feed0 == 0.0 {
             self.drop_plan();
             return Ok(());
@@ -408,13 +411,9 @@ impl Player {
         let (plan0, plan1) = (self.plan_q32, self.plan_q32 + advance_q32);
         // Machine time of plan time τ within this period (σ taken as linear in it); never
         // before the previous edge (a segment's last pulses may run past its end).
-        let machine_at = |tau: u64, last: u64| -> u64 {
-            let t = if advance_q32 == 0 {
-                t1
-            } else {
-                let into = (tau.max(plan0) - plan0) as u128 * (t1 - t0) as u128;
-                t0 + (into / advance_q32 as u128) as u64
-            };
+        let machine_at = |tau: u128, last: u128| -> u128 {
+            let into = (tau.max(plan0) - plan0) * (t1 - t0);
+            let t = into.checked_div(advance_q32).map_or(t1, |d| t0 + d);
             t.max(last)
         };
         loop {
@@ -425,7 +424,7 @@ impl Player {
                 continue;
             };
             while let Some(t) = active.train.next_time_q32() {
-                let tau = active.plan_start_q32 + t;
+                let tau = active.plan_start_q32 + u128::from(t);
                 if tau > plan1 {
                     self.plan_q32 = plan1;
                     return Ok(());
@@ -540,7 +539,7 @@ impl Player {
 
     /// The plan clock (Q32 ticks since the first segment's start): it stands still while the
     /// machine is held or waits.
-    pub fn plan_time_q32(&self) -> u64 {
+    pub fn plan_time_q32(&self) -> u128 {
         self.plan_q32
     }
 

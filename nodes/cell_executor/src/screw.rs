@@ -20,7 +20,7 @@ use crate::q32_to_seconds;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ScrewStep {
     /// Plan time from which it holds (Q32 ticks).
-    pub plan_q32: u64,
+    pub plan_q32: u128,
     pub rpm: f64,
     pub pin_open: bool,
     pub source_line: u32,
@@ -50,7 +50,7 @@ pub struct ScrewTrack {
     queue: VecDeque<ScrewStep>,
     /// The command in force at `plan_q32`.
     commanded: ScrewStep,
-    plan_q32: u64,
+    plan_q32: u128,
     feed: f64,
     pin_allowed: bool,
     angle_rad: f64,
@@ -93,7 +93,9 @@ impl ScrewTrack {
             .queue
             .back()
             .map_or(self.commanded.plan_q32, |s| s.plan_q32);
-        if step.plan_q32 < previous && previous - step.plan_q32 <= step_core::ONE_TICK_Q32 {
+        if step.plan_q32 < previous
+            && previous - step.plan_q32 <= u128::from(step_core::ONE_TICK_Q32)
+        {
             step.plan_q32 = previous;
         }
         if step.plan_q32 < previous {
@@ -119,7 +121,7 @@ impl ScrewTrack {
 
     /// The planned rpm at plan time `plan_q32` (≥ the command in force): held, or linear
     /// towards the next queued command.
-    fn rpm_at(&self, plan_q32: u64) -> f64 {
+    fn rpm_at(&self, plan_q32: u128) -> f64 {
         let from = &self.commanded;
         match self.queue.front() {
             Some(next) if self.hold == Hold::FirstOrder && next.plan_q32 > from.plan_q32 => {
@@ -133,13 +135,13 @@ impl ScrewTrack {
 
     /// Execute up to plan time `plan_now_q32` at feed scale `feed`; `pin_allowed` is false
     /// while the machine is held or waiting (the pin then stays closed).
-    pub fn advance(&mut self, plan_now_q32: u64, feed: f64, pin_allowed: bool) {
+    pub fn advance(&mut self, plan_now_q32: u128, feed: f64, pin_allowed: bool) {
         let rad_per_rpm_tick_q32 = std::f64::consts::TAU / 60.0 * q32_to_seconds(1, self.timer_hz);
         while self.plan_q32 < plan_now_q32 {
             let next_change = self
                 .queue
                 .front()
-                .map_or(u64::MAX, |s| s.plan_q32.max(self.plan_q32));
+                .map_or(u128::MAX, |s| s.plan_q32.max(self.plan_q32));
             let until = next_change.min(plan_now_q32);
             let mean_rpm = (self.rpm_at(self.plan_q32) + self.rpm_at(until)) / 2.0;
             self.angle_rad += mean_rpm * (until - self.plan_q32) as f64 * rad_per_rpm_tick_q32;
@@ -197,7 +199,7 @@ mod tests {
 
     const HZ: f64 = 1e6;
 
-    fn q32(seconds: f64) -> u64 {
+    fn q32(seconds: f64) -> u128 {
         crate::seconds_to_q32(seconds, HZ)
     }
 

@@ -83,9 +83,9 @@ impl Executor {
     }
 
     /// Nanoseconds to Q32 ticks (negative, i.e. before the plan's start: 0).
-    fn ns_to_q32(&self, plan_ns: i64) -> u64 {
+    fn ns_to_q32(&self, plan_ns: i64) -> u128 {
         let ns = plan_ns.max(0) as u128;
-        (ns * self.timer_hz as u128 * Q32 / 1_000_000_000) as u64
+        ns * self.timer_hz as u128 * Q32 / 1_000_000_000
     }
 
     /// Queue a planned step segment.
@@ -94,8 +94,7 @@ impl Executor {
         if self.epoch_ns.is_none() {
             // Its stamp is its move's start: where the plan clock will reach it.
             let start_q32 = self.player.plan_time_q32() + self.player.ahead_q32();
-            let start_ns =
-                (start_q32 as u128 * 1_000_000_000 / (self.timer_hz as u128 * Q32)) as i64;
+            let start_ns = (start_q32 * 1_000_000_000 / (self.timer_hz as u128 * Q32)) as i64;
             let epoch = msg.header.stamp.as_nanos() - start_ns;
             self.epoch_ns = Some(epoch);
             for early in std::mem::take(&mut self.early_screw) {

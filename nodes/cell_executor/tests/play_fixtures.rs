@@ -48,7 +48,7 @@ fn the_executor_plays_both_fixtures_on_the_decoders_ticks_and_on_the_plan() {
         let fixture = plan_fixture(name);
         // What the planner's decoder says, per axis, on the same back-to-back timeline.
         let mut expected: [Vec<f64>; 3] = Default::default();
-        let mut start_q32 = 0u64;
+        let mut start_q32 = 0u128;
         let mut pulses: Vec<Pulse> = Vec::new();
         for seg in &fixture.segments {
             pulses.clear();

@@ -364,7 +364,7 @@ fn the_mcu_matches_the_virtual_executor_within_one_step_at_every_report() {
     let mut compared = 0;
     let mut worst = 0i64;
     for &(plan_clock, mcu_steps) in reports.iter().filter(|(p, _)| *p >= anchor) {
-        let plan_q32 = (plan_clock - anchor) << 32;
+        let plan_q32 = u128::from(plan_clock - anchor) << 32;
         player.advance_to(plan_q32, |_| {}).unwrap();
         let executor_steps = player.position_steps();
         for k in 0..3 {

@@ -1,6 +1,6 @@
 use super::*;
 
-const Q32: u64 = 1 << 32;
+const Q32: u128 = 1 << 32;
 /// The planner's default joint accelerations (rad/s², m/s², m/s²).
 const LIMITS: [f64; 3] = [40.0, 3.0, 0.5];
 
@@ -28,7 +28,7 @@ fn cruise(axis: usize, steps: u32, period: u64, reverse: bool, sequence: u64) ->
     .unwrap();
     SegmentJob {
         segment,
-        duration_q32: steps as u64 * period * Q32,
+        duration_q32: u128::from(steps) * u128::from(period) * Q32,
         move_sequence: sequence,
         source_line: sequence as u32 + 10,
     }
@@ -37,7 +37,7 @@ fn cruise(axis: usize, steps: u32, period: u64, reverse: bool, sequence: u64) ->
 fn collect(player: &mut Player, now_ticks: u64) -> Vec<Edge> {
     let mut edges = Vec::new();
     player
-        .advance_to(now_ticks * Q32, |e| edges.push(e))
+        .advance_to(u128::from(now_ticks) * Q32, |e| edges.push(e))
         .unwrap();
     edges
 }
@@ -54,7 +54,7 @@ fn play(
     let mut t = from_ticks;
     while t < until_ticks {
         t += 1000;
-        player.advance_to(t * Q32, |e| edges.push(e)).unwrap();
+        player.advance_to(u128::from(t) * Q32, |e| edges.push(e)).unwrap();
         velocities.push(player.velocity());
         each_ms(player, t);
     }
@@ -212,7 +212,7 @@ fn a_pause_stops_on_the_path_within_v_over_a_and_resume_replays_the_same_steps()
     let held = resumed_at.unwrap()[0];
     let quiet = edges
         .iter()
-        .filter(|e| e.time_q32 > rest_at.unwrap() * Q32 && e.time_q32 <= 1_050_000 * Q32)
+        .filter(|e| e.time_q32 > u128::from(rest_at.unwrap()) * Q32 && e.time_q32 <= 1_050_000 * Q32)
         .count();
     assert_eq!(quiet, 0);
     assert!(held < 0 && held > -20_000);
@@ -379,4 +379,30 @@ fn a_step_fault_stops_the_machine_and_names_the_move() {
         }
     ));
     assert_eq!(player.state(), PlayerState::Stopped);
+}
+
+/// A print longer than 2³² timer ticks (71.6 minutes at 1 MHz) plays on: plan and machine
+/// time are Q32 ticks, which a u64 held only that far (a 1M-move print at 10× stopped there
+/// with its screw commands "before the previous one").
+#[test]
+fn a_plan_longer_than_two_to_the_32_ticks_plays_on_exactly() {
+    let mut player = Player::new(options());
+    // 50 segments of 100 z steps, one every second: 5,000 s of plan.
+    for k in 0..50 {
+        player.push(cruise(2, 100, 1_000_000, false, k)).unwrap();
+    }
+    player.finish_input();
+    let mut edges = Vec::new();
+    player.advance_to(0, |e| edges.push(e)).unwrap();
+    player
+        .advance_to(5_001_000_000 * Q32, |e| edges.push(e))
+        .unwrap();
+    assert!(5_000_000_000 > 1u64 << 32);
+    assert_eq!(edges.len(), 5_000);
+    for (k, e) in edges.iter().enumerate() {
+        assert_eq!(e.time_q32, (k as u128 + 1) * 1_000_000 * Q32, "edge {k}");
+    }
+    assert_eq!(player.position_steps(), [0, 0, 5_000]);
+    assert_eq!(player.plan_time_q32(), 5_000_000_000 * Q32);
+    assert_eq!(player.state(), PlayerState::Idle);
 }

@@ -79,7 +79,9 @@ pub fn play_all(
                 }
             }
         }
-        player.advance_to(u128::from(ms * 1000) << 32, &mut on_edge).unwrap();
+        player
+            .advance_to(u128::from(ms * 1000) << 32, &mut on_edge)
+            .unwrap();
         each_ms(&mut player, ms);
         if ms > 0 && player.state() == PlayerState::Idle && feed.peek().is_none() {
             break;

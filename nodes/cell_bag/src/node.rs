@@ -50,12 +50,16 @@ pub const CREDITED_READER_DEPTH: usize = 8192;
 
 /// The reader depth for a print executed at `speed` times machine pace with producers
 /// `horizon_s` of machine time ahead: the busiest topic (`/screw/command`, 500 per second of
-/// machine time) for about 8 s of wall time — far more than a recorder falls behind at a
-/// bounded rate — plus twice that rate over the horizon, which the producers may publish at
-/// once (a bench rig's 8 s horizon lost 191 screw commands without it); never more than a
-/// dry run's.
+/// machine time) for about 8 s of wall time at 1× — far more than a recorder falls behind at
+/// a bounded rate — but no more than a credited dry run's lag allowance, plus twice that
+/// rate over the horizon, which the producers may publish at once (a bench rig's 8 s horizon
+/// lost 191 screw commands without it); never more than a dry run's.
+///
+/// RustDDS keeps `depth` samples of each topic after they are taken, so the depth is memory:
+/// with 8 s of wall time at 10× (40,960) a 1M-move print at `--speed 10` grew to 240 MB
+/// in its first minutes.
 pub fn executed_reader_depth(speed: f64, horizon_s: f64) -> usize {
-    let lag = WRITER_QUEUE as f64 * speed.max(1.0);
+    let lag = (WRITER_QUEUE as f64 * speed.max(1.0)).min(CREDITED_READER_DEPTH as f64);
     let burst = 1000.0 * horizon_s.max(0.0);
     ((lag + burst).ceil() as usize).min(DEFAULT_READER_DEPTH)
 }
@@ -883,8 +887,8 @@ mod tests {
     use super::*;
 
     /// At machine pace the depth covers 8 s of 500 screw commands a second of machine time,
-    /// scaled with the speed, plus a burst of the horizon at twice that rate; a fast
-    /// simulation gets no more than a dry run.
+    /// scaled with the speed up to a credited dry run's depth, plus a burst of the horizon
+    /// at twice that rate.
     #[test]
     fn an_executed_print_keeps_seconds_of_its_busiest_topic() {
         assert_eq!(executed_reader_depth(1.0, 0.0), 4096);
@@ -899,7 +903,9 @@ mod tests {
             12_096,
             "the bench rig's horizon"
         );
-        assert_eq!(executed_reader_depth(10.0, 2.0), 42_960);
-        assert_eq!(executed_reader_depth(40.0, 2.0), DEFAULT_READER_DEPTH);
+        assert_eq!(executed_reader_depth(2.0, 2.0), 10_192);
+        assert_eq!(executed_reader_depth(10.0, 2.0), 10_192);
+        assert_eq!(executed_reader_depth(40.0, 2.0), 10_192);
+        assert_eq!(executed_reader_depth(10.0, 200.0), DEFAULT_READER_DEPTH);
     }
 }

@@ -130,6 +130,11 @@ impl ClockSync {
         })
     }
 
+    /// Samples kept (at most the capacity).
+    pub fn sample_count(&self) -> usize {
+        self.samples.len()
+    }
+
     pub fn fit(&self) -> Option<ClockFit> {
         self.fit
     }

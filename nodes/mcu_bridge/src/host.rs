@@ -25,9 +25,12 @@ pub enum FromMcu {
 ///
 /// Sequenced messages are packed: each goes into the payload being filled, and the payload
 /// becomes a frame when the next message does not fit, when a second message would ask for a
-/// reply (the MCU keeps room for one reply per frame), or when the line is next polled. A
-/// print's segments and screw commands, 11–19 bytes each in their compact forms, travel three
-/// or four to a frame.
+/// reply (the MCU keeps room for one reply per frame), or when the line is next polled. With
+/// [`HostEndpoint::pack_for`], a payload of only continuing segments and screw commands
+/// (which go out a horizon ahead of their time) waits up to that long for more to fill it;
+/// anything else (a clock query, whose round trip is measured; a hold; a schedule's first
+/// segment) goes at the next poll. A print's segments and screw commands, 8–19 bytes each in
+/// their compact forms, travel three to six to a frame.
 #[derive(Clone, Debug)]
 pub struct HostEndpoint {
     link: Link<HOST_WINDOW>,
@@ -35,6 +38,12 @@ pub struct HostEndpoint {
     pending: [u8; MAX_PAYLOAD],
     pending_len: usize,
     pending_asks_reply: bool,
+    /// The payload holds a message that goes at the next poll.
+    pending_urgent: bool,
+    /// When a poll first saw the payload being filled (host µs).
+    pending_since_us: Option<u64>,
+    /// How long a payload of continuing segments and screw commands may wait to be filled.
+    pack_us: u64,
     sent: SentBytes,
 }
 
@@ -65,8 +74,19 @@ impl HostEndpoint {
             pending: [0; MAX_PAYLOAD],
             pending_len: 0,
             pending_asks_reply: false,
+            pending_urgent: false,
+            pending_since_us: None,
+            pack_us: 0,
             sent: SentBytes::default(),
         }
+    }
+
+    /// Let a payload of continuing segments and screw commands wait up to `pack_us` for more
+    /// to fill its frame (0, the default: every poll writes what was packed). Each frame
+    /// costs 8 bytes on the line (header, CRC, COBS, delimiter) whatever it carries.
+    pub fn pack_for(mut self, pack_us: u64) -> HostEndpoint {
+        self.pack_us = pack_us;
+        self
     }
 
     /// Message bytes and frames sent so far.
@@ -98,10 +118,11 @@ impl HostEndpoint {
         let mut payload = [0; MAX_PAYLOAD];
         let len = message.encode(&mut payload);
         let asks_reply = message.asks_reply();
-        let class = match message {
-            HostMessage::QueueSegment(_) | HostMessage::NextSegment(_) => &mut self.sent.segments,
-            HostMessage::Screw(_) | HostMessage::ScrewNext(_) => &mut self.sent.screw,
-            _ => &mut self.sent.control,
+        let (class, may_wait) = match message {
+            HostMessage::NextSegment(_) => (&mut self.sent.segments, true),
+            HostMessage::QueueSegment(_) => (&mut self.sent.segments, false),
+            HostMessage::Screw(_) | HostMessage::ScrewNext(_) => (&mut self.sent.screw, true),
+            _ => (&mut self.sent.control, false),
         };
         *class += len as u64;
         if self.pending_len + len > MAX_PAYLOAD || (asks_reply && self.pending_asks_reply) {
@@ -110,6 +131,7 @@ impl HostEndpoint {
         self.pending[self.pending_len..self.pending_len + len].copy_from_slice(&payload[..len]);
         self.pending_len += len;
         self.pending_asks_reply |= asks_reply;
+        self.pending_urgent |= !may_wait;
         Ok(())
     }
 
@@ -120,6 +142,8 @@ impl HostEndpoint {
             self.sent.frames += 1;
             self.pending_len = 0;
             self.pending_asks_reply = false;
+            self.pending_urgent = false;
+            self.pending_since_us = None;
         }
         Ok(())
     }
@@ -154,11 +178,16 @@ impl HostEndpoint {
     }
 
     /// The next bytes to write at `now_us`, if any; call until `None`. What was packed so far
-    /// goes out now (as soon as the window has room for it).
+    /// goes out now (as soon as the window has room for it), unless it may wait to be filled
+    /// ([`HostEndpoint::pack_for`]).
     pub fn poll_transmit(&mut self, now_us: u64, out: &mut [u8; MAX_WIRE_FRAME]) -> Option<usize> {
-        if self.link.can_send() {
-            // Cannot fail: the window has room.
-            let _ = self.seal();
+        if self.pending_len > 0 {
+            let since = *self.pending_since_us.get_or_insert(now_us);
+            let waited = now_us.saturating_sub(since) >= self.pack_us;
+            if (self.pending_urgent || waited) && self.link.can_send() {
+                // Cannot fail: the window has room.
+                let _ = self.seal();
+            }
         }
         self.link.poll_transmit(now_us, out)
     }

@@ -71,7 +71,13 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new(
             "clock_query_period_s",
             ParamValue::Double(0.1),
-            "machine time between clock queries (also the MCU watchdog's keep-alive)",
+            "machine time between clock queries while the clock fit settles (its first 100 samples)",
+        )
+        .range(0.001, 10.0),
+        ParamSpec::new(
+            "clock_query_settled_period_s",
+            ParamValue::Double(0.5),
+            "machine time between clock queries once the fit has settled (at most a quarter of host_timeout_s: the queries are the MCU watchdog's keep-alive)",
         )
         .range(0.001, 10.0),
         ParamSpec::new(
@@ -376,6 +382,7 @@ pub fn session_options(node: &CellNode, params: &MachineParams) -> SessionOption
     options.lead_s = p.f64("lead_s") * wall;
     options.state_period_s = p.f64("state_period_s");
     options.clock_query_period_s = p.f64("clock_query_period_s");
+    options.clock_query_settled_period_s = p.f64("clock_query_settled_period_s");
     options.host_timeout_s = p.f64("host_timeout_s") * wall;
     options.silence_s = p.f64("silence_s") * wall;
     options.retransmit_timeout_s = p.f64("retransmit_timeout_s") * wall;

@@ -16,8 +16,12 @@
 //!
 //! # Keeping in step
 //!
-//! A clock query every `clock_query_period_s` feeds [`ClockSync`] and doubles as the
-//! keep-alive the MCU's watchdog expects; the MCU reports its state every
+//! A clock query every `clock_query_period_s` feeds [`ClockSync`] until it holds
+//! [`CLOCK_SETTLE_SAMPLES`], then one every `clock_query_settled_period_s` keeps it (the
+//! window of the fit then spans minutes, and each query costs its frame and the reply's
+//! acknowledgement on the line: 1,680 queries were an eighth of finger's bytes). The query
+//! doubles as the keep-alive the MCU's watchdog expects, so it comes at least four times per
+//! `host_timeout_s`; the MCU reports its state every
 //! `state_period_s`. The MCU's plan clock now is its last state's plan clock plus the time
 //! since, at the synchronised rate (exact while no hold is in progress).
 
@@ -41,7 +45,10 @@ pub struct SessionOptions {
     pub horizon_s: f64,
     /// Time between the first segment's conversion and its start on the MCU (s).
     pub lead_s: f64,
+    /// Time between clock queries while the clock fit settles (s).
     pub clock_query_period_s: f64,
+    /// Time between clock queries once it has (s; at most a quarter of `host_timeout_s`).
+    pub clock_query_settled_period_s: f64,
     /// The MCU faults when it hears nothing for this long (s).
     pub host_timeout_s: f64,
     /// How often the MCU reports its state (s).
@@ -49,6 +56,10 @@ pub struct SessionOptions {
     /// The host gives up on an MCU silent this long (and at least ten state periods) (s).
     pub silence_s: f64,
     pub retransmit_timeout_s: f64,
+    /// How long continuing segments and screw commands may wait for more to fill their frame
+    /// (s): they go a horizon ahead, and each frame costs 8 bytes of framing. A schedule's
+    /// first segment, clock queries and holds never wait.
+    pub pack_s: f64,
     /// How rpm runs between screw commands (the screw driver's hold).
     pub screw_hold: Hold,
     /// Steps per rad of `bed_theta`, per m of `arm_r` and `z`.
@@ -71,10 +82,12 @@ impl SessionOptions {
             horizon_s: 2.0,
             lead_s: 0.25,
             clock_query_period_s: 0.1,
+            clock_query_settled_period_s: 0.5,
             host_timeout_s: 1.0,
             state_period_s: 0.02,
             silence_s: 0.25,
             retransmit_timeout_s: 0.05,
+            pack_s: 0.1,
             screw_hold: Hold::ZeroOrder,
             steps_per_unit,
             joint_accelerations,
@@ -165,6 +178,10 @@ pub const FEED_BATCH_S: f64 = 0.25;
 /// crystal's drift is far slower than the window).
 const CLOCK_SAMPLES: usize = 512;
 
+/// Clock samples taken at `clock_query_period_s` before queries slow down: 10 s at 0.1 s, the
+/// time the fit takes to come within about 10 ppm of a crystal's rate on a pty.
+pub const CLOCK_SETTLE_SAMPLES: usize = 100;
+
 fn ticks(seconds: f64, hz: f64) -> u32 {
     (seconds * hz).round().clamp(0.0, u32::MAX as f64) as u32
 }
@@ -172,7 +189,8 @@ fn ticks(seconds: f64, hz: f64) -> u32 {
 impl McuSession {
     /// `nonce`: random per host session.
     pub fn new(options: SessionOptions, nonce: u32) -> McuSession {
-        let endpoint = HostEndpoint::new((options.retransmit_timeout_s * 1e6) as u64, nonce);
+        let endpoint = HostEndpoint::new((options.retransmit_timeout_s * 1e6) as u64, nonce)
+            .pack_for((options.pack_s * 1e6) as u64);
         McuSession {
             options,
             endpoint,
@@ -556,7 +574,12 @@ impl McuSession {
             self.configured = true;
         }
         if now_us >= self.next_query_us && self.endpoint.can_send() {
-            self.next_query_us = now_us + (self.options.clock_query_period_s * 1e6) as u64;
+            let period_s = if self.clock.sample_count() >= CLOCK_SETTLE_SAMPLES {
+                (self.options.clock_query_settled_period_s).min(self.options.host_timeout_s / 4.0)
+            } else {
+                self.options.clock_query_period_s
+            };
+            self.next_query_us = now_us + (period_s * 1e6) as u64;
             let token = self.next_token;
             self.next_token = self.next_token.wrapping_add(1);
             self.endpoint.send(&HostMessage::ClockQuery { token })?;

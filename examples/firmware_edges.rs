@@ -30,9 +30,10 @@
 //! `--screw-hold first_order` when the print ran the screw with a first-order hold.
 //!
 //! Stops: with `--uart-in FILE` (the bytes the harness fed to UART0, with their times), the
-//! host's frames are decoded by `cell_protocol`. From the first hold or stop frame on, the
-//! plan's timing no longer applies (σ slows the plan clock): steps are then checked for order
-//! and direction only, and the pins may stop short of the plan. After an emergency stop
+//! host's frames are decoded by `cell_protocol`. From the first hold or stop frame on (a
+//! hold's after the generator's lead, an emergency stop's at once), the plan's timing no
+//! longer applies (σ slows the plan clock): steps are then checked for order and direction
+//! only, and the pins may stop short of the plan. After an emergency stop
 //! frame, no step, pin opening or PWM pulse may begin later than one control period
 //! ([`CONTROL_PERIOD_NS`]), and by then the pin is closed, the PWM low and the drivers
 //! disabled (GP14 high).
@@ -627,8 +628,14 @@ fn main() -> Result<()> {
         .iter()
         .find(|(_, m)| *m == HostMessage::EmergencyStop)
         .map(|(t, _)| *t);
-    // Steps the plan's timing applies to (recorded time).
-    let exact_until_ns = stop_ns.map_or(f64::INFINITY, |t| t + GENERATOR_LEAD_NS);
+    // Steps the plan's timing applies to (recorded time): those the generator made before a
+    // hold's frame came, up to its lead; none after an emergency stop's frame, which masks
+    // the step timer while it takes the pins (edges due then go out microseconds late, and
+    // the stop's own check bounds what follows). An e-stop right behind a cancel's hold
+    // (two Ctrl-C at once) used to leave those late edges in the fit of the constant.
+    let exact_until_ns = stop_ns
+        .map_or(f64::INFINITY, |t| t + GENERATOR_LEAD_NS)
+        .min(estop_ns.unwrap_or(f64::INFINITY));
     if uart_in.is_some() {
         println!(
             "host frames: {} decoded, {damaged_frames} damaged on the line{}{}",

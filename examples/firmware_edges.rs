@@ -630,9 +630,8 @@ fn main() -> Result<()> {
         .map(|(t, _)| *t);
     // Steps the plan's timing applies to (recorded time): those the generator made before a
     // hold's frame came, up to its lead; none after an emergency stop's frame, which masks
-    // the step timer while it takes the pins (edges due then go out microseconds late, and
-    // the stop's own check bounds what follows). An e-stop right behind a cancel's hold
-    // (two Ctrl-C at once) used to leave those late edges in the fit of the constant.
+    // the step timer while it takes the pins (edges due then may go out microseconds late,
+    // and the stop's own check bounds what follows).
     let exact_until_ns = stop_ns
         .map_or(f64::INFINITY, |t| t + GENERATOR_LEAD_NS)
         .min(estop_ns.unwrap_or(f64::INFINITY));

@@ -14,18 +14,14 @@ use crate::PlayerOptions;
 /// Default node name.
 pub const NODE_NAME: &str = "cell_executor";
 
-/// The executor's default `tick_period_s` (the machine nodes' is 5 ms).
+/// The executor's default `tick_period_s`. The virtual machine needs no polling: its loop
+/// wakes for commands, messages and the sample grid, and otherwise only to refresh the
+/// credit and status, which are due every 50–100 ms.
 pub const EXECUTOR_TICK_PERIOD_S: f64 = 0.02;
 
 /// The machine node's parameters and the executor's own.
 pub fn param_specs() -> Vec<ParamSpec> {
-    let mut specs = cell_machine::node::param_specs();
-    // The virtual machine needs no polling (a bridge reads its line every tick): its loop
-    // wakes for commands, messages and the sample grid, and otherwise only to refresh the
-    // credit and status, which are due every 50–100 ms.
-    if let Some(tick) = specs.iter_mut().find(|s| s.name == "tick_period_s") {
-        tick.default = ParamValue::Double(EXECUTOR_TICK_PERIOD_S);
-    }
+    let mut specs = cell_machine::node::param_specs(EXECUTOR_TICK_PERIOD_S);
     specs.push(
         ParamSpec::new(
             "control_period_s",

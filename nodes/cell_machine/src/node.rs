@@ -47,15 +47,17 @@ pub const DEFAULT_PIN_OPEN_DELAY_S: f64 = 0.25;
 /// `joint_accelerations`): a hold keeps to them.
 pub const DEFAULT_JOINT_ACCELERATIONS: [f64; 3] = [40.0, 3.0, 0.5];
 
-/// The parameters every machine node has (a backend adds its own).
-pub fn param_specs() -> Vec<ParamSpec> {
+/// The parameters every machine node has (a backend adds its own); `tick_period_s` is the
+/// backend's default look period (a bridge polls its line on it, the virtual executor does
+/// not need to).
+pub fn param_specs(tick_period_s: f64) -> Vec<ParamSpec> {
     let s = StepOptions::default();
     vec![
         ParamSpec::new("urdf_file", ParamValue::String(String::new()), "URDF of the cell for /tf and /robot_description (empty: the shipped urdf/polar_cell.urdf)"),
         ParamSpec::new("rate_hz", ParamValue::Double(50.0), "/joint_states and /tf per second of machine time").range(0.1, 1000.0),
         ParamSpec::new("horizon_s", ParamValue::Double(2.0), "plan time the producers may run ahead of execution").range(0.05, 3600.0),
         ParamSpec::new("speed", ParamValue::Double(1.0), "machine seconds per wall second (a faster simulation of the same timeline)").range(0.01, 1000.0),
-        ParamSpec::new("tick_period_s", ParamValue::Double(0.005), "wall time between the node's looks at the clock when nothing arrives").range(1e-4, 0.1),
+        ParamSpec::new("tick_period_s", ParamValue::Double(tick_period_s), "wall time between the node's looks at the clock when nothing arrives").range(1e-4, 0.1),
         Producer::named_param_spec("producer", "gcode_streamer", "the node whose /gcode/progress this machine takes (relative: in its namespace; empty: any writer's); other writers are ignored"),
         Producer::named_param_spec("steps_producer", "polar_planner", "the node whose /polar/steps this machine executes (relative: in its namespace; empty: any writer's, e.g. a replayed bag); other writers are ignored"),
         Producer::named_param_spec("screw_producer", "screw_driver", "the node whose /screw/command this machine executes (relative: in its namespace; empty: any writer's); other writers are ignored"),

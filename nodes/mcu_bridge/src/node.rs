@@ -35,9 +35,12 @@ use crate::session::{McuSession, SessionOptions};
 /// Default node name.
 pub const NODE_NAME: &str = "mcu_bridge";
 
+/// The bridge's default `tick_period_s`: it reads and writes its line on every look.
+pub const BRIDGE_TICK_PERIOD_S: f64 = 0.005;
+
 /// The machine node's parameters and the bridge's own.
 pub fn param_specs() -> Vec<ParamSpec> {
-    let mut specs = cell_machine::node::param_specs();
+    let mut specs = cell_machine::node::param_specs(BRIDGE_TICK_PERIOD_S);
     specs.extend([
         ParamSpec::new(
             "device",

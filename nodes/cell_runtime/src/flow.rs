@@ -108,7 +108,8 @@ impl Default for WindowOptions {
 struct ConsumerState {
     name: String,
     next_expected: u64,
-    /// Everything before it has arrived there (at least `next_expected`).
+    /// Everything before it has arrived there; never below `next_expected` (an announcement
+    /// sets it there, and an acknowledgement raises it to at least its `next_expected`).
     received_until: u64,
     /// Has announced itself (a `resume` acknowledgement) since the streamer started.
     present: bool,
@@ -235,7 +236,6 @@ impl<T: Sequenced + Clone> SendWindow<T> {
                 self.last_progress = now;
                 self.stalled_resends = 0;
             }
-            c.received_until = c.received_until.max(c.next_expected);
         }
         let new_base = self
             .consumers
@@ -263,7 +263,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
         let resend_from = self
             .consumers
             .iter()
-            .map(|c| c.received_until.max(c.next_expected))
+            .map(|c| c.received_until)
             .min()
             .unwrap_or(self.next_to_send)
             .max(self.base);

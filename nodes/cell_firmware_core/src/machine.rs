@@ -29,7 +29,7 @@
 
 use cell_protocol::message::{
     FaultCode, HostMessage, Identity, McuMessage, McuState, Mode, QueuedSegment, ScrewRamp,
-    SEGMENT_ENDS_AT_REST,
+    ScrewReference, SEGMENT_ENDS_AT_REST,
 };
 use cell_protocol::PROTOCOL_VERSION;
 use heapless::Deque;
@@ -110,9 +110,9 @@ pub struct Machine<const Q: usize, const S: usize> {
     schedule_end: Option<u64>,
     /// Tag of the last accepted segment: a compact next segment's tag counts on from it.
     schedule_tag: u32,
-    /// Start clock (as sent) of the last accepted screw command: a compact one is timed
-    /// from it.
-    screw_reference: Option<u64>,
+    /// The last accepted screw command as sent (its start before a late arrival moved it):
+    /// a compact one is told relative to it.
+    screw_reference: Option<ScrewReference>,
     positions: [i32; MAX_AXES],
     done_tag: u32,
     screw: Screw<S>,
@@ -280,9 +280,14 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 Some(end) => self.queue_segment(next.queued_after(end, self.schedule_tag)),
                 None => self.latch(FaultCode::BadSegment, 0),
             },
-            HostMessage::Screw(command) => self.queue_screw(command),
+            HostMessage::Screw(command) => {
+                self.queue_screw(command, ScrewReference::of_screw(&command))
+            }
             HostMessage::ScrewNext(next) => match self.screw_reference {
-                Some(reference) => self.queue_screw(next.ramp_after(reference)),
+                Some(reference) => self.queue_screw(
+                    next.ramp_after(&reference),
+                    next.reference_after(&reference),
+                ),
                 None => self.latch(FaultCode::BadSegment, 0),
             },
             HostMessage::FeedHold { rate_q32 } => {
@@ -355,7 +360,8 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         }
     }
 
-    fn queue_screw(&mut self, command: ScrewRamp) {
+    /// Queue `command`; accepted, it leaves `reference` for the next compact one.
+    fn queue_screw(&mut self, command: ScrewRamp, reference: ScrewReference) {
         if self.fault != FaultCode::None {
             return;
         }
@@ -363,7 +369,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             Ok(late) => {
                 // Started at arrival (see `Screw::push`), counted with the late.
                 self.counters.late_segments += u32::from(late);
-                self.screw_reference = Some(command.start_clock);
+                self.screw_reference = Some(reference);
             }
             Err(ScrewRefusal::OutOfOrder) => self.latch(FaultCode::BadSegment, 0),
             Err(ScrewRefusal::Full) => self.latch(FaultCode::QueueOverflow, 0),

@@ -40,7 +40,7 @@ pub use message::{HostMessage, McuMessage, MessageError};
 
 /// Version of the protocol in `PROTOCOL.md`; the MCU reports it in its identify reply and the
 /// host refuses any other.
-pub const PROTOCOL_VERSION: u16 = 3;
+pub const PROTOCOL_VERSION: u16 = 4;
 
 /// Most payload bytes one frame carries (the largest message, a full queued segment, takes 60;
 /// a payload holds as many messages as fit).

@@ -11,7 +11,7 @@ use crate::MAX_PAYLOAD;
 
 pub mod compact;
 
-pub use compact::{NextSegment, ScrewNext};
+pub use compact::{NextSegment, ScrewNext, ScrewReference, ScrewStart};
 
 /// A step segment scheduled on the MCU clock.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]

@@ -29,7 +29,7 @@ use std::collections::VecDeque;
 
 use cell_protocol::message::{
     FaultCode, HostMessage, Identity, McuMessage, McuState, Mode, NextSegment, QueuedSegment,
-    ScrewNext, ScrewRamp, SEGMENT_ENDS_AT_REST,
+    ScrewNext, ScrewRamp, ScrewReference, SEGMENT_ENDS_AT_REST,
 };
 use cell_protocol::{LinkError, MAX_WIRE_FRAME, PROTOCOL_VERSION};
 use polar_cell_msgs::{Hold, ScrewCommand, StepSegment};
@@ -153,8 +153,8 @@ pub struct McuSession {
     /// Tag and start clock of the last segment sent.
     last_sent_tag: Option<u32>,
     last_sent_start: Option<u64>,
-    /// Start clock of the last screw command sent: the next is timed from it.
-    last_screw_sent_start: Option<u64>,
+    /// The last screw command sent (as sent): a compact one is told relative to it.
+    last_screw_sent: Option<ScrewReference>,
     error: Option<SessionError>,
     /// An emergency stop was asked for, and when it last went out.
     emergency: bool,
@@ -216,7 +216,7 @@ impl McuSession {
             sent_end: None,
             last_sent_tag: None,
             last_sent_start: None,
-            last_screw_sent_start: None,
+            last_screw_sent: None,
             error: None,
             emergency: false,
             emergency_sent_us: None,
@@ -360,7 +360,7 @@ impl McuSession {
         self.sent_end = None;
         self.last_sent_tag = None;
         self.last_sent_start = None;
-        self.last_screw_sent_start = None;
+        self.last_screw_sent = None;
     }
 
     /// A screw command in force from plan time `plan_s` (needs the first segment's anchor).
@@ -692,13 +692,18 @@ impl McuSession {
                 ramp.start_clock = earliest;
             }
             let compact = self
-                .last_screw_sent_start
-                .and_then(|last| ScrewNext::after(last, &ramp));
-            self.endpoint.send(&match compact {
-                Some(compact) => HostMessage::ScrewNext(compact),
-                None => HostMessage::Screw(ramp),
-            })?;
-            self.last_screw_sent_start = Some(ramp.start_clock);
+                .last_screw_sent
+                .and_then(|last| Some((ScrewNext::after(&last, &ramp)?, last)));
+            self.last_screw_sent = Some(match compact {
+                Some((compact, last)) => {
+                    self.endpoint.send(&HostMessage::ScrewNext(compact))?;
+                    compact.reference_after(&last)
+                }
+                None => {
+                    self.endpoint.send(&HostMessage::Screw(ramp))?;
+                    ScrewReference::of_screw(&ramp)
+                }
+            });
             self.screw.pop_front();
             self.screw_on_mcu.push_back(ramp.start_clock);
         }

@@ -2,7 +2,7 @@ use proptest::prelude::*;
 use std::vec::Vec;
 
 use super::*;
-use cell_protocol::message::{ScrewNext, ScrewRamp};
+use cell_protocol::message::{ScrewNext, ScrewRamp, ScrewStart::*};
 use step_core::{Segment, SegmentFields};
 
 extern crate std;
@@ -580,43 +580,60 @@ fn a_next_segment_without_a_schedule_is_a_fault() {
     assert_eq!(m.fault(), FaultCode::BadSegment);
 }
 
-/// A compact screw command is timed from the previous command's start as sent (not as a
-/// late arrival moved it); with no previous command it is a fault.
+/// A compact screw command is told relative to the previous command as sent (its start
+/// before a late arrival moved it, its length, its target); with no previous command it is
+/// a fault.
 #[test]
-fn a_screw_next_is_timed_from_the_previous_command() {
+fn a_screw_next_is_told_relative_to_the_previous_command() {
     let mut m = machine();
-    queue(&mut m, cruise(0, 100, 100, 0, 1));
-    let screw = |start_clock, target_millirpm| {
+    queue(&mut m, cruise(0, 200, 100, 0, 1)); // moving until 20,000
+    let screw = |start_clock, ramp_ticks, target_millirpm| {
         HostMessage::Screw(ScrewRamp {
             start_clock,
-            ramp_ticks: 0,
+            ramp_ticks,
             target_millirpm,
             pin_open: true,
         })
     };
-    let next = |start_step_ticks, target_millirpm| {
+    let next = |start, ramp_ticks, target_change_millirpm| {
         HostMessage::ScrewNext(ScrewNext {
-            start_step_ticks,
-            ramp_ticks: 0,
-            target_millirpm,
+            start,
+            ramp_ticks,
+            target_change_millirpm,
             pin_open: true,
         })
     };
-    m.handle(&screw(1000, 10_000), 0);
-    m.handle(&next(2000, 20_000), 0); // at 3000
+    m.handle(&screw(1000, 0, 10_000), 0);
+    m.handle(&next(Step(2000), None, 10_000), 0); // 20,000 at once at 3000
     run(&mut m, 2999);
     assert_eq!(m.screw_millirpm(), 10_000);
     run(&mut m, 3001);
     assert_eq!(m.screw_millirpm(), 20_000);
     // A late command (start 2500, moved to its arrival at 3001) times the next from 2500.
-    m.handle(&screw(2500, 7_000), 3001);
-    m.handle(&next(1500, 9_000), 3001); // at 4000, not 4501
+    m.handle(&screw(2500, 0, 7_000), 3001);
+    m.handle(&next(Step(1500), None, 2_000), 3001); // 9,000 at 4000, not 4501
     run(&mut m, 3999);
     assert_eq!(m.screw_millirpm(), 7_000);
     run(&mut m, 4001);
     assert_eq!(m.screw_millirpm(), 9_000);
+    // A chain of ramps: 4000 ticks from 5000 to 9,000 + 4,000 = 13,000; then as long on
+    // from where it ends, down by 8,000; then a step up by 1,000 as long after that (4000)
+    // as that one after its predecessor.
+    m.handle(&next(Step(1000), Some(4000), 4_000), 4001);
+    m.handle(&next(Chained, None, -8_000), 4001);
+    m.handle(&next(SameStep, Some(0), 1_000), 4001);
+    run(&mut m, 7000); // halfway up
+    assert_eq!(m.screw_millirpm(), 11_000);
+    run(&mut m, 9000);
+    assert_eq!(m.screw_millirpm(), 13_000);
+    run(&mut m, 11_000); // halfway down
+    assert_eq!(m.screw_millirpm(), 9_000);
+    run(&mut m, 12_999);
+    assert_eq!(m.screw_millirpm(), 5_002);
+    run(&mut m, 13_001);
+    assert_eq!(m.screw_millirpm(), 6_000);
     assert_eq!(m.fault(), FaultCode::None);
     let mut m = machine();
-    m.handle(&next(10, 1), 0);
+    m.handle(&next(Step(10), None, 1), 0);
     assert_eq!(m.fault(), FaultCode::BadSegment);
 }

@@ -1,4 +1,4 @@
-//! The compact continuing forms of a step segment and a screw ramp (protocol version 3).
+//! The compact continuing forms of a step segment and a screw ramp (protocol version 4).
 //!
 //! Nearly every segment of a print starts where the previous one ended and carries the next
 //! move's tag, and nearly every screw command starts a few hundredths of a second after the
@@ -97,37 +97,107 @@ impl NextSegment {
     }
 }
 
-/// A screw ramp whose start is given after the previous screw command's start (its
-/// `start_clock` as sent, not as a late arrival moved it).
+/// What a compact screw command is told relative to: the previous accepted screw command
+/// as sent (its start before a late arrival moved it, its length, its target) and the step
+/// from the command before it to its start (0 after a full `SCREW`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
-pub struct ScrewNext {
-    pub start_step_ticks: u32,
+pub struct ScrewReference {
+    pub start_clock: u64,
+    pub step_ticks: u32,
     pub ramp_ticks: u32,
     pub target_millirpm: i32,
+}
+
+impl ScrewReference {
+    /// The reference a full `SCREW` leaves.
+    pub fn of_screw(ramp: &ScrewRamp) -> Self {
+        ScrewReference {
+            start_clock: ramp.start_clock,
+            step_ticks: 0,
+            ramp_ticks: ramp.ramp_ticks,
+            target_millirpm: ramp.target_millirpm,
+        }
+    }
+}
+
+/// A screw ramp told relative to the previous screw command ([`ScrewReference`]): the start
+/// as a step from the previous start — left out when it repeats the previous step (a
+/// zero-order stream sampled at a fixed period) or when the ramp starts where the previous
+/// one ends (a first-order chain) —, the length, left out when it is the previous one's, and
+/// the target as the change from the previous target. A screw stream then costs a head, a
+/// change of a byte or two, and now and then a step or a length.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub struct ScrewNext {
+    pub start: ScrewStart,
+    /// `None`: the previous command's `ramp_ticks`.
+    pub ramp_ticks: Option<u32>,
+    /// This target less the previous one (wrapping, as every `i32` difference fits).
+    pub target_change_millirpm: i32,
     pub pin_open: bool,
 }
 
+/// Where a compact screw command starts, after the previous one's start.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum ScrewStart {
+    /// This many ticks after it.
+    Step(u32),
+    /// As many ticks after it as it came after its own predecessor.
+    #[default]
+    SameStep,
+    /// Where its ramp ends.
+    Chained,
+}
+
 impl ScrewNext {
-    /// The compact form of `ramp` sent after a screw command that started at
-    /// `previous_start`: only if it starts no earlier, within 2³² ticks.
-    pub fn after(previous_start: u64, ramp: &ScrewRamp) -> Option<Self> {
-        let step = ramp.start_clock.checked_sub(previous_start)?;
+    /// The compact form of `ramp` sent after the command `previous` stands for: only if it
+    /// starts no earlier, within 2³² ticks.
+    pub fn after(previous: &ScrewReference, ramp: &ScrewRamp) -> Option<Self> {
+        let step = u32::try_from(ramp.start_clock.checked_sub(previous.start_clock)?).ok()?;
         Some(ScrewNext {
-            start_step_ticks: u32::try_from(step).ok()?,
-            ramp_ticks: ramp.ramp_ticks,
-            target_millirpm: ramp.target_millirpm,
+            start: if step == previous.step_ticks {
+                ScrewStart::SameStep
+            } else if step == previous.ramp_ticks {
+                ScrewStart::Chained
+            } else {
+                ScrewStart::Step(step)
+            },
+            ramp_ticks: (ramp.ramp_ticks != previous.ramp_ticks).then_some(ramp.ramp_ticks),
+            target_change_millirpm: ramp.target_millirpm.wrapping_sub(previous.target_millirpm),
             pin_open: ramp.pin_open,
         })
     }
 
-    /// The ramp it stands for, after a command that started at `previous_start` (the inverse
-    /// of [`ScrewNext::after`]).
-    pub fn ramp_after(&self, previous_start: u64) -> ScrewRamp {
+    /// Ticks from the previous command's start to this one's.
+    fn step_after(&self, previous: &ScrewReference) -> u32 {
+        match self.start {
+            ScrewStart::Step(step) => step,
+            ScrewStart::SameStep => previous.step_ticks,
+            ScrewStart::Chained => previous.ramp_ticks,
+        }
+    }
+
+    /// The ramp it stands for after `previous` (the inverse of [`ScrewNext::after`]).
+    pub fn ramp_after(&self, previous: &ScrewReference) -> ScrewRamp {
         ScrewRamp {
-            start_clock: previous_start.saturating_add(self.start_step_ticks as u64),
-            ramp_ticks: self.ramp_ticks,
-            target_millirpm: self.target_millirpm,
+            start_clock: previous
+                .start_clock
+                .saturating_add(self.step_after(previous) as u64),
+            ramp_ticks: self.ramp_ticks.unwrap_or(previous.ramp_ticks),
+            target_millirpm: previous
+                .target_millirpm
+                .wrapping_add(self.target_change_millirpm),
             pin_open: self.pin_open,
+        }
+    }
+
+    /// The reference it leaves for the next compact command.
+    pub fn reference_after(&self, previous: &ScrewReference) -> ScrewReference {
+        let ramp = self.ramp_after(previous);
+        ScrewReference {
+            start_clock: ramp.start_clock,
+            step_ticks: self.step_after(previous),
+            ramp_ticks: ramp.ramp_ticks,
+            target_millirpm: ramp.target_millirpm,
         }
     }
 }
@@ -141,6 +211,9 @@ const HEAD_RESERVED: u8 = 0x80;
 
 /// Head byte of a `SCREW_NEXT`.
 const SCREW_HEAD_PIN_OPEN: u8 = 0x01;
+const SCREW_HEAD_CHAINED: u8 = 0x02;
+const SCREW_HEAD_SAME_RAMP: u8 = 0x04;
+const SCREW_HEAD_SAME_STEP: u8 = 0x08;
 
 /// Mantissa bits of a word; the other six are the exponent.
 const MANTISSA_MASK: u32 = (1 << SIGNIFICANT_BITS) - 1;
@@ -324,22 +397,51 @@ pub(super) fn read_next_segment(r: &mut CompactReader) -> Result<NextSegment, Me
 }
 
 pub(super) fn write_screw_next(w: &mut CompactWriter, s: &ScrewNext) {
-    w.u8(s.pin_open as u8 * SCREW_HEAD_PIN_OPEN);
-    w.varint(s.start_step_ticks);
-    w.varint(s.ramp_ticks);
-    w.varint(zigzag(s.target_millirpm));
+    let start = match s.start {
+        ScrewStart::Step(_) => 0,
+        ScrewStart::SameStep => SCREW_HEAD_SAME_STEP,
+        ScrewStart::Chained => SCREW_HEAD_CHAINED,
+    };
+    let pin = if s.pin_open { SCREW_HEAD_PIN_OPEN } else { 0 };
+    let same_ramp = if s.ramp_ticks.is_none() {
+        SCREW_HEAD_SAME_RAMP
+    } else {
+        0
+    };
+    w.u8(pin | start | same_ramp);
+    if let ScrewStart::Step(step) = s.start {
+        w.varint(step);
+    }
+    if let Some(ramp) = s.ramp_ticks {
+        w.varint(ramp);
+    }
+    w.varint(zigzag(s.target_change_millirpm));
 }
 
 pub(super) fn read_screw_next(r: &mut CompactReader) -> Result<ScrewNext, MessageError> {
     let head = r.u8()?;
-    if head & !SCREW_HEAD_PIN_OPEN != 0 {
+    let known =
+        SCREW_HEAD_PIN_OPEN | SCREW_HEAD_CHAINED | SCREW_HEAD_SAME_RAMP | SCREW_HEAD_SAME_STEP;
+    let both_starts = SCREW_HEAD_CHAINED | SCREW_HEAD_SAME_STEP;
+    if head & !known != 0 || head & both_starts == both_starts {
         return Err(r.bad("head", head as u64));
     }
+    let start = if head & SCREW_HEAD_SAME_STEP != 0 {
+        ScrewStart::SameStep
+    } else if head & SCREW_HEAD_CHAINED != 0 {
+        ScrewStart::Chained
+    } else {
+        ScrewStart::Step(r.varint("start_step_ticks")?)
+    };
+    let ramp_ticks = match head & SCREW_HEAD_SAME_RAMP {
+        0 => Some(r.varint("ramp_ticks")?),
+        _ => None,
+    };
     Ok(ScrewNext {
         pin_open: head & SCREW_HEAD_PIN_OPEN != 0,
-        start_step_ticks: r.varint("start_step_ticks")?,
-        ramp_ticks: r.varint("ramp_ticks")?,
-        target_millirpm: unzigzag(r.varint("target_millirpm")?),
+        start,
+        ramp_ticks,
+        target_change_millirpm: unzigzag(r.varint("target_change_millirpm")?),
     })
 }
 
@@ -395,21 +497,65 @@ mod tests {
             None,
             "not where it starts"
         );
+        let previous = ScrewReference {
+            start_clock: 8_000,
+            step_ticks: 500,
+            ramp_ticks: 1_000,
+            target_millirpm: i32::MAX,
+        };
         let ramp = ScrewRamp {
             start_clock: 9_000,
             ramp_ticks: 20,
             target_millirpm: -5,
             pin_open: true,
         };
-        let next = ScrewNext::after(8_000, &ramp).unwrap();
-        assert_eq!(next.start_step_ticks, 1_000);
-        assert_eq!(next.ramp_after(8_000), ramp);
-        assert_eq!(ScrewNext::after(9_001, &ramp), None, "before the previous");
+        let next = ScrewNext::after(&previous, &ramp).unwrap();
+        assert_eq!(
+            next.start,
+            ScrewStart::Chained,
+            "starts where the previous ends"
+        );
+        assert_eq!(next.ramp_ticks, Some(20));
+        assert_eq!(next.target_change_millirpm, (-5i32).wrapping_sub(i32::MAX));
+        assert_eq!(next.ramp_after(&previous), ramp);
+        assert_eq!(
+            next.reference_after(&previous),
+            ScrewReference {
+                start_clock: 9_000,
+                step_ticks: 1_000,
+                ramp_ticks: 20,
+                target_millirpm: -5
+            }
+        );
+        let same_step = ScrewRamp {
+            start_clock: 8_500,
+            ramp_ticks: 1_000,
+            ..ramp
+        };
+        let next = ScrewNext::after(&previous, &same_step).unwrap();
+        assert_eq!((next.start, next.ramp_ticks), (ScrewStart::SameStep, None));
+        assert_eq!(next.ramp_after(&previous), same_step);
+        let other_step = ScrewRamp {
+            start_clock: 9_500,
+            ..same_step
+        };
+        let next = ScrewNext::after(&previous, &other_step).unwrap();
+        assert_eq!(next.start, ScrewStart::Step(1_500));
+        assert_eq!(next.ramp_after(&previous), other_step);
+        let earlier = ScrewRamp {
+            start_clock: 7_999,
+            ..ramp
+        };
+        assert_eq!(
+            ScrewNext::after(&previous, &earlier),
+            None,
+            "before the previous"
+        );
         let far = ScrewRamp {
             start_clock: 8_000 + (1 << 32),
             ..ramp
         };
-        assert_eq!(ScrewNext::after(8_000, &far), None, "2^32 ticks on");
+        assert_eq!(ScrewNext::after(&previous, &far), None, "2^32 ticks on");
     }
 
     proptest! {
@@ -431,6 +577,48 @@ mod tests {
         #[test]
         fn zigzag_round_trips(value in any::<i32>()) {
             prop_assert_eq!(unzigzag(zigzag(value)), value);
+        }
+
+        /// Every ramp that starts no earlier than the previous command and within 2³² ticks
+        /// of it has the compact form, the form stands for it, and it leaves the reference
+        /// the ramp and its step make — whichever start it takes (the steps and lengths are
+        /// drawn from a few values, so every start and both lengths are likely).
+        #[test]
+        fn a_screw_ramp_after_another_comes_back(
+            previous_start in 0u64..1 << 40,
+            previous_step in prop_oneof![Just(0u32), Just(2_000), any::<u32>()],
+            previous_ramp in prop_oneof![Just(0u32), Just(2_000), any::<u32>()],
+            step in prop_oneof![Just(0u32), Just(2_000), any::<u32>()],
+            ramp_ticks in prop_oneof![Just(0u32), Just(2_000), any::<u32>()],
+            targets in any::<(i32, i32)>(),
+            pin_open in any::<bool>(),
+        ) {
+            let previous = ScrewReference {
+                start_clock: previous_start,
+                step_ticks: previous_step,
+                ramp_ticks: previous_ramp,
+                target_millirpm: targets.0,
+            };
+            let ramp = ScrewRamp {
+                start_clock: previous_start + step as u64,
+                ramp_ticks,
+                target_millirpm: targets.1,
+                pin_open,
+            };
+            let next = ScrewNext::after(&previous, &ramp).unwrap();
+            prop_assert_eq!(next.start == ScrewStart::SameStep, step == previous_step);
+            prop_assert_eq!(
+                next.start == ScrewStart::Chained,
+                step != previous_step && step == previous_ramp
+            );
+            prop_assert_eq!(next.ramp_ticks.is_none(), ramp_ticks == previous_ramp);
+            prop_assert_eq!(next.ramp_after(&previous), ramp);
+            prop_assert_eq!(next.reference_after(&previous), ScrewReference {
+                start_clock: ramp.start_clock,
+                step_ticks: step,
+                ramp_ticks,
+                target_millirpm: targets.1,
+            });
         }
     }
 }

@@ -214,14 +214,24 @@ fn any_compact_segment() -> impl Strategy<Value = NextSegment> {
 fn any_host_message() -> impl Strategy<Value = HostMessage> {
     prop_oneof![
         any_compact_segment().prop_map(HostMessage::NextSegment),
-        (any::<u32>(), any::<u32>(), any::<i32>(), any::<bool>()).prop_map(|(s, r, rpm, pin)| {
-            HostMessage::ScrewNext(ScrewNext {
-                start_step_ticks: s,
-                ramp_ticks: r,
-                target_millirpm: rpm,
-                pin_open: pin,
-            })
-        }),
+        (
+            prop_oneof![
+                any::<u32>().prop_map(ScrewStart::Step),
+                Just(ScrewStart::SameStep),
+                Just(ScrewStart::Chained)
+            ],
+            any::<Option<u32>>(),
+            any::<i32>(),
+            any::<bool>()
+        )
+            .prop_map(|(start, r, change, pin)| {
+                HostMessage::ScrewNext(ScrewNext {
+                    start,
+                    ramp_ticks: r,
+                    target_change_millirpm: change,
+                    pin_open: pin,
+                })
+            }),
         Just(HostMessage::Identify),
         any::<u32>().prop_map(|token| HostMessage::ClockQuery { token }),
         (any::<u32>(), any::<u32>()).prop_map(|(a, b)| HostMessage::Configure {
@@ -448,11 +458,29 @@ fn next_segment_layout_is_the_documented_one() {
 #[test]
 fn screw_next_layout_is_the_documented_one() {
     let bytes = encode_host(&HostMessage::ScrewNext(ScrewNext {
-        start_step_ticks: 20_000,
-        ramp_ticks: 2_000,
-        target_millirpm: -1_500,
+        start: ScrewStart::Step(20_000),
+        ramp_ticks: Some(2_000),
+        target_change_millirpm: -1_500,
         pin_open: true,
     }));
     // kind, head (pin open), 20,000, 2,000, zigzag(−1,500) = 2,999.
     assert_eq!(bytes, [0x13, 1, 0xA0, 0x9C, 0x01, 0xD0, 0x0F, 0xB7, 0x17]);
+    // The usual ones: as long after the previous as that one after its own, as long (a
+    // zero-order stream), 60 millirpm faster; where the previous ramp ends (first order).
+    let bytes = encode_host(&HostMessage::ScrewNext(ScrewNext {
+        start: ScrewStart::SameStep,
+        ramp_ticks: None,
+        target_change_millirpm: 60,
+        pin_open: true,
+    }));
+    assert_eq!(bytes, [0x13, 0x0D, 0x78]);
+    let bytes = encode_host(&HostMessage::ScrewNext(ScrewNext {
+        start: ScrewStart::Chained,
+        ramp_ticks: None,
+        target_change_millirpm: 60,
+        pin_open: true,
+    }));
+    assert_eq!(bytes, [0x13, 0x07, 0x78]);
+    // Chained and same step at once is refused.
+    assert!(HostMessage::decode(&[0x13, 0x0B, 0x78]).is_err());
 }

@@ -233,6 +233,9 @@ mod kind {
     pub const SCREW: u8 = 0x11;
     pub const NEXT_SEGMENT: u8 = 0x12;
     pub const SCREW_NEXT: u8 = 0x13;
+    pub const NEXT_ACCELERATING: u8 = 0x14;
+    pub const NEXT_DECELERATING: u8 = 0x15;
+    pub const NEXT_CRUISING: u8 = 0x16;
     pub const FEED_HOLD: u8 = 0x20;
     pub const FEED_RESUME: u8 = 0x21;
     pub const DROP_QUEUE: u8 = 0x22;
@@ -475,7 +478,13 @@ impl HostMessage {
                 w
             }
             NextSegment(n) => {
-                Writer::compact(kind::NEXT_SEGMENT, |c| compact::write_next_segment(c, n))
+                let kind = match compact::Shape::of(n.segment()) {
+                    compact::Shape::Given => kind::NEXT_SEGMENT,
+                    compact::Shape::Accelerating => kind::NEXT_ACCELERATING,
+                    compact::Shape::Decelerating => kind::NEXT_DECELERATING,
+                    compact::Shape::Cruising => kind::NEXT_CRUISING,
+                };
+                Writer::compact(kind, |c| compact::write_next_segment(c, n))
             }
             ScrewNext(s) => Writer::compact(kind::SCREW_NEXT, |c| compact::write_screw_next(c, s)),
             Screw(s) => {
@@ -519,15 +528,21 @@ impl HostMessage {
     pub fn decode_prefix(bytes: &[u8]) -> Result<(HostMessage, usize), MessageError> {
         use HostMessage::*;
         let &kind = bytes.first().ok_or(MessageError::Empty)?;
-        if let kind::NEXT_SEGMENT | kind::SCREW_NEXT = kind {
+        let shape = match kind {
+            kind::NEXT_SEGMENT => Some(compact::Shape::Given),
+            kind::NEXT_ACCELERATING => Some(compact::Shape::Accelerating),
+            kind::NEXT_DECELERATING => Some(compact::Shape::Decelerating),
+            kind::NEXT_CRUISING => Some(compact::Shape::Cruising),
+            _ => None,
+        };
+        if shape.is_some() || kind == kind::SCREW_NEXT {
             let mut r = compact::CompactReader {
                 kind,
                 rest: &bytes[1..],
             };
-            let message = if kind == kind::NEXT_SEGMENT {
-                NextSegment(compact::read_next_segment(&mut r)?)
-            } else {
-                ScrewNext(compact::read_screw_next(&mut r)?)
+            let message = match shape {
+                Some(shape) => NextSegment(compact::read_next_segment(&mut r, shape)?),
+                None => ScrewNext(compact::read_screw_next(&mut r)?),
             };
             return Ok((message, bytes.len() - r.rest.len()));
         }

@@ -206,8 +206,42 @@ impl ScrewNext {
 const HEAD_ENDS_AT_REST: u8 = 0x01;
 const HEAD_NEGATIVE_SHIFT: u32 = 1;
 const HEAD_DOMINANT_SHIFT: u32 = 4;
-const HEAD_TAG_STEP: u8 = 0x40;
-const HEAD_RESERVED: u8 = 0x80;
+/// Bits 6–7: how the tag follows the previous segment's.
+const HEAD_TAG_SHIFT: u32 = 6;
+const TAG_NEXT: u8 = 0; // plus 1: the next move
+const TAG_SAME: u8 = 1; // plus 0: another segment of the same move
+const TAG_STEP_GIVEN: u8 = 2; // a varint step (neither 0 nor 1) follows the duration
+
+/// How a segment's dominant steps divide into the ramp's phases, told by the kind of its
+/// `NEXT_SEGMENT` message: nearly every segment of a print is all one phase (the planner
+/// splits a move where the dominant axis changes phase), and then its phase counts are
+/// implied by the dominant count.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Shape {
+    /// The accelerate and decelerate counts follow the step counts (when there are steps).
+    Given,
+    Accelerating,
+    Decelerating,
+    Cruising,
+}
+
+impl Shape {
+    /// The shape `segment` has (a segment without steps has the general one).
+    pub(super) fn of(segment: &Segment) -> Shape {
+        let count = segment.dominant_steps();
+        match (
+            segment.accelerate_steps,
+            segment.cruise_steps,
+            segment.decelerate_steps,
+        ) {
+            _ if count == 0 => Shape::Given,
+            (a, 0, 0) if a == count => Shape::Accelerating,
+            (0, 0, d) if d == count => Shape::Decelerating,
+            (0, c, 0) if c == count => Shape::Cruising,
+            _ => Shape::Given,
+        }
+    }
+}
 
 /// Head byte of a `SCREW_NEXT`.
 const SCREW_HEAD_PIN_OPEN: u8 = 0x01;
@@ -324,15 +358,17 @@ pub(super) fn write_next_segment(w: &mut CompactWriter, n: &NextSegment) {
     } else {
         0
     };
-    let mut head = at_rest
+    let tag = match n.tag_step {
+        1 => TAG_NEXT,
+        0 => TAG_SAME,
+        _ => TAG_STEP_GIVEN,
+    };
+    w.u8(at_rest
         | (s.negative_mask << HEAD_NEGATIVE_SHIFT)
-        | (s.dominant_axis << HEAD_DOMINANT_SHIFT);
-    if n.tag_step != 1 {
-        head |= HEAD_TAG_STEP;
-    }
-    w.u8(head);
+        | (s.dominant_axis << HEAD_DOMINANT_SHIFT)
+        | (tag << HEAD_TAG_SHIFT));
     w.varint(n.duration_ticks);
-    if n.tag_step != 1 {
+    if tag == TAG_STEP_GIVEN {
         w.varint(n.tag_step);
     }
     for &count in &s.step_counts {
@@ -341,8 +377,10 @@ pub(super) fn write_next_segment(w: &mut CompactWriter, n: &NextSegment) {
     if s.dominant_steps() == 0 {
         return;
     }
-    w.varint(s.accelerate_steps);
-    w.varint(s.decelerate_steps);
+    if Shape::of(s) == Shape::Given {
+        w.varint(s.accelerate_steps);
+        w.varint(s.decelerate_steps);
+    }
     // `new` admitted only values that have a word.
     w.word(word_of(s.first_period_q32).unwrap_or(0));
     if s.accelerate_steps as u64 + s.decelerate_steps as u64 > 0 {
@@ -350,24 +388,26 @@ pub(super) fn write_next_segment(w: &mut CompactWriter, n: &NextSegment) {
     }
 }
 
-pub(super) fn read_next_segment(r: &mut CompactReader) -> Result<NextSegment, MessageError> {
+/// Read a `NEXT_SEGMENT` of shape `shape` (from its kind).
+pub(super) fn read_next_segment(
+    r: &mut CompactReader,
+    shape: Shape,
+) -> Result<NextSegment, MessageError> {
     let head = r.u8()?;
-    if head & HEAD_RESERVED != 0 {
-        return Err(r.bad("head", head as u64));
-    }
     let dominant_axis = head >> HEAD_DOMINANT_SHIFT & 0b11;
     if dominant_axis as usize >= MAX_AXES {
         return Err(r.bad("dominant_axis", dominant_axis as u64));
     }
     let duration_ticks = r.varint("duration_ticks")?;
-    let tag_step = if head & HEAD_TAG_STEP != 0 {
-        let step = r.varint("tag_step")?;
-        if step == 1 {
-            return Err(r.bad("tag_step", 1)); // 1 is written by leaving the bit clear
-        }
-        step
-    } else {
-        1
+    let tag_step = match head >> HEAD_TAG_SHIFT {
+        TAG_NEXT => 1,
+        TAG_SAME => 0,
+        TAG_STEP_GIVEN => match r.varint("tag_step")? {
+            // 0 and 1 have tag codes of their own
+            step @ (0 | 1) => return Err(r.bad("tag_step", step as u64)),
+            step => step,
+        },
+        _ => return Err(r.bad("head", head as u64)),
     };
     let mut segment = Segment {
         negative_mask: head >> HEAD_NEGATIVE_SHIFT & 0b111,
@@ -378,9 +418,17 @@ pub(super) fn read_next_segment(r: &mut CompactReader) -> Result<NextSegment, Me
         *count = r.varint("step_counts")?;
     }
     let count = segment.dominant_steps();
-    if count > 0 {
-        segment.accelerate_steps = r.varint("accelerate_steps")?;
-        segment.decelerate_steps = r.varint("decelerate_steps")?;
+    if count == 0 {
+        if shape != Shape::Given {
+            return Err(r.bad("dominant steps", 0)); // a phase of no steps
+        }
+    } else {
+        (segment.accelerate_steps, segment.decelerate_steps) = match shape {
+            Shape::Given => (r.varint("accelerate_steps")?, r.varint("decelerate_steps")?),
+            Shape::Accelerating => (count, 0),
+            Shape::Decelerating => (0, count),
+            Shape::Cruising => (0, 0),
+        };
         let ramped = segment.accelerate_steps as u64 + segment.decelerate_steps as u64;
         if ramped > count as u64 {
             return Err(r.bad("decelerate_steps", segment.decelerate_steps as u64));

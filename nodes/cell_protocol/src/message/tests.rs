@@ -166,24 +166,40 @@ fn any_segment() -> impl Strategy<Value = Segment> {
 }
 
 /// A segment with a compact form: phases that add up, the timing rounded as the host rounds
-/// it (counts small and large, so the varints take 1 to 5 bytes).
+/// it (counts small and large, so the varints take 1 to 5 bytes; every tag code and, as
+/// often as a split, each single-phase shape).
 fn any_compact_segment() -> impl Strategy<Value = NextSegment> {
     (
-        any::<u32>(),
-        prop_oneof![Just(1u32), any::<u32>()],
+        (any::<u32>(), prop_oneof![Just(0u32), Just(1), any::<u32>()]),
         any::<bool>(),
         prop::array::uniform3(prop_oneof![0u32..200, any::<u32>()]),
         0u8..8,
         0u8..3,
-        any::<[u32; 2]>(),
+        (0u8..4, any::<[u32; 2]>()),
         1u64 << 32..1 << 62,
         0u64..1 << 61,
     )
         .prop_map(
-            |(duration, tag_step, at_rest, counts, mask, dominant, split, period, ramp)| {
+            |(
+                (duration, tag_step),
+                at_rest,
+                counts,
+                mask,
+                dominant,
+                (shape, split),
+                period,
+                ramp,
+            )| {
                 let count = counts[dominant as usize];
-                let accelerate = split[0] % (count as u64 + 1) as u32;
-                let decelerate = split[1] % (count - accelerate + 1);
+                let (accelerate, decelerate) = match shape {
+                    0 => {
+                        let accelerate = split[0] % (count as u64 + 1) as u32;
+                        (accelerate, split[1] % (count - accelerate + 1))
+                    }
+                    1 => (count, 0),
+                    2 => (0, count),
+                    _ => (0, 0),
+                };
                 let cruise = count - accelerate - decelerate;
                 let timed = count > 0;
                 let ramped = accelerate + decelerate > 0;
@@ -449,10 +465,39 @@ fn next_segment_layout_is_the_documented_one() {
         0x43, // ramp 3 << 40 (42 bits) = (1 << 25 | 1 << 24) << 16: 16 << 26 | 3 << 24
     ];
     assert_eq!(bytes, expected);
-    // Tag step 0 (a second segment of the same move) follows the duration.
+    // Tag step 0 (a second segment of the same move) is a code of the head; another step
+    // follows the duration.
     let same_move = NextSegment::new(40_000, 0, 0, segment).unwrap();
     let bytes = encode_host(&HostMessage::NextSegment(same_move));
-    assert_eq!(&bytes[1..6], &[0b0101_0010, 0xC0, 0xB8, 0x02, 0]);
+    assert_eq!(&bytes[1..6], &[0b0101_0010, 0xC0, 0xB8, 0x02, 100]);
+    let later_move = NextSegment::new(40_000, 5, 0, segment).unwrap();
+    let bytes = encode_host(&HostMessage::NextSegment(later_move));
+    assert_eq!(&bytes[1..6], &[0b1001_0010, 0xC0, 0xB8, 0x02, 5]);
+    // All of its steps accelerating: kind NEXT_ACCELERATING, and no phase counts.
+    let accelerating = NextSegment::new(
+        40_000,
+        1,
+        0,
+        Segment {
+            accelerate_steps: 300,
+            cruise_steps: 0,
+            decelerate_steps: 0,
+            ..segment
+        },
+    )
+    .unwrap();
+    let bytes = encode_host(&HostMessage::NextSegment(accelerating));
+    assert_eq!(bytes[..2], [0x14, 0b0001_0010]);
+    assert_eq!(bytes[5..9], [100, 0xAC, 0x02, 0]);
+    assert_eq!(bytes[9..], expected[11..], "the words follow the counts");
+    // Refused: tag code 3, a given tag step of 1 (it has a code), a phase kind without steps.
+    let mut bad = bytes.clone();
+    bad[1] |= 0b1100_0000;
+    assert!(HostMessage::decode(&bad).is_err());
+    assert!(HostMessage::decode(&[0x12, 0b1000_0000, 1, 1, 0, 0, 0]).is_err());
+    assert!(HostMessage::decode(&[0x12, 0b1000_0000, 1, 2, 0, 0, 0]).is_ok());
+    assert!(HostMessage::decode(&[0x15, 0, 1, 0, 0, 0]).is_err());
+    assert!(HostMessage::decode(&[0x12, 0, 1, 0, 0, 0]).is_ok());
 }
 
 #[test]

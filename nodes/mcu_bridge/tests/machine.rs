@@ -144,10 +144,11 @@ fn a_plan_plays_through_the_machine_interface_and_reports_what_was_executed() {
     assert_eq!(rig.machine.state().state, PlayerState::Idle);
     assert_eq!(rig.machine.underruns(), 0);
     // What the link cost: every byte written (segments, clock queries, acknowledgements)
-    // per step made: 0.40 here (1.02 with protocol version 2's fixed 60-byte segments, one
-    // per frame). These 300 moves are short (230 steps each), and a segment costs its 17–19
-    // bytes in the compact form however few steps it has. A bound against the encoding
-    // growing; the whole print's figures and Klipper's on the same file are in the README.
+    // per step made: 0.30 here (0.35 with protocol version 3's two phase counts in every
+    // segment, 1.02 with version 2's fixed 60-byte segments, one per frame). These 300
+    // moves are short (230 steps each), and a segment costs its 15–17 bytes in the compact
+    // form however few steps it has. A bound against the encoding growing; the whole
+    // print's figures and Klipper's on the same file are in the README.
     let steps: u64 = segments
         .iter()
         .map(|s| s.step_counts.iter().map(|&c| c as u64).sum::<u64>())
@@ -157,7 +158,7 @@ fn a_plan_plays_through_the_machine_interface_and_reports_what_was_executed() {
         "{} bytes for {steps} steps: {per_step:.3} bytes per step",
         rig.machine.bytes_sent()
     );
-    assert!(per_step < 0.42, "{per_step} bytes per step");
+    assert!(per_step < 0.32, "{per_step} bytes per step");
 }
 
 /// Pause holds on the path and resume goes on to the same end; cancel comes to rest, drops

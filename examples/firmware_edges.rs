@@ -45,7 +45,7 @@ use std::collections::BTreeMap;
 use anyhow::{bail, Context, Result};
 use cell_bag::read_bag;
 use cell_firmware_core::outputs::coil_phase;
-use cell_protocol::message::HostMessage;
+use cell_protocol::message::{host_messages, HostMessage};
 use cell_protocol::FrameDecoder;
 use mcu_bridge::Schedule;
 use polar_cell_msgs::{cdr, Hold, ScrewCommand, StepSegment};
@@ -66,23 +66,26 @@ const CONTROL_PERIOD_NS: f64 = 250e3;
 const GENERATOR_LEAD_NS: f64 = 2e6;
 
 /// The host's messages as they reached UART0 (`time_ns,byte` lines from the harness): each
-/// decoded frame with the time of its last byte, and how many frames were damaged.
-fn read_host_frames(text: &str) -> Result<(Vec<(f64, HostMessage)>, u32)> {
+/// message of each decoded frame with the time of the frame's last byte, and how many frames
+/// were damaged.
+fn read_host_messages(text: &str) -> Result<(Vec<(f64, HostMessage)>, u32)> {
     let mut decoder = FrameDecoder::new();
-    let mut frames = Vec::new();
+    let mut messages = Vec::new();
     for (n, line) in text.lines().enumerate() {
         let (t, byte) = line
             .split_once(',')
             .and_then(|(t, b)| Some((t.parse::<u64>().ok()?, b.trim().parse::<u8>().ok()?)))
             .with_context(|| format!("uart line {}: `{line}` is not time_ns,byte", n + 1))?;
+        // Every message of the payload: the bridge packs several into a frame (a hold joins
+        // the segments waiting to fill theirs), and each takes effect at the frame's end.
         if let Some(Ok(frame)) = decoder.push(byte) {
-            if let Ok(message) = HostMessage::decode(frame.payload) {
-                frames.push((t as f64, message));
+            for message in host_messages(frame.payload).map_while(Result::ok) {
+                messages.push((t as f64, message));
             }
         }
     }
     let c = decoder.counters();
-    Ok((frames, c.crc_errors + c.framing_errors))
+    Ok((messages, c.crc_errors + c.framing_errors))
 }
 
 /// After an emergency stop at `estop_ns` (recorded time): nothing starts later than one
@@ -609,13 +612,13 @@ fn main() -> Result<()> {
     let text = std::fs::read_to_string(edges).with_context(|| format!("reading {edges}"))?;
     let edges = read_edges(&text)?;
     let executed = executed_steps(&edges, bench_rig)?;
-    let (host_frames, damaged_frames) = match uart_in {
-        Some(path) => read_host_frames(
+    let (host_messages, damaged_frames) = match uart_in {
+        Some(path) => read_host_messages(
             &std::fs::read_to_string(path).with_context(|| format!("reading {path}"))?,
         )?,
         None => (Vec::new(), 0),
     };
-    let stop_ns = host_frames
+    let stop_ns = host_messages
         .iter()
         .find(|(_, m)| {
             matches!(
@@ -624,7 +627,7 @@ fn main() -> Result<()> {
             )
         })
         .map(|(t, _)| *t);
-    let estop_ns = host_frames
+    let estop_ns = host_messages
         .iter()
         .find(|(_, m)| *m == HostMessage::EmergencyStop)
         .map(|(t, _)| *t);
@@ -637,8 +640,8 @@ fn main() -> Result<()> {
         .min(estop_ns.unwrap_or(f64::INFINITY));
     if uart_in.is_some() {
         println!(
-            "host frames: {} decoded, {damaged_frames} damaged on the line{}{}",
-            host_frames.len(),
+            "host messages: {} decoded, {damaged_frames} frames damaged on the line{}{}",
+            host_messages.len(),
             stop_ns.map_or(String::new(), |t| format!(
                 "; first hold or stop at {:.6} s",
                 t * 1e-9

@@ -123,6 +123,12 @@ pub fn param_specs() -> Vec<ParamSpec> {
         )
         .range(0.01, 1000.0),
         ParamSpec::new(
+            "pack_s",
+            ParamValue::Double(0.0),
+            "machine time continuing segments and screw commands may wait for more to fill their frame (0: every write sends what is ready)",
+        )
+        .range(0.0, 0.5),
+        ParamSpec::new(
             "retransmit_timeout_s",
             ParamValue::Double(0.05),
             "an unacknowledged frame is sent again after this long (wall seconds)",
@@ -389,6 +395,7 @@ pub fn session_options(node: &CellNode, params: &MachineParams) -> SessionOption
     options.host_timeout_s = p.f64("host_timeout_s") * wall;
     options.silence_s = p.f64("silence_s") * wall;
     options.retransmit_timeout_s = p.f64("retransmit_timeout_s") * wall;
+    options.pack_s = p.f64("pack_s");
     options.screw_hold = params.screw_hold;
     options
 }

@@ -202,3 +202,123 @@ fn decode_all(payload: &[u8], on_message: &mut impl FnMut(FromMcu)) {
         });
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use cell_protocol::message::{host_messages, ScrewNext, ScrewStart};
+
+    /// The MCU's side of the line: a bare link that records every payload it delivers.
+    struct Peer {
+        link: Link<16>,
+        decoder: FrameDecoder,
+        /// Each delivered payload's messages, with the time it came.
+        payloads: Vec<(u64, Vec<HostMessage>)>,
+    }
+
+    impl Peer {
+        fn new() -> Peer {
+            Peer {
+                link: Link::new(LinkOptions {
+                    window: 16,
+                    retransmit_timeout: 20_000,
+                    nonce: 7,
+                }),
+                decoder: FrameDecoder::new(),
+                payloads: Vec::new(),
+            }
+        }
+
+        /// Everything each side has to write at `now` reaches the other.
+        fn exchange(&mut self, host: &mut HostEndpoint, now: u64) {
+            let mut out = [0; MAX_WIRE_FRAME];
+            while let Some(len) = host.poll_transmit(now, &mut out) {
+                for &byte in &out[..len] {
+                    let Some(Ok(frame)) = self.decoder.push(byte) else {
+                        continue;
+                    };
+                    if let Received::Message(p) = self.link.receive(&frame, now) {
+                        let messages = host_messages(p).map(Result::unwrap).collect();
+                        self.payloads.push((now, messages));
+                    }
+                }
+            }
+            while let Some(len) = self.link.poll_transmit(now, &mut out) {
+                host.receive(&out[..len], now, &mut |_| {});
+            }
+        }
+    }
+
+    fn screw_next(change: i32) -> HostMessage {
+        HostMessage::ScrewNext(ScrewNext {
+            start: ScrewStart::Step(20_000),
+            ramp_ticks: Some(2_000),
+            target_change_millirpm: change,
+            pin_open: true,
+        })
+    }
+
+    /// Packing: continuing messages wait up to `pack_for` to fill a frame, a full payload
+    /// goes at once, and a hold goes at the next write, taking the waiting ones along in
+    /// order.
+    #[test]
+    fn continuing_messages_wait_to_fill_a_frame_and_a_hold_takes_them_along() {
+        let mut host = HostEndpoint::new(20_000, 1).pack_for(100_000);
+        let mut peer = Peer::new();
+        for now in [0, 1_000, 2_000] {
+            peer.exchange(&mut host, now); // the session starts
+        }
+        assert!(host.link().is_synced());
+        // Two 8-byte commands wait for 100 ms, then go in one frame.
+        host.send(&screw_next(1)).unwrap();
+        host.send(&screw_next(2)).unwrap();
+        peer.exchange(&mut host, 10_000);
+        peer.exchange(&mut host, 109_999);
+        assert!(peer.payloads.is_empty(), "nothing before its time");
+        peer.exchange(&mut host, 110_000);
+        assert_eq!(
+            peer.payloads,
+            [(110_000, vec![screw_next(1), screw_next(2)])]
+        );
+        // Eight fill a payload (64 bytes); the ninth seals it: the full frame goes at the
+        // next write, the ninth waits.
+        for change in 0..9 {
+            host.send(&screw_next(change)).unwrap();
+        }
+        peer.exchange(&mut host, 120_000);
+        assert_eq!(peer.payloads.len(), 2);
+        assert_eq!(
+            peer.payloads[1].1,
+            (0..8).map(screw_next).collect::<Vec<_>>()
+        );
+        // A hold does not wait, and goes after what was waiting.
+        let hold = HostMessage::FeedHold { rate_q32: 5 };
+        host.send(&hold).unwrap();
+        peer.exchange(&mut host, 121_000);
+        assert_eq!(peer.payloads[2], (121_000, vec![screw_next(8), hold]));
+        let sent = host.sent_bytes();
+        assert_eq!((sent.screw, sent.control, sent.frames), (11 * 8, 5, 3));
+    }
+
+    /// Without packing, every write sends what was packed.
+    #[test]
+    fn without_packing_every_write_sends_what_there_is() {
+        let mut host = HostEndpoint::new(20_000, 1);
+        let mut peer = Peer::new();
+        for now in [0, 1_000, 2_000] {
+            peer.exchange(&mut host, now);
+        }
+        host.send(&screw_next(1)).unwrap();
+        peer.exchange(&mut host, 3_000);
+        host.send(&screw_next(2)).unwrap();
+        host.send(&screw_next(3)).unwrap();
+        peer.exchange(&mut host, 4_000);
+        assert_eq!(
+            peer.payloads,
+            [
+                (3_000, vec![screw_next(1)]),
+                (4_000, vec![screw_next(2), screw_next(3)])
+            ]
+        );
+    }
+}

@@ -124,7 +124,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         .range(0.01, 1000.0),
         ParamSpec::new(
             "pack_s",
-            ParamValue::Double(0.0),
+            ParamValue::Double(0.1),
             "machine time continuing segments and screw commands may wait for more to fill their frame (0: every write sends what is ready)",
         )
         .range(0.0, 0.5),

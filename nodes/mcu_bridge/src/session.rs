@@ -57,10 +57,9 @@ pub struct SessionOptions {
     pub silence_s: f64,
     pub retransmit_timeout_s: f64,
     /// How long continuing segments and screw commands may wait for more to fill their frame
-    /// (s): they go a horizon ahead, and each frame costs 8 bytes of framing. A schedule's
-    /// first segment, clock queries and holds never wait. Off (0) by default: with 0.1 s,
-    /// CI's RP2040 in the loop showed steps up to 15 µs late just before a cancel and an
-    /// emergency stop sent at once (twice; not on this machine outside CI), not yet explained.
+    /// (machine s): they go a horizon ahead, and each frame costs 8 bytes of framing. A
+    /// schedule's first segment, clock queries and holds never wait (a hold takes the
+    /// waiting messages along in its frame).
     pub pack_s: f64,
     /// How rpm runs between screw commands (the screw driver's hold).
     pub screw_hold: Hold,
@@ -89,7 +88,7 @@ impl SessionOptions {
             state_period_s: 0.02,
             silence_s: 0.25,
             retransmit_timeout_s: 0.05,
-            pack_s: 0.0,
+            pack_s: 0.1,
             screw_hold: Hold::ZeroOrder,
             steps_per_unit,
             joint_accelerations,

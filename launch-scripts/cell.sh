@@ -47,9 +47,10 @@ machine_args=(-p "speed:=$speed" -p exit_when_done:=true)
 # shellcheck disable=SC2086
 "$bin/$machine" --ros-args --params-file "$params" "${machine_args[@]}" ${POLAR_CELL_ROS_ARGS:-} &
 executor=$!
+streamer=
 stop_nodes() {
-  kill -INT "$executor" "$screw" "$planner" 2>/dev/null || true
-  wait "$executor" "$screw" "$planner" || true
+  kill -INT "$executor" "$screw" "$planner" $streamer 2>/dev/null || true
+  wait "$executor" "$screw" "$planner" $streamer || true
   kill -INT "$recorder" 2>/dev/null || true
   wait "$recorder"
   if [[ -n $emulator ]]; then
@@ -59,6 +60,16 @@ stop_nodes() {
 }
 trap stop_nodes EXIT
 # shellcheck disable=SC2086
-"$bin/gcode_streamer" "$gcode" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-}
-wait "$executor" # every move is planned; the machine runs to the end of the plan
+"$bin/gcode_streamer" "$gcode" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &
+streamer=$!
+# The machine ends the print: at the end of the plan, or with an error at a fault (a node
+# of the graph restarted mid-print, the MCU lost), when the streamer may still be waiting.
+machine_status=0
+wait "$executor" || machine_status=$?
+if [[ $machine_status != 0 ]]; then
+  echo "$0: $machine stopped the print (exit status $machine_status)" >&2
+  exit "$machine_status"
+fi
+wait "$streamer" # every move was acknowledged
+streamer=
 sleep 0.3 # the last samples, progress and diagnostics reach the recorder

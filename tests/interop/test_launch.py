@@ -1,7 +1,13 @@
 """The launch scripts start the same nodes with the same parameters as `polar-cell print`."""
 
+import os
 import re
+import signal
+import subprocess
+import time
 import xml.etree.ElementTree as ET
+
+import pytest
 
 from mcap.reader import make_reader
 from test_bags import read_with_mcap_ros2
@@ -89,3 +95,45 @@ def test_mcu_launch_xml_names_existing_binaries_and_parameter_file():
     assert "cell_executor" not in binaries
     for binary in binaries:
         assert (BIN_DIR / binary).exists(), binary
+
+
+@pytest.mark.parametrize("restarted", ["screw_driver", "polar_planner"])
+def test_cell_sh_stops_on_the_path_when_a_planner_or_screw_driver_restarts(tmp_path, restarted):
+    """A plan producer killed and started again mid-print cannot continue the plan it began
+    (a restarted screw driver used to hang the print for good, a restarted planner to start
+    its plan clock again): the executor sees the new process, stops on the path and ends
+    the print with the reason, non-zero, and the bag is finalised."""
+    bag = tmp_path / "cell.mcap"
+    env = {"POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin", "POLAR_CELL_SPEED": "4"}
+    cell = subprocess.Popen(
+        [str(LAUNCH / "cell.sh"), str(FIXTURES / "finger.gcode"), str(bag)],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    try:
+        time.sleep(8)  # well into the print (finger's first 30 s of machine time)
+        pid = subprocess.run(
+            ["pgrep", "-P", str(cell.pid), "-x", restarted], capture_output=True, text=True
+        ).stdout.split()
+        assert pid, f"no {restarted} under cell.sh"
+        os.kill(int(pid[0]), signal.SIGKILL)
+        time.sleep(0.5)
+        again = subprocess.Popen(
+            [str(BIN_DIR / restarted), "--ros-args", "--params-file",
+             str(LAUNCH / "params" / "cell.yaml")],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )
+        try:
+            output, _ = cell.communicate(timeout=30)
+        finally:
+            again.send_signal(signal.SIGINT)
+            again.wait(timeout=10)
+    finally:
+        if cell.poll() is None:
+            cell.kill()
+    assert cell.returncode != 0, output
+    assert f"/{restarted} restarted mid-print" in output, output
+    messages, _, _ = read_with_mcap_ros2(bag)
+    states = messages["/joint_states"]
+    assert len(states) > 8 / 0.02, len(states)  # it had been running
+    # It stopped at rest (the last sample stands still), not part-way through a move.
+    assert all(abs(v) < 1e-9 for v in states[-1].velocity), states[-1].velocity

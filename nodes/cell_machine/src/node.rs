@@ -18,7 +18,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
-use cell_runtime::graph::Producer;
+use cell_runtime::graph::{Producer, ProducerProcess};
 use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
     now_ns, parse_service_mapping, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
@@ -270,6 +270,14 @@ pub async fn run<M: Machine>(
     let mut steps_from = Producer::named(node, "steps_producer", true)?;
     let mut screw_from = Producer::named(node, "screw_producer", true)?;
     let mut progress_from = Producer::named(node, "producer", true)?;
+    // The process each plan producer's first message came from: the planner or screw
+    // driver restarted mid-print does not continue the plan it began (its plan clock starts
+    // again, its screw commands pair with other moves), so the machine stops on the path and
+    // the print fails, saying why, instead of waiting for input that never fits.
+    let mut steps_process = ProducerProcess::new();
+    let mut screw_process = ProducerProcess::new();
+    let mut stopping_for: Option<String> = None;
+    let mut last_graph_look = Instant::now();
     let mut ignored = IgnoredWriters::default();
     let steps_sub = node.subscription::<StepSegment>("/polar/steps", &reliable_qos(capacity))?;
     let screw_sub = node.subscription::<ScrewCommand>("/screw/command", &reliable_qos(capacity))?;
@@ -354,24 +362,29 @@ pub async fn run<M: Machine>(
         tokio::select! {
             taken = steps_sub.async_take() => {
                 let (s, info) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
-                if steps_from.admits(&info) {
+                if !steps_from.admits(&info) {
+                    ignored.note(node, "/polar/steps", "ignored_foreign_steps", steps_from.name());
+                } else if !steps_process.same(&info.publisher_gid()) {
+                    stopping_for.get_or_insert_with(|| restarted(steps_from.name(), "/polar/steps"));
+                } else {
                     received += 1;
                     pending_steps.push_back(s);
-                } else {
-                    ignored.note(node, "/polar/steps", "ignored_foreign_steps", steps_from.name());
                 }
             }
             taken = screw_sub.async_take() => {
                 let (c, info) = taken.map_err(|e| anyhow!("/screw/command: {e:?}"))?;
-                if screw_from.admits(&info) {
-                    pending_screw.push_back(c);
-                } else {
+                if !screw_from.admits(&info) {
                     ignored.note(
                         node,
                         "/screw/command",
                         "ignored_foreign_screw_commands",
                         screw_from.name(),
                     );
+                } else if !screw_process.same(&info.publisher_gid()) {
+                    stopping_for
+                        .get_or_insert_with(|| restarted(screw_from.name(), "/screw/command"));
+                } else {
+                    pending_screw.push_back(c);
                 }
             }
             taken = progress_sub.async_take() => {
@@ -417,9 +430,33 @@ pub async fn run<M: Machine>(
         }
         // Once cancelled or stopped, what is still in flight for the dropped plan is dropped
         // too: a stopped machine would refuse it, and that refusal is no fault of the print.
-        if cancelled || executor.state().state == PlayerState::Stopped {
+        if cancelled || stopping_for.is_some() || executor.state().state == PlayerState::Stopped {
             pending_steps.clear();
             pending_screw.clear();
+        }
+        // A restarted producer that sends nothing is seen in the graph's announcements.
+        if stopping_for.is_none() && last_graph_look.elapsed() >= Duration::from_millis(500) {
+            last_graph_look = Instant::now();
+            for (from, process, topic) in [
+                (&steps_from, &mut steps_process, "/polar/steps"),
+                (&screw_from, &mut screw_process, "/screw/command"),
+            ] {
+                if from.is_checked() && process.announced_elsewhere(&from.announced(), from.name())
+                {
+                    stopping_for.get_or_insert_with(|| restarted(from.name(), topic));
+                }
+            }
+        }
+        // A producer restarted: stop on the path as a cancel does; at rest, the print fails.
+        if let Some(reason) = &stopping_for {
+            if executor.is_drained() {
+                fault.get_or_insert_with(|| reason.clone());
+            } else if executor.state().hold != Some(HoldReason::Cancel)
+                && executor.state().state != PlayerState::Stopped
+            {
+                cell_runtime::cell_log!(node, LogLevel::Error, "{reason}: stopping on the path");
+                executor.cancel();
+            }
         }
         // Queue what the core has room for; the rest waits (the credit bounds how much).
         let (mut free_steps, free_screw) = executor.free_slots();
@@ -546,7 +583,11 @@ pub async fn run<M: Machine>(
         }
         let (completed, last_completed) = executor.completed();
         let underruns = executor.underruns();
-        let done = input_finished && pending_steps.is_empty() && executor.is_drained();
+        let done = input_finished
+            && pending_steps.is_empty()
+            && executor.is_drained()
+            && fault.is_none()
+            && stopping_for.is_none();
         if done && done_at_s.is_none() {
             let end_s = state.plan_time_s;
             done_at_s = Some(match advancing {
@@ -598,6 +639,12 @@ pub async fn run<M: Machine>(
             last_status = Instant::now();
             status.send_replace(next);
         }
+        if let (Some(f), true) = (&fault, exit_when_done) {
+            if state.state == PlayerState::Stopped {
+                cell_runtime::cell_log!(node, LogLevel::Error, "the machine stopped: {f}");
+                anyhow::bail!("the machine stopped: {f}");
+            }
+        }
         if done && exit_when_done {
             cell_runtime::cell_log!(
                 node,
@@ -642,6 +689,15 @@ pub async fn run<M: Machine>(
             node.diagnose(level, &message, &values);
         }
     }
+}
+
+/// Why the machine stops when a plan producer's messages come from a new process.
+fn restarted(producer: &str, topic: &str) -> String {
+    format!(
+        "{producer} restarted mid-print ({topic} now comes from another process): what it \
+         sends no longer continues the plan, and a restarted planner or screw driver cannot \
+         resume a print"
+    )
 }
 
 /// How a machine node runs: the node, commands from its own process, its status out.

@@ -119,6 +119,61 @@ impl Sources {
     }
 }
 
+/// Which process a producer's messages come from, by the participant (the first 12 bytes of
+/// every writer's GUID): a node restarted mid-stream comes back as a new participant, and
+/// what it sends then does not continue what its first run sent (a planner's clock starts
+/// again, a screw driver pairs moves anew). The consumer notices it here and says so.
+///
+/// A restarted node that sends nothing (a screw driver that cannot pair what it receives)
+/// is noticed by its announcement: [`ProducerProcess::announced_elsewhere`].
+#[derive(Debug, Default)]
+pub struct ProducerProcess {
+    first: Option<[u8; PREFIX_LEN]>,
+    /// Other participants that announced the producer's name when first looked at (a
+    /// previous print's node not yet gone from discovery): not a restart.
+    baseline: Option<Vec<[u8; PREFIX_LEN]>>,
+}
+
+impl ProducerProcess {
+    pub fn new() -> ProducerProcess {
+        ProducerProcess::default()
+    }
+
+    /// Note a message `writer` sent for the producer: false when it comes from another
+    /// participant than the producer's first message did.
+    pub fn same(&mut self, writer: &Gid) -> bool {
+        let participant = participant_of(writer);
+        *self.first.get_or_insert(participant) == participant
+    }
+
+    /// Whether, since the first look after the producer's first message, a participant
+    /// other than that message's has announced a node named `name` (fully qualified): the
+    /// producer restarted, or a second one started. `announced` as in [`is_writer_of`].
+    pub fn announced_elsewhere(
+        &mut self,
+        announced: &[(Gid, Vec<NodeEntitiesInfo>)],
+        name: &str,
+    ) -> bool {
+        let Some(first) = self.first else {
+            return false;
+        };
+        let others: Vec<[u8; PREFIX_LEN]> = announced
+            .iter()
+            .filter(|(participant, nodes)| {
+                participant_of(participant) != first
+                    && nodes.iter().any(|n| n.fully_qualified_name() == name)
+            })
+            .map(|(participant, _)| participant_of(participant))
+            .collect();
+        let baseline = self.baseline.get_or_insert_with(|| others.clone());
+        others.iter().any(|p| !baseline.contains(p))
+    }
+}
+
+fn participant_of(gid: &Gid) -> [u8; PREFIX_LEN] {
+    prefix(gid).try_into().expect("12 bytes")
+}
+
 /// A consumer's view of its link's producer: it takes moves and progress reports only from
 /// writers of the producer node (`producer`, by default `gcode_streamer` in the consumer's
 /// namespace). Without acknowledgements (replaying a bag) there is no producer to check.
@@ -187,6 +242,16 @@ impl Producer {
         &self.name
     }
 
+    /// What the participants announce now (see [`ProducerProcess::announced_elsewhere`]).
+    pub fn announced(&self) -> Vec<(Gid, Vec<NodeEntitiesInfo>)> {
+        self.announced.get()
+    }
+
+    /// Whether the producer is checked at all (a name was given).
+    pub fn is_checked(&self) -> bool {
+        self.check
+    }
+
     /// Whether a message that came with `info` comes from the producer.
     pub fn admits(&mut self, info: &ros2_client::MessageInfo) -> bool {
         !self.check
@@ -209,6 +274,46 @@ mod tests {
         bytes[..12].fill(participant);
         bytes[15] = entity;
         Gid::from(bytes)
+    }
+
+    /// The first participant is the producer's; another writer of it is the same process,
+    /// another participant a restart (and stays one).
+    #[test]
+    fn a_producer_from_another_participant_is_a_restart() {
+        let mut process = ProducerProcess::new();
+        assert!(process.same(&gid(1, 3)));
+        assert!(
+            process.same(&gid(1, 4)),
+            "another writer of the same process"
+        );
+        assert!(!process.same(&gid(2, 3)), "a new participant");
+        assert!(process.same(&gid(1, 3)));
+        assert!(!process.same(&gid(2, 3)));
+    }
+
+    /// A restart is also seen in the announcements: a participant that was not announcing
+    /// the producer when first looked at, and is not the first message's, announces it.
+    #[test]
+    fn a_producer_announced_by_a_new_participant_is_a_restart() {
+        let planner = |participant: u8| {
+            (
+                gid(participant, 1),
+                vec![node("polar_planner", &[gid(participant, 3)])],
+            )
+        };
+        let mut process = ProducerProcess::new();
+        // Nothing before the first message.
+        assert!(!process.announced_elsewhere(&[planner(1), planner(2)], "/polar_planner"));
+        assert!(process.same(&gid(1, 3)));
+        // A stale announcement of a previous run (participant 2) is the baseline.
+        assert!(!process.announced_elsewhere(&[planner(1), planner(2)], "/polar_planner"));
+        assert!(!process.announced_elsewhere(&[planner(1)], "/polar_planner"));
+        // Another node's name from a new participant is not the producer.
+        let streamer = (gid(4, 1), vec![node("gcode_streamer", &[gid(4, 3)])]);
+        assert!(!process.announced_elsewhere(&[planner(1), streamer], "/polar_planner"));
+        // The producer from a new participant (the first one gone or not) is a restart.
+        assert!(process.announced_elsewhere(&[planner(3)], "/polar_planner"));
+        assert!(process.announced_elsewhere(&[planner(1), planner(3)], "/polar_planner"));
     }
 
     fn node(name: &str, writers: &[Gid]) -> NodeEntitiesInfo {

@@ -278,6 +278,7 @@ pub async fn run<M: Machine>(
     let mut screw_process = ProducerProcess::new();
     let mut stopping_for: Option<String> = None;
     let mut last_graph_look = Instant::now();
+    let mut fault_at_ns: Option<i64> = None;
     let mut ignored = IgnoredWriters::default();
     let steps_sub = node.subscription::<StepSegment>("/polar/steps", &reliable_qos(capacity))?;
     let screw_sub = node.subscription::<ScrewCommand>("/screw/command", &reliable_qos(capacity))?;
@@ -639,8 +640,11 @@ pub async fn run<M: Machine>(
             last_status = Instant::now();
             status.send_replace(next);
         }
+        // A script's machine ends at a fault, once a sample after it (the machine standing
+        // where it stopped) is out.
         if let (Some(f), true) = (&fault, exit_when_done) {
-            if state.state == PlayerState::Stopped {
+            let since_ns = *fault_at_ns.get_or_insert(machine_now);
+            if state.state == PlayerState::Stopped && next_sample_ns > since_ns + sample_ns {
                 cell_runtime::cell_log!(node, LogLevel::Error, "the machine stopped: {f}");
                 anyhow::bail!("the machine stopped: {f}");
             }

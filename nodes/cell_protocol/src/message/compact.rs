@@ -434,6 +434,10 @@ pub(super) fn read_next_segment(
             return Err(r.bad("decelerate_steps", segment.decelerate_steps as u64));
         }
         segment.cruise_steps = count - ramped as u32;
+        if shape == Shape::Given && Shape::of(&segment) != Shape::Given {
+            // One phase has its own kind: each segment has one encoding.
+            return Err(r.bad("accelerate_steps", segment.accelerate_steps as u64));
+        }
         segment.first_period_q32 = r.word("first_period")?;
         if ramped > 0 {
             segment.first_ramp_q62 = r.word("first_ramp")?;

@@ -490,6 +490,18 @@ fn next_segment_layout_is_the_documented_one() {
     assert_eq!(bytes[..2], [0x14, 0b0001_0010]);
     assert_eq!(bytes[5..9], [100, 0xAC, 0x02, 0]);
     assert_eq!(bytes[9..], expected[11..], "the words follow the counts");
+    // The same as a NEXT_SEGMENT with its phase counts (300 accelerating, 0 decelerating)
+    // is refused: a segment has one encoding.
+    let mut general = vec![0x12];
+    general.extend_from_slice(&bytes[1..9]);
+    general.extend_from_slice(&[0xAC, 0x02, 0]);
+    general.extend_from_slice(&bytes[9..]);
+    assert!(matches!(
+        HostMessage::decode(&general),
+        Err(MessageError::BadValue { field: "accelerate_steps", .. })
+    ));
+    general[10] = 0x01; // 172 accelerating, 128 cruising: a general segment
+    assert!(HostMessage::decode(&general).is_ok());
     // Refused: tag code 3, a given tag step of 1 (it has a code), a phase kind without steps.
     let mut bad = bytes.clone();
     bad[1] |= 0b1100_0000;

@@ -498,7 +498,10 @@ fn next_segment_layout_is_the_documented_one() {
     general.extend_from_slice(&bytes[9..]);
     assert!(matches!(
         HostMessage::decode(&general),
-        Err(MessageError::BadValue { field: "accelerate_steps", .. })
+        Err(MessageError::BadValue {
+            field: "accelerate_steps",
+            ..
+        })
     ));
     general[10] = 0x01; // 172 accelerating, 128 cruising: a general segment
     assert!(HostMessage::decode(&general).is_ok());
@@ -524,20 +527,16 @@ fn screw_next_layout_is_the_documented_one() {
     assert_eq!(bytes, [0x13, 1, 0xA0, 0x9C, 0x01, 0xD0, 0x0F, 0xB7, 0x17]);
     // The usual ones: as long after the previous as that one after its own, as long (a
     // zero-order stream), 60 millirpm faster; where the previous ramp ends (first order).
-    let bytes = encode_host(&HostMessage::ScrewNext(ScrewNext {
-        start: ScrewStart::SameStep,
-        ramp_ticks: None,
-        target_change_millirpm: 60,
-        pin_open: true,
-    }));
-    assert_eq!(bytes, [0x13, 0x0D, 0x78]);
-    let bytes = encode_host(&HostMessage::ScrewNext(ScrewNext {
-        start: ScrewStart::Chained,
-        ramp_ticks: None,
-        target_change_millirpm: 60,
-        pin_open: true,
-    }));
-    assert_eq!(bytes, [0x13, 0x07, 0x78]);
+    let sixty_faster = |start| {
+        encode_host(&HostMessage::ScrewNext(ScrewNext {
+            start,
+            ramp_ticks: None,
+            target_change_millirpm: 60,
+            pin_open: true,
+        }))
+    };
+    assert_eq!(sixty_faster(ScrewStart::SameStep), [0x13, 0x0D, 0x78]);
+    assert_eq!(sixty_faster(ScrewStart::Chained), [0x13, 0x07, 0x78]);
     // Chained and same step at once is refused.
     assert!(HostMessage::decode(&[0x13, 0x0B, 0x78]).is_err());
 }

@@ -52,7 +52,7 @@ stop_nodes() {
   kill -INT "$executor" "$screw" "$planner" $streamer 2>/dev/null || true
   wait "$executor" "$screw" "$planner" $streamer || true
   kill -INT "$recorder" 2>/dev/null || true
-  wait "$recorder"
+  wait "$recorder" || true
   if [[ -n $emulator ]]; then
     kill "$emulator" 2>/dev/null || true
     wait "$emulator" 2>/dev/null || true
@@ -62,14 +62,28 @@ trap stop_nodes EXIT
 # shellcheck disable=SC2086
 "$bin/gcode_streamer" "$gcode" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &
 streamer=$!
-# The machine ends the print: at the end of the plan, or with an error at a fault (a node
-# of the graph restarted mid-print, the MCU lost), when the streamer may still be waiting.
-machine_status=0
-wait "$executor" || machine_status=$?
-if [[ $machine_status != 0 ]]; then
-  echo "$0: $machine stopped the print (exit status $machine_status)" >&2
-  exit "$machine_status"
+# The print ends with the machine: at the end of the plan, or with an error at a fault (a
+# node of the graph restarted mid-print, the MCU lost) while the streamer may still wait. A
+# streamer that fails (an unreadable file) ends it too.
+while true; do
+  ended=
+  status=0
+  wait -n -p ended "$executor" $streamer || status=$?
+  if [[ $ended == "$executor" ]]; then
+    if [[ $status != 0 ]]; then
+      echo "$0: $machine ended with exit status $status" >&2
+      exit "$status"
+    fi
+    break
+  fi
+  streamer=
+  if [[ $status != 0 ]]; then
+    echo "$0: gcode_streamer ended with exit status $status" >&2
+    exit "$status"
+  fi
+done
+if [[ -n $streamer ]]; then
+  wait "$streamer" # every move was acknowledged
+  streamer=
 fi
-wait "$streamer" # every move was acknowledged
-streamer=
 sleep 0.3 # the last samples, progress and diagnostics reach the recorder

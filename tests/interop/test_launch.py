@@ -101,14 +101,18 @@ def test_mcu_launch_xml_names_existing_binaries_and_parameter_file():
 def test_cell_sh_stops_on_the_path_when_a_planner_or_screw_driver_restarts(tmp_path, restarted):
     """A plan producer killed and started again mid-print cannot continue the plan it began
     (a restarted screw driver used to hang the print for good, a restarted planner to start
-    its plan clock again): the executor sees the new process, stops on the path and ends
-    the print with the reason, non-zero, and the bag is finalised."""
+    its plan clock again): the executor sees the new process, stops on the path (as a cancel
+    does, not an emergency stop) and ends the print with the reason, non-zero, and the bag is
+    finalised."""
     bag = tmp_path / "cell.mcap"
     env = {"POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin", "POLAR_CELL_SPEED": "4"}
+    # Its own process group, so that whatever happens every node of it goes at the end.
     cell = subprocess.Popen(
         [str(LAUNCH / "cell.sh"), str(FIXTURES / "finger.gcode"), str(bag)],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True,
     )
+    again = None
     try:
         time.sleep(8)  # well into the print (finger's first 30 s of machine time)
         pid = subprocess.run(
@@ -120,20 +124,24 @@ def test_cell_sh_stops_on_the_path_when_a_planner_or_screw_driver_restarts(tmp_p
         again = subprocess.Popen(
             [str(BIN_DIR / restarted), "--ros-args", "--params-file",
              str(LAUNCH / "params" / "cell.yaml")],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            start_new_session=True,
         )
-        try:
-            output, _ = cell.communicate(timeout=30)
-        finally:
-            again.send_signal(signal.SIGINT)
-            again.wait(timeout=10)
+        output, _ = cell.communicate(timeout=30)
     finally:
-        if cell.poll() is None:
-            cell.kill()
+        for proc in (again, cell):
+            if proc is not None:
+                try:
+                    os.killpg(proc.pid, signal.SIGINT if proc is again else signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                proc.wait(timeout=10)
     assert cell.returncode != 0, output
     assert f"/{restarted} restarted mid-print" in output, output
+    # It was moving: the machine stopped on the path (a cancel's hold), and only then, at
+    # rest, took the fault (an emergency stop of a machine standing still).
+    assert "stopping on the path" in output, output
     messages, _, _ = read_with_mcap_ros2(bag)
     states = messages["/joint_states"]
     assert len(states) > 8 / 0.02, len(states)  # it had been running
-    # It stopped at rest (the last sample stands still), not part-way through a move.
     assert all(abs(v) < 1e-9 for v in states[-1].velocity), states[-1].velocity

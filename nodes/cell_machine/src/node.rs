@@ -277,6 +277,7 @@ pub async fn run<M: Machine>(
     let mut steps_process = ProducerProcess::new();
     let mut screw_process = ProducerProcess::new();
     let mut stopping_for: Option<String> = None;
+    let mut stop_issued = false;
     let mut last_graph_look = Instant::now();
     let mut fault_at_ns: Option<i64> = None;
     let mut ignored = IgnoredWriters::default();
@@ -365,7 +366,10 @@ pub async fn run<M: Machine>(
                 let (s, info) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
                 if !steps_from.admits(&info) {
                     ignored.note(node, "/polar/steps", "ignored_foreign_steps", steps_from.name());
-                } else if !steps_process.same(&info.publisher_gid()) {
+                } else if steps_from.is_checked()
+                    && !steps_process.same(&info.publisher_gid())
+                    && !(input_finished && executor.is_drained())
+                {
                     stopping_for.get_or_insert_with(|| restarted(steps_from.name(), "/polar/steps"));
                 } else {
                     received += 1;
@@ -381,7 +385,10 @@ pub async fn run<M: Machine>(
                         "ignored_foreign_screw_commands",
                         screw_from.name(),
                     );
-                } else if !screw_process.same(&info.publisher_gid()) {
+                } else if screw_from.is_checked()
+                    && !screw_process.same(&info.publisher_gid())
+                    && !(input_finished && executor.is_drained())
+                {
                     stopping_for
                         .get_or_insert_with(|| restarted(screw_from.name(), "/screw/command"));
                 } else {
@@ -435,8 +442,13 @@ pub async fn run<M: Machine>(
             pending_steps.clear();
             pending_screw.clear();
         }
-        // A restarted producer that sends nothing is seen in the graph's announcements.
-        if stopping_for.is_none() && last_graph_look.elapsed() >= Duration::from_millis(500) {
+        // A restarted producer that sends nothing is seen in the graph's announcements
+        // (looked at every half second, and at once after a producer's first message, which
+        // fixes who announced it before), while the print lasts.
+        let graph_look_due = last_graph_look.elapsed() >= Duration::from_millis(500)
+            || steps_process.needs_baseline()
+            || screw_process.needs_baseline();
+        if stopping_for.is_none() && graph_look_due && !(input_finished && executor.is_drained()) {
             last_graph_look = Instant::now();
             for (from, process, topic) in [
                 (&steps_from, &mut steps_process, "/polar/steps"),
@@ -450,11 +462,10 @@ pub async fn run<M: Machine>(
         }
         // A producer restarted: stop on the path as a cancel does; at rest, the print fails.
         if let Some(reason) = &stopping_for {
-            if executor.is_drained() {
+            if executor.is_drained() || executor.state().state == PlayerState::Stopped {
                 fault.get_or_insert_with(|| reason.clone());
-            } else if executor.state().hold != Some(HoldReason::Cancel)
-                && executor.state().state != PlayerState::Stopped
-            {
+            } else if !stop_issued {
+                stop_issued = true;
                 cell_runtime::cell_log!(node, LogLevel::Error, "{reason}: stopping on the path");
                 executor.cancel();
             }
@@ -640,8 +651,8 @@ pub async fn run<M: Machine>(
             last_status = Instant::now();
             status.send_replace(next);
         }
-        // A script's machine ends at a fault, once a sample after it (the machine standing
-        // where it stopped) is out.
+        // A script's machine ends at a fault once the sample grid has passed it, so the
+        // last sample (if the machine had one to give) shows it standing where it stopped.
         if let (Some(f), true) = (&fault, exit_when_done) {
             let since_ns = *fault_at_ns.get_or_insert(machine_now);
             if state.state == PlayerState::Stopped && next_sample_ns > since_ns + sample_ns {

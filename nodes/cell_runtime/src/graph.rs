@@ -146,6 +146,12 @@ impl ProducerProcess {
         *self.first.get_or_insert(participant) == participant
     }
 
+    /// Whether the producer's first message came and the announcements were not looked at
+    /// since: look at once, so that a quick restart is not taken for the baseline.
+    pub fn needs_baseline(&self) -> bool {
+        self.first.is_some() && self.baseline.is_none()
+    }
+
     /// Whether, since the first look after the producer's first message, a participant
     /// other than that message's has announced a node named `name` (fully qualified): the
     /// producer restarted, or a second one started. `announced` as in [`is_writer_of`].
@@ -304,9 +310,12 @@ mod tests {
         let mut process = ProducerProcess::new();
         // Nothing before the first message.
         assert!(!process.announced_elsewhere(&[planner(1), planner(2)], "/polar_planner"));
+        assert!(!process.needs_baseline());
         assert!(process.same(&gid(1, 3)));
+        assert!(process.needs_baseline());
         // A stale announcement of a previous run (participant 2) is the baseline.
         assert!(!process.announced_elsewhere(&[planner(1), planner(2)], "/polar_planner"));
+        assert!(!process.needs_baseline());
         assert!(!process.announced_elsewhere(&[planner(1)], "/polar_planner"));
         // Another node's name from a new participant is not the producer.
         let streamer = (gid(4, 1), vec![node("gcode_streamer", &[gid(4, 3)])]);

@@ -89,6 +89,14 @@ impl HostEndpoint {
         self
     }
 
+    /// What was packed goes at the next poll, whatever may wait: it is needed soon (the
+    /// plan ran short of its horizon), so packing must not take from its margin.
+    pub fn flush_soon(&mut self) {
+        if self.pending_len > 0 {
+            self.pending_urgent = true;
+        }
+    }
+
     /// Message bytes and frames sent so far.
     pub fn sent_bytes(&self) -> SentBytes {
         self.sent
@@ -298,6 +306,11 @@ mod tests {
         assert_eq!(peer.payloads[2], (121_000, vec![screw_next(8), hold]));
         let sent = host.sent_bytes();
         assert_eq!((sent.screw, sent.control, sent.frames), (11 * 8, 5, 3));
+        // What is needed soon does not wait.
+        host.send(&screw_next(9)).unwrap();
+        host.flush_soon();
+        peer.exchange(&mut host, 122_000);
+        assert_eq!(peer.payloads[3], (122_000, vec![screw_next(9)]));
     }
 
     /// Without packing, every write sends what was packed.

@@ -661,6 +661,9 @@ impl McuSession {
                 Some(compact) => HostMessage::NextSegment(compact),
                 None => HostMessage::QueueSegment(next),
             })?;
+            if next.start_clock < plan_now + horizon / 2 {
+                self.endpoint.flush_soon(); // the plan runs short: no waiting to pack
+            }
             self.segments.pop_front();
             let end = next.start_clock + next.duration_ticks as u64;
             self.on_mcu.push_back((end, self.sigma_rate_bound(&next)));
@@ -703,6 +706,9 @@ impl McuSession {
                     ScrewReference::of_screw(&ramp)
                 }
             });
+            if ramp.start_clock < plan_now + horizon / 2 {
+                self.endpoint.flush_soon();
+            }
             self.screw.pop_front();
             self.screw_on_mcu.push_back(ramp.start_clock);
         }

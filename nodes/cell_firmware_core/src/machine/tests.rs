@@ -616,20 +616,21 @@ fn a_screw_next_is_told_relative_to_the_previous_command() {
     assert_eq!(m.screw_millirpm(), 7_000);
     run(&mut m, 4001);
     assert_eq!(m.screw_millirpm(), 9_000);
-    // A chain of ramps: 4000 ticks from 5000 to 9,000 + 4,000 = 13,000; then as long on
-    // from where it ends, down by 8,000; then a step up by 1,000 as long after that (4000)
-    // as that one after its predecessor.
+    // A chain of ramps: 4000 ticks from 5000 to 9,000 + 4,000 = 13,000; from where it ends
+    // (9000, a step of 4000), 2000 ticks down by 8,000; then a step up by 1,000 as long
+    // after that (4000, at 13,000) as that one after its predecessor — not where its ramp
+    // ends (11,000).
     m.handle(&next(Step(1000), Some(4000), 4_000), 4001);
-    m.handle(&next(Chained, None, -8_000), 4001);
+    m.handle(&next(Chained, Some(2000), -8_000), 4001);
     m.handle(&next(SameStep, Some(0), 1_000), 4001);
     run(&mut m, 7000); // halfway up
     assert_eq!(m.screw_millirpm(), 11_000);
     run(&mut m, 9000);
     assert_eq!(m.screw_millirpm(), 13_000);
-    run(&mut m, 11_000); // halfway down
+    run(&mut m, 10_000); // halfway down
     assert_eq!(m.screw_millirpm(), 9_000);
     run(&mut m, 12_999);
-    assert_eq!(m.screw_millirpm(), 5_002);
+    assert_eq!(m.screw_millirpm(), 5_000);
     run(&mut m, 13_001);
     assert_eq!(m.screw_millirpm(), 6_000);
     assert_eq!(m.fault(), FaultCode::None);

@@ -1,11 +1,13 @@
 //! The compact continuing forms of a step segment and a screw ramp (protocol version 4).
 //!
-//! Nearly every segment of a print starts where the previous one ended and carries the next
-//! move's tag, and nearly every screw command starts a few hundredths of a second after the
-//! previous one. These forms leave out what the MCU already knows — the start clock, the tag,
-//! the cruise count — and write the rest as LEB128 varints (`unsigned-varint`, minimal form
-//! only) and the two fixed-point numbers as one 32-bit word each. A typical segment takes
-//! 17–19 bytes instead of 60, so three share a frame.
+//! Nearly every segment of a print starts where the previous one ended, carries the same or
+//! the next move's tag, and is all one phase of the ramp; nearly every screw command comes a
+//! fixed step after the previous one and changes its speed a little. These forms leave out
+//! what the MCU already knows — the start clock, the tag, the phase counts of a one-phase
+//! segment, a repeated step or length — and write the rest as LEB128 varints
+//! (`unsigned-varint`, minimal form only), the target as a change, and the two fixed-point
+//! numbers as one 32-bit word each. A typical segment takes 15–17 bytes instead of 60, a
+//! screw command 3–6, so a frame carries three or four segments with their screw commands.
 
 use step_core::{Segment, MAX_AXES, SIGNIFICANT_BITS};
 

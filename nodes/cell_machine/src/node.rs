@@ -18,7 +18,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
-use cell_runtime::graph::{Producer, ProducerProcess};
+use cell_runtime::graph::Producer;
 use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
     now_ns, parse_service_mapping, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
@@ -270,12 +270,10 @@ pub async fn run<M: Machine>(
     let mut steps_from = Producer::named(node, "steps_producer", true)?;
     let mut screw_from = Producer::named(node, "screw_producer", true)?;
     let mut progress_from = Producer::named(node, "producer", true)?;
-    // The process each plan producer's first message came from: the planner or screw
-    // driver restarted mid-print does not continue the plan it began (its plan clock starts
-    // again, its screw commands pair with other moves), so the machine stops on the path and
-    // the print fails, saying why, instead of waiting for input that never fits.
-    let mut steps_process = ProducerProcess::new();
-    let mut screw_process = ProducerProcess::new();
+    // A plan producer restarted mid-print (each producer knows its first process) does not
+    // continue the plan it began (its plan clock starts again, its screw commands pair with
+    // other moves), so the machine stops on the path and the print fails, saying why,
+    // instead of waiting for input that never fits.
     let mut stopping_for: Option<String> = None;
     let mut stop_issued = false;
     let mut last_graph_look = Instant::now();
@@ -366,9 +364,7 @@ pub async fn run<M: Machine>(
                 let (s, info) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
                 if !steps_from.admits(&info) {
                     ignored.note(node, "/polar/steps", "ignored_foreign_steps", steps_from.name());
-                } else if steps_from.is_checked()
-                    && !steps_process.same(&info.publisher_gid())
-                    && !(input_finished && executor.is_drained())
+                } else if steps_from.restarted(&info) && !(input_finished && executor.is_drained())
                 {
                     stopping_for.get_or_insert_with(|| restarted(steps_from.name(), "/polar/steps"));
                 } else {
@@ -385,9 +381,7 @@ pub async fn run<M: Machine>(
                         "ignored_foreign_screw_commands",
                         screw_from.name(),
                     );
-                } else if screw_from.is_checked()
-                    && !screw_process.same(&info.publisher_gid())
-                    && !(input_finished && executor.is_drained())
+                } else if screw_from.restarted(&info) && !(input_finished && executor.is_drained())
                 {
                     stopping_for
                         .get_or_insert_with(|| restarted(screw_from.name(), "/screw/command"));
@@ -446,16 +440,15 @@ pub async fn run<M: Machine>(
         // (looked at every half second, and at once after a producer's first message, which
         // fixes who announced it before), while the print lasts.
         let graph_look_due = last_graph_look.elapsed() >= Duration::from_millis(500)
-            || steps_process.needs_baseline()
-            || screw_process.needs_baseline();
+            || steps_from.needs_look()
+            || screw_from.needs_look();
         if stopping_for.is_none() && graph_look_due && !(input_finished && executor.is_drained()) {
             last_graph_look = Instant::now();
-            for (from, process, topic) in [
-                (&steps_from, &mut steps_process, "/polar/steps"),
-                (&screw_from, &mut screw_process, "/screw/command"),
+            for (from, topic) in [
+                (&mut steps_from, "/polar/steps"),
+                (&mut screw_from, "/screw/command"),
             ] {
-                if from.is_checked() && process.announced_elsewhere(&from.announced(), from.name())
-                {
+                if from.announced_elsewhere() {
                     stopping_for.get_or_insert_with(|| restarted(from.name(), topic));
                 }
             }

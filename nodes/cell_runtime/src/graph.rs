@@ -14,8 +14,10 @@ use ros2_client::{entities_info::NodeEntitiesInfo, Gid};
 /// The first 12 bytes of an RTPS GUID name its participant.
 const PREFIX_LEN: usize = 12;
 
-fn prefix(gid: &Gid) -> &[u8] {
-    &gid.as_bytes()[..PREFIX_LEN]
+fn prefix(gid: &Gid) -> [u8; PREFIX_LEN] {
+    gid.as_bytes()[..PREFIX_LEN]
+        .try_into()
+        .expect("a GUID is 16 bytes")
 }
 
 /// Whether `writer` was announced as a writer of the node `node_name` (fully qualified, e.g.
@@ -125,9 +127,10 @@ impl Sources {
 /// again, a screw driver pairs moves anew). The consumer notices it here and says so.
 ///
 /// A restarted node that sends nothing (a screw driver that cannot pair what it receives)
-/// is noticed by its announcement: [`ProducerProcess::announced_elsewhere`].
+/// is noticed by its announcement: [`ProducerProcess::announced_elsewhere`]. Kept by each
+/// [`Producer`].
 #[derive(Debug, Default)]
-pub struct ProducerProcess {
+struct ProducerProcess {
     first: Option<[u8; PREFIX_LEN]>,
     /// Other participants that announced the producer's name when first looked at (a
     /// previous print's node not yet gone from discovery): not a restart.
@@ -135,27 +138,27 @@ pub struct ProducerProcess {
 }
 
 impl ProducerProcess {
-    pub fn new() -> ProducerProcess {
+    fn new() -> ProducerProcess {
         ProducerProcess::default()
     }
 
     /// Note a message `writer` sent for the producer: false when it comes from another
     /// participant than the producer's first message did.
-    pub fn same(&mut self, writer: &Gid) -> bool {
-        let participant = participant_of(writer);
+    fn same(&mut self, writer: &Gid) -> bool {
+        let participant = prefix(writer);
         *self.first.get_or_insert(participant) == participant
     }
 
     /// Whether the producer's first message came and the announcements were not looked at
     /// since: look at once, so that a quick restart is not taken for the baseline.
-    pub fn needs_baseline(&self) -> bool {
+    fn needs_baseline(&self) -> bool {
         self.first.is_some() && self.baseline.is_none()
     }
 
     /// Whether, since the first look after the producer's first message, a participant
     /// other than that message's has announced a node named `name` (fully qualified): the
     /// producer restarted, or a second one started. `announced` as in [`is_writer_of`].
-    pub fn announced_elsewhere(
+    fn announced_elsewhere(
         &mut self,
         announced: &[(Gid, Vec<NodeEntitiesInfo>)],
         name: &str,
@@ -166,18 +169,14 @@ impl ProducerProcess {
         let others: Vec<[u8; PREFIX_LEN]> = announced
             .iter()
             .filter(|(participant, nodes)| {
-                participant_of(participant) != first
+                prefix(participant) != first
                     && nodes.iter().any(|n| n.fully_qualified_name() == name)
             })
-            .map(|(participant, _)| participant_of(participant))
+            .map(|(participant, _)| prefix(participant))
             .collect();
         let baseline = self.baseline.get_or_insert_with(|| others.clone());
         others.iter().any(|p| !baseline.contains(p))
     }
-}
-
-fn participant_of(gid: &Gid) -> [u8; PREFIX_LEN] {
-    prefix(gid).try_into().expect("12 bytes")
 }
 
 /// A consumer's view of its link's producer: it takes moves and progress reports only from
@@ -190,6 +189,7 @@ pub struct Producer {
     /// The graph as the consumer's node sees it, and the clock of [`Sources`]' lookups.
     announced: ros2_client::ExternalNodes,
     started: std::time::Instant,
+    process: ProducerProcess,
 }
 
 impl Producer {
@@ -240,6 +240,7 @@ impl Producer {
             sources: Sources::new(),
             announced: node.node.external_nodes_view(),
             started: std::time::Instant::now(),
+            process: ProducerProcess::new(),
         })
     }
 
@@ -248,14 +249,28 @@ impl Producer {
         &self.name
     }
 
-    /// What the participants announce now (see [`ProducerProcess::announced_elsewhere`]).
-    pub fn announced(&self) -> Vec<(Gid, Vec<NodeEntitiesInfo>)> {
-        self.announced.get()
+    /// Whether a message it admitted (that came with `info`) comes from another process
+    /// than the producer's first message did: the producer restarted. Never for a producer
+    /// not checked (no name given).
+    pub fn restarted(&mut self, info: &ros2_client::MessageInfo) -> bool {
+        self.check && !self.process.same(&info.publisher_gid())
     }
 
-    /// Whether the producer is checked at all (a name was given).
-    pub fn is_checked(&self) -> bool {
+    /// Whether the producer's first message came and the graph was not looked at since
+    /// ([`Producer::announced_elsewhere`] at once, so that a quick restart is not taken for
+    /// what was there before).
+    pub fn needs_look(&self) -> bool {
+        self.check && self.process.needs_baseline()
+    }
+
+    /// Whether, since the first look after its first message, another participant than that
+    /// message's has announced the producer's node: it restarted without sending anything
+    /// yet (or a second one started). Never for a producer not checked.
+    pub fn announced_elsewhere(&mut self) -> bool {
         self.check
+            && self
+                .process
+                .announced_elsewhere(&self.announced.get(), &self.name)
     }
 
     /// Whether a message that came with `info` comes from the producer.

@@ -26,7 +26,8 @@ pub mod timing;
 pub mod urdf;
 
 pub use planner::{
-    PlanError, PlannedMove, Planner, PlannerOptions, ScrewLimits, TrajPoint, JOINT_NAMES,
+    PlanError, PlannedMove, Planner, PlannerOptions, ResumePoint, ScrewLimits, TrajPoint,
+    JOINT_NAMES,
 };
 pub use preflight::{Preflight, PreflightError, PreflightReport};
 pub use program::{plan_program, Program};

@@ -161,6 +161,31 @@ pub struct PlannedMove {
     /// How much slower than commanded the screw's limit made this move (feed or, for a
     /// prime, duration ratio > 1); `None` when the screw did not limit it.
     pub slowed_for_screw: Option<f64>,
+    /// Where planning stood once this move was emitted ([`Planner::resume`]).
+    pub resume: ResumePoint,
+}
+
+/// Where planning stands at the end of an emitted move: everything a planner in a new
+/// process needs to plan the moves after it on the same timeline ([`Planner::resume`]).
+///
+/// Resumed there and fed the same moves, a planner emits what this one would have, bit for
+/// bit, when this move ended a batch of emitted blocks — which is where a node acknowledges
+/// (it acknowledges what it published). One that ended mid-batch continues from the same
+/// state and speed with a lookahead of its own: another valid plan of the same path.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct ResumePoint {
+    /// Plan time at the end of the move (s).
+    pub t_s: f64,
+    /// Path speed² there (m²/s²): the speed the next move starts with.
+    pub path_speed2: f64,
+    /// Joints after the move, as the next move's path starts from them (θ unwrapped).
+    pub q: Joints,
+    /// Commanded Cartesian position after the move (m).
+    pub p_m: [f64; 3],
+    /// The last emitted point (a marker repeats it).
+    pub last_point: TrajPoint,
+    /// Whether the last motion move fed material (for the pin dwell).
+    pub previous_extruding: bool,
 }
 
 impl PlannedMove {
@@ -231,6 +256,15 @@ struct Block {
     last_of_move: bool,
 }
 
+/// The queue-side state after a move's last block was queued (for its [`ResumePoint`]).
+#[derive(Clone, Copy, Debug)]
+struct MoveEnd {
+    sequence: u64,
+    q: Joints,
+    p_m: [f64; 3],
+    previous_extruding: bool,
+}
+
 /// The streaming planner. Feed moves with [`Planner::push`], finish with [`Planner::flush`].
 pub struct Planner {
     options: PlannerOptions,
@@ -253,6 +287,8 @@ pub struct Planner {
     last_emitted: TrajPoint,
     /// Whether the last motion move fed material (for the pin dwell).
     previous_extruding: bool,
+    /// For each move with blocks queued, in order: the state after its last block.
+    move_ends: VecDeque<MoveEnd>,
 }
 
 impl Planner {
@@ -334,7 +370,34 @@ impl Planner {
                 ..TrajPoint::default()
             },
             previous_extruding: false,
+            move_ends: VecDeque::new(),
         })
+    }
+
+    /// A planner that continues where another one stood after emitting a move (its
+    /// [`PlannedMove::resume`]): fed the moves after that one, it plans them on the same
+    /// timeline, from the same joints and speed. `options` must be the other one's.
+    pub fn resume(options: PlannerOptions, at: &ResumePoint) -> Result<Self, PlanError> {
+        let finite = at.t_s.is_finite()
+            && at.t_s >= 0.0
+            && at.path_speed2.is_finite()
+            && at.path_speed2 >= 0.0
+            && at.q.iter().chain(&at.p_m).all(|x| x.is_finite());
+        if !finite {
+            return Err(PlanError::Options(format!(
+                "resume point needs finite values, t >= 0 and speed² >= 0: {at:?}"
+            )));
+        }
+        let mut planner = Planner::new(PlannerOptions {
+            initial_joints: at.q,
+            ..options
+        })?;
+        planner.p_end = at.p_m;
+        planner.t_head = at.t_s;
+        planner.v2_head = at.path_speed2;
+        planner.last_emitted = at.last_point;
+        planner.previous_extruding = at.previous_extruding;
+        Ok(planner)
     }
 
     pub fn options(&self) -> &PlannerOptions {
@@ -390,6 +453,7 @@ impl Planner {
             extrude: m.extrude,
             points: Vec::new(),
             slowed_for_screw: None,
+            resume: ResumePoint::default(),
         });
         let seq = m.sequence;
         let moves_or_feeds = matches!(
@@ -589,7 +653,7 @@ impl Planner {
         if let Some(p) = points.last() {
             self.q_end = p.q;
         }
-        self.queue.push_back(Block {
+        self.queue_block(Block {
             kind: BlockKind::Fixed { points },
             sequence: seq,
             last_of_move: last,
@@ -597,11 +661,24 @@ impl Planner {
         self.flush(out);
     }
 
+    /// Queue a block; after a move's last one, note where the move leaves the joints.
+    fn queue_block(&mut self, block: Block) {
+        if block.last_of_move {
+            self.move_ends.push_back(MoveEnd {
+                sequence: block.sequence,
+                q: self.q_end,
+                p_m: self.p_end,
+                previous_extruding: self.previous_extruding,
+            });
+        }
+        self.queue.push_back(block);
+    }
+
     fn push_block(&mut self, block: Block, out: &mut Vec<PlannedMove>) {
         if matches!(block.kind, BlockKind::Path { .. }) {
             self.path_blocks_queued += 1;
         }
-        self.queue.push_back(block);
+        self.queue_block(block);
         if self.path_blocks_queued >= self.options.lookahead_blocks {
             // Emit the first three quarters; the rest stays to be joined smoothly with what
             // follows (and keeps the stop at the end of the queue reachable).
@@ -914,6 +991,24 @@ impl Planner {
             }
             self.moves[move_index].points.extend(points);
             if block.last_of_move {
+                let end = self
+                    .move_ends
+                    .pop_front()
+                    .filter(|e| e.sequence == block.sequence)
+                    .expect("a move's last block has its end noted");
+                self.moves[move_index].resume = ResumePoint {
+                    t_s: self.t_head,
+                    // Nothing queued behind: the plan ends at rest (as below).
+                    path_speed2: if self.queue.is_empty() && node_index > 0 {
+                        0.0
+                    } else {
+                        self.v2_head
+                    },
+                    q: end.q,
+                    p_m: end.p_m,
+                    last_point: self.last_emitted,
+                    previous_extruding: end.previous_extruding,
+                };
                 // Moves complete in order (blocks are queued in move order).
                 while let Some(front) = self.moves.front() {
                     if front.sequence > block.sequence {

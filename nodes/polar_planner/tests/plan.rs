@@ -473,3 +473,94 @@ fn segments_ending_at_rest_are_marked_and_only_those() {
         );
     }
 }
+
+/// Plans `moves` as the node does (one push at a time) and returns, after each push that
+/// emitted something, the sequence after the last move emitted so far: the points a node
+/// acknowledges, and so where a restarted planner resumes.
+fn plan_with_batches(
+    moves: &[GcodeMove],
+    options: &PlannerOptions,
+) -> (Vec<PlannedMove>, Vec<usize>) {
+    let mut planner = Planner::new(options.clone()).unwrap();
+    let (mut out, mut batch_ends) = (Vec::new(), Vec::new());
+    for m in moves {
+        let before = out.len();
+        planner.push(m, &mut out).unwrap();
+        if out.len() > before {
+            batch_ends.push(out.len());
+        }
+    }
+    planner.flush(&mut out);
+    (out, batch_ends)
+}
+
+/// A planner resumed where another acknowledged (after a batch it published) and fed the
+/// moves after that plans them exactly as the other one did: same times, joints, rates and
+/// resume points, bit for bit — the timeline a restarted planner node continues.
+#[test]
+fn a_resumed_planner_continues_the_same_plan_bit_for_bit() {
+    let dwell = PlannerOptions {
+        pin_open_dwell_s: 0.05,
+        ..PlannerOptions::default()
+    };
+    let cases = [
+        ("finger.gcode", PlannerOptions::default()),
+        ("finger.gcode", dwell.clone()),
+        ("polartest.gcode", dwell),
+    ];
+    for (name, options) in cases {
+        let moves = fixture(name);
+        let mut moving = 0;
+        let (whole, batch_ends) = plan_with_batches(&moves, &options);
+        assert_eq!(whole.len(), moves.len());
+        let mut checked = 0;
+        for &done in &batch_ends {
+            let at = whole[done - 1].resume;
+            moving += usize::from(at.path_speed2 > 0.0);
+            assert_eq!(
+                at.t_s,
+                whole[done - 1].end_time(),
+                "{name}: resume at the move's end"
+            );
+            let mut resumed = Planner::resume(options.clone(), &at).unwrap();
+            let mut out = Vec::new();
+            // Only the next 400 moves: far past any lookahead.
+            let until = (done + 400).min(moves.len());
+            for m in &moves[done..until] {
+                resumed.push(m, &mut out).unwrap();
+            }
+            if until == moves.len() {
+                resumed.flush(&mut out);
+            }
+            assert!(
+                !out.is_empty() || until == done,
+                "{name}: resumed after move {done}"
+            );
+            for (k, plan) in out.iter().enumerate() {
+                assert_eq!(
+                    plan,
+                    &whole[done + k],
+                    "{name}: resumed after {done} moves, move {} differs",
+                    done + k
+                );
+            }
+            checked += 1;
+        }
+        assert!(checked >= 10, "{name}: {checked} resume points checked");
+        assert!(moving >= 5, "{name}: only {moving} resume points in motion");
+        eprintln!("{name}: {checked} resume points ({moving} in motion) continue bit for bit");
+    }
+}
+
+/// A resume point that is not a plan state is refused with the values, not planned from.
+#[test]
+fn a_resume_point_with_non_finite_values_is_refused() {
+    let at = polar_planner::ResumePoint {
+        path_speed2: f64::NAN,
+        ..Default::default()
+    };
+    let e = Planner::resume(PlannerOptions::default(), &at)
+        .err()
+        .unwrap();
+    assert!(e.to_string().contains("resume point"), "{e}");
+}

@@ -8,7 +8,7 @@ The Python peer here is a second, independent implementation of the flow-control
 import signal
 import subprocess
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cyclonedds.idl.annotations as annotate
 import cyclonedds.idl.types as t
@@ -67,6 +67,7 @@ class GcodeAck(IdlStruct, typename="polar_cell_msgs::msg::dds_::GcodeAck_"):
     resume: bool
     # What has arrived at the consumer; 0 = not told (the streamer then goes by next_expected).
     received_until: t.uint64 = 0
+    resume_state: t.sequence[t.uint8] = field(default_factory=list)
 
 
 @dataclass
@@ -83,6 +84,8 @@ class GcodeProgress(IdlStruct, typename="polar_cell_msgs::msg::dds_::GcodeProgre
     consumers: t.sequence[str]
     consumer_next_expected: t.sequence[t.uint64]
     finished: bool
+    consumer_resume_states: t.sequence[t.uint8] = field(default_factory=list)
+    consumer_resume_state_ends: t.sequence[t.uint32] = field(default_factory=list)
 
 
 @dataclass

@@ -16,11 +16,17 @@
 //! `/gcode/progress` ([`SendWindow::consumer_acks`]), then confirms it with a plain
 //! acknowledgement; only then does the streamer send (again) everything after that point, so a
 //! restarted consumer loses and repeats nothing.
+//!
+//! A consumer whose output depends on more than the moves after its resume point (a planner's
+//! plan clock, joints and path speed) puts that state in its acknowledgements
+//! ([`Intake::note_resume_state`]); the streamer keeps each consumer's latest, opaque, and hands
+//! it back in `/gcode/progress` with the resume point ([`Intake::resume_state`]), so the two
+//! always belong together and a restarted consumer continues the same output.
 
 use std::collections::VecDeque;
 use std::time::Duration;
 
-use polar_cell_msgs::{GcodeAck, GcodeMove};
+use polar_cell_msgs::{GcodeAck, GcodeMove, GcodeProgress};
 
 /// A message that travels a flow-controlled link: numbered 0, 1, 2, … by its producer.
 pub trait Sequenced {
@@ -45,6 +51,8 @@ pub struct Ack {
     /// Every move before it has arrived (in order), finished or not; never below
     /// `next_expected` in effect (a peer that does not fill it in sends 0).
     pub received_until: u64,
+    /// The consumer's state after every move before `next_expected` (empty: none kept).
+    pub resume_state: Vec<u8>,
 }
 
 impl From<&GcodeAck> for Ack {
@@ -54,6 +62,7 @@ impl From<&GcodeAck> for Ack {
             next_expected: ack.next_expected,
             resume: ack.resume,
             received_until: ack.received_until,
+            resume_state: ack.resume_state.clone(),
         }
     }
 }
@@ -65,6 +74,7 @@ impl From<Ack> for GcodeAck {
             next_expected: ack.next_expected,
             resume: ack.resume,
             received_until: ack.received_until,
+            resume_state: ack.resume_state,
         }
     }
 }
@@ -116,6 +126,8 @@ struct ConsumerState {
     /// Has confirmed its resume point (a plain acknowledgement after its announcement); moves
     /// sent before that could reach it before it knows which ones to keep.
     ready: bool,
+    /// The state that came with the acknowledgement of `next_expected` (empty: none).
+    resume_state: Vec<u8>,
 }
 
 /// The producer's side: a bounded buffer of unacknowledged messages.
@@ -152,6 +164,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
                     received_until: 0,
                     present: false,
                     ready: false,
+                    resume_state: Vec::new(),
                 })
                 .collect(),
             last_progress: Duration::ZERO,
@@ -226,8 +239,12 @@ impl<T: Sequenced + Clone> SendWindow<T> {
             c.ready |= c.present;
             if ack.next_expected > c.next_expected {
                 c.next_expected = ack.next_expected;
+                // The old state belongs to the old point: never hand it out with the new one.
+                c.resume_state.clone_from(&ack.resume_state);
                 self.last_progress = now;
                 self.stalled_resends = 0;
+            } else if ack.next_expected == c.next_expected && !ack.resume_state.is_empty() {
+                c.resume_state.clone_from(&ack.resume_state);
             }
             // What arrived, never beyond what was sent (a claim beyond is not believed).
             let received_until = ack.received_until.min(self.sent_end).max(c.next_expected);
@@ -309,6 +326,17 @@ impl<T: Sequenced + Clone> SendWindow<T> {
             .unzip()
     }
 
+    /// The resume states of the consumers [`Self::consumer_acks`] lists, in its order, as
+    /// `/gcode/progress` carries them: concatenated, and where each one ends.
+    pub fn consumer_resume_states(&self) -> (Vec<u8>, Vec<u32>) {
+        let (mut bytes, mut ends) = (Vec::new(), Vec::new());
+        for c in self.consumers.iter().filter(|c| c.present) {
+            bytes.extend_from_slice(&c.resume_state);
+            ends.push(u32::try_from(bytes.len()).unwrap_or(u32::MAX));
+        }
+        (bytes, ends)
+    }
+
     /// Names of consumers that have not announced themselves and confirmed their resume point.
     pub fn missing_consumers(&self) -> Vec<&str> {
         self.consumers
@@ -345,6 +373,10 @@ pub struct AckTracker {
     /// When [`Self::ack_processed`] last published (the caller's monotonic clock).
     last_published: Option<Duration>,
     resume_point_known: bool,
+    /// The consumer's state after every move before `resume_state_until`, sent with
+    /// acknowledgements of exactly that point; learnt back with the resume point.
+    resume_state: Vec<u8>,
+    resume_state_until: u64,
 }
 
 /// How often a consumer repeats an acknowledgement that has not changed. A repeat only
@@ -371,6 +403,27 @@ impl AckTracker {
             last_received_acked: 0,
             last_published: None,
             resume_point_known: false,
+            resume_state: Vec::new(),
+            resume_state_until: 0,
+        }
+    }
+
+    /// The state to acknowledge with, once everything before `until` is finished.
+    pub fn note_resume_state(&mut self, until: u64, state: Vec<u8>) {
+        self.resume_state_until = until;
+        self.resume_state = state;
+    }
+
+    /// The state learnt with the resume point (empty before, or when there was none).
+    pub fn resume_state(&self) -> &[u8] {
+        &self.resume_state
+    }
+
+    fn state_for(&self, next_expected: u64) -> Vec<u8> {
+        if next_expected == self.resume_state_until {
+            self.resume_state.clone()
+        } else {
+            Vec::new()
         }
     }
 
@@ -381,6 +434,7 @@ impl AckTracker {
             next_expected: self.next_expected,
             resume: true,
             received_until: self.next_expected,
+            resume_state: Vec::new(),
         }
     }
 
@@ -393,6 +447,18 @@ impl AckTracker {
     /// next expected sequence numbers). Returns true when it was learnt now: then publish
     /// `ack_due(true)` at once, which tells the streamer to start sending.
     pub fn on_progress(&mut self, consumers: &[String], next_expected: &[u64]) -> bool {
+        self.on_progress_with_states(consumers, next_expected, &[], &[])
+    }
+
+    /// [`Self::on_progress`], also learning this consumer's resume state from the concatenated
+    /// `states` and their `ends` (see `GcodeProgress.msg`; malformed ends give no state).
+    pub fn on_progress_with_states(
+        &mut self,
+        consumers: &[String],
+        next_expected: &[u64],
+        states: &[u8],
+        ends: &[u32],
+    ) -> bool {
         if self.resume_point_known {
             return false;
         }
@@ -402,6 +468,12 @@ impl AckTracker {
         let Some(&n) = next_expected.get(i) else {
             return false;
         };
+        let start = if i == 0 { Some(0) } else { ends.get(i - 1).copied() };
+        self.resume_state = match (start, ends.get(i)) {
+            (Some(a), Some(&b)) if a <= b => states.get(a as usize..b as usize).unwrap_or(&[]).to_vec(),
+            _ => Vec::new(),
+        };
+        self.resume_state_until = n;
         self.next_expected = n;
         self.last_acked = n;
         self.last_received_acked = n;
@@ -442,6 +514,7 @@ impl AckTracker {
             next_expected: self.next_expected,
             resume: false,
             received_until: self.next_expected,
+            resume_state: self.state_for(self.next_expected),
         })
     }
 
@@ -473,6 +546,7 @@ impl AckTracker {
             next_expected,
             resume: false,
             received_until: self.next_expected,
+            resume_state: self.state_for(next_expected),
         })
     }
 
@@ -511,13 +585,34 @@ impl Intake {
         }
     }
 
-    /// A progress report arrived: the confirmation to publish when it told the resume point.
-    pub fn on_progress(&mut self, consumers: &[String], next_expected: &[u64]) -> Option<Ack> {
+    /// A progress report arrived: the confirmation to publish when it told the resume point
+    /// (and, with it, this consumer's resume state: [`Self::resume_state`]).
+    pub fn on_progress(&mut self, progress: &GcodeProgress) -> Option<Ack> {
         let t = self.tracker.as_mut()?;
-        if t.on_progress(consumers, next_expected) {
+        if t.on_progress_with_states(
+            &progress.consumers,
+            &progress.consumer_next_expected,
+            &progress.consumer_resume_states,
+            &progress.consumer_resume_state_ends,
+        ) {
             t.ack_due(true)
         } else {
             None
+        }
+    }
+
+    /// The resume point and the state learnt with it, once known (`None` before, and without
+    /// acknowledgements).
+    pub fn resume_state(&self) -> Option<(u64, &[u8])> {
+        let t = self.tracker.as_ref().filter(|t| !t.needs_hello())?;
+        Some((t.resume_state_until, t.resume_state()))
+    }
+
+    /// Acknowledge with `state` once everything before `until` is finished (see
+    /// [`AckTracker::note_resume_state`]).
+    pub fn note_resume_state(&mut self, until: u64, state: Vec<u8>) {
+        if let Some(t) = self.tracker.as_mut() {
+            t.note_resume_state(until, state);
         }
     }
 
@@ -690,6 +785,7 @@ mod tests {
             next_expected: 3,
             resume: false,
             received_until,
+            resume_state: Vec::new(),
         };
         w.on_ack(&told(12), ms(1));
         assert!(!w.on_tick(ms(50)));
@@ -750,6 +846,7 @@ mod tests {
             next_expected: n,
             resume: false,
             received_until: 0,
+            resume_state: Vec::new(),
         };
         assert_eq!(
             w.consumer_acks().0,
@@ -813,7 +910,12 @@ mod tests {
         let mut live = Intake::new("/p", true);
         assert!(live.ack(0, ms(0)).unwrap().resume, "announces itself first");
         assert!(!live.accept(0), "resume point unknown");
-        let confirm = live.on_progress(&["/p".into()], &[3]).unwrap();
+        let told = GcodeProgress {
+            consumers: vec!["/p".into()],
+            consumer_next_expected: vec![3],
+            ..GcodeProgress::default()
+        };
+        let confirm = live.on_progress(&told).unwrap();
         assert_eq!((confirm.next_expected, confirm.resume), (3, false));
         assert!(live.accept(3) && live.accept(4));
         assert_eq!(live.ack(4, ms(10)).unwrap().next_expected, 4);
@@ -876,6 +978,7 @@ mod tests {
             next_expected: n,
             resume: false,
             received_until: 0,
+            resume_state: Vec::new(),
         };
         let mut w: SendWindow<GcodeMove> =
             SendWindow::new(WindowOptions::default(), &["/a".to_string()]);
@@ -900,5 +1003,80 @@ mod tests {
         assert_eq!(w.on_ack(&ack("/a", 4), ms(2)), AckOutcome::Applied);
         assert_eq!(w.acknowledged(), 4);
         assert_eq!(w.on_ack(&ack("/b", 4), ms(2)), AckOutcome::UnknownConsumer);
+    }
+
+    /// The state a consumer acknowledges with comes back to it, restarted, with exactly the
+    /// resume point it belongs to: the streamer drops an old state when the point advances
+    /// without one, and a consumer that keeps none gets none.
+    #[test]
+    fn a_restarted_consumer_gets_back_the_state_of_its_resume_point() {
+        let names = ["/planner".to_string(), "/recorder".to_string()];
+        let mut w: SendWindow<GcodeMove> = SendWindow::new(WindowOptions::default(), &names);
+        let mut planner = Intake::new("/planner", true);
+        let mut recorder = Intake::new("/recorder", true);
+        let progress = |w: &SendWindow<GcodeMove>| {
+            let (consumers, consumer_next_expected) = w.consumer_acks();
+            let (consumer_resume_states, consumer_resume_state_ends) = w.consumer_resume_states();
+            GcodeProgress {
+                consumers,
+                consumer_next_expected,
+                consumer_resume_states,
+                consumer_resume_state_ends,
+                ..GcodeProgress::default()
+            }
+        };
+        for intake in [&mut planner, &mut recorder] {
+            w.on_ack(&intake.ack(0, ms(0)).unwrap(), ms(0));
+        }
+        for intake in [&mut recorder, &mut planner] {
+            let confirm = intake.on_progress(&progress(&w)).unwrap();
+            assert_eq!(intake.resume_state(), Some((0, &[][..])));
+            w.on_ack(&confirm, ms(0));
+        }
+        for k in 0..10 {
+            w.push(mv(k));
+        }
+        while let Some(m) = w.next_to_send() {
+            assert!(planner.accept(m.sequence) && recorder.accept(m.sequence));
+        }
+        planner.note_resume_state(4, b"after 4".to_vec());
+        let ack = planner.ack(4, ms(1)).unwrap();
+        assert_eq!(ack.resume_state, b"after 4");
+        w.on_ack(&ack, ms(1));
+        w.on_ack(&recorder.ack(10, ms(1)).unwrap(), ms(1));
+        // Not yet at the noted point: acknowledged without a state (it would not match).
+        planner.note_resume_state(7, b"after 7".to_vec());
+        assert!(planner.ack(6, ms(300)).unwrap().resume_state.is_empty());
+
+        // The planner restarts: it announces itself and learns point and state together.
+        let mut restarted = Intake::new("/planner", true);
+        w.on_ack(&restarted.ack(0, ms(400)).unwrap(), ms(400));
+        let p = progress(&w);
+        assert_eq!(p.consumer_resume_state_ends, vec![7, 7], "the recorder keeps none");
+        restarted.on_progress(&p).unwrap();
+        assert_eq!(restarted.resume_state(), Some((4, &b"after 4"[..])));
+        assert_eq!(w.peek_next().map(|m| m.sequence), None, "not before it confirms");
+
+        // An advance without a state drops the old one.
+        let mut w2: SendWindow<GcodeMove> = SendWindow::new(WindowOptions::default(), &names[..1]);
+        w2.on_ack(&AckTracker::new("/planner", 1).hello(), ms(0));
+        for k in 0..5 {
+            w2.push(mv(k));
+        }
+        let with = |n: u64, state: &[u8]| Ack {
+            consumer: "/planner".into(),
+            next_expected: n,
+            resume: false,
+            received_until: n,
+            resume_state: state.to_vec(),
+        };
+        w2.on_ack(&with(0, b""), ms(0));
+        while w2.next_to_send().is_some() {}
+        w2.on_ack(&with(2, b"s2"), ms(1));
+        assert_eq!(w2.consumer_resume_states(), (b"s2".to_vec(), vec![2]));
+        w2.on_ack(&with(1, b"old"), ms(2));
+        assert_eq!(w2.consumer_resume_states(), (b"s2".to_vec(), vec![2]), "a late one is not taken");
+        w2.on_ack(&with(3, b""), ms(3));
+        assert_eq!(w2.consumer_resume_states(), (vec![], vec![0]));
     }
 }

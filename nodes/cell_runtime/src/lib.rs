@@ -13,6 +13,7 @@ pub mod flow;
 pub mod graph;
 pub mod names;
 pub mod params;
+pub mod replay;
 pub mod throttle;
 pub mod topics;
 

@@ -265,6 +265,10 @@ pub async fn stream(
             let (names, next) = window.consumer_acks();
             progress.consumers = names;
             progress.consumer_next_expected = next;
+            (
+                progress.consumer_resume_states,
+                progress.consumer_resume_state_ends,
+            ) = window.consumer_resume_states();
             progress.finished = finished;
             on_progress(&progress);
             publish(&progress_pub, progress.clone(), PUBLISH_PATIENCE)

@@ -334,6 +334,7 @@ pub struct GcodeAck {
     pub next_expected: u64,
     pub resume: bool,
     pub received_until: u64,
+    pub resume_state: Vec<u8>,
 }
 ros_message!(GcodeAck => schema::GCODE_ACK);
 
@@ -351,6 +352,8 @@ pub struct GcodeProgress {
     pub consumers: Vec<String>,
     pub consumer_next_expected: Vec<u64>,
     pub finished: bool,
+    pub consumer_resume_states: Vec<u8>,
+    pub consumer_resume_state_ends: Vec<u32>,
 }
 ros_message!(GcodeProgress => schema::GCODE_PROGRESS);
 
@@ -549,6 +552,7 @@ mod tests {
             next_expected: 0x0102030405060708,
             resume: true,
             received_until: 0x1112131415161718,
+            resume_state: vec![0xAA, 0xBB],
         };
         let bytes = cdr::encode(&ack).unwrap();
         let expected: Vec<u8> = [
@@ -559,6 +563,7 @@ mod tests {
             &[1],
             &[0; 7],
             &[0x18, 0x17, 0x16, 0x15, 0x14, 0x13, 0x12, 0x11],
+            &[2, 0, 0, 0, 0xAA, 0xBB],
         ]
         .concat();
         assert_eq!(bytes, expected);

@@ -21,6 +21,7 @@ pub mod path;
 pub mod planner;
 pub mod preflight;
 pub mod program;
+pub mod resume;
 pub mod steps;
 pub mod timing;
 pub mod urdf;

@@ -8,7 +8,9 @@
 //! that really stalls does, and the plan handed to the executor then ends at rest.
 //!
 //! A move is acknowledged only once its plan is published, so a restarted planner resumes
-//! with nothing lost. The lookahead queue is flushed (planned to a stop) when no move arrived
+//! with nothing lost; the acknowledgement carries the planner's [`Checkpoint`] there, so it
+//! also resumes on the same timeline (plan clock, joints, path speed, step position) and the
+//! machine receives the moves after it as if the planner had never stopped. The lookahead queue is flushed (planned to a stop) when no move arrived
 //! for `idle_flush_s` — as firmware planners do — which also ends a stream.
 //!
 //! Times: plan time `t` (s) maps to stamps `plan_epoch_ns + t`; the epoch is the wall clock at
@@ -32,6 +34,7 @@ use polar_cell_msgs::{
     PlanCredit, StepSegment, Time,
 };
 
+use crate::resume::{options_digest, Checkpoint};
 use crate::steps::{StepGenerator, StepOptions};
 use crate::{PlannedMove, Planner, PlannerOptions, JOINT_NAMES};
 
@@ -178,8 +181,9 @@ pub fn credit_allows(credit: Option<&PlanCredit>, epoch_ns: i64, plan_time_s: f6
 pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let params = node.params.clone();
     let (options, step_options) = options_from_params(&params)?;
-    let mut planner = Planner::new(options).map_err(|e| anyhow!("{e}"))?;
-    let mut steps = StepGenerator::new(step_options, [0.0; 3]);
+    let digest = options_digest(&options, &step_options);
+    let mut planner = Planner::new(options.clone()).map_err(|e| anyhow!("{e}"))?;
+    let mut steps = StepGenerator::new(step_options.clone(), [0.0; 3]);
     let publish_steps = params.bool("publish_steps");
     let js_period = params.f64("joint_state_period_s");
     let idle_flush = Duration::from_secs_f64(params.f64("idle_flush_s"));
@@ -214,7 +218,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let mut segments = Vec::new();
     let mut states = Vec::new();
     let mut next_state_t = 0.0;
-    // Sequence after the last move whose plan is published (what may be acknowledged).
+    // What may be acknowledged: every move before `planned_until` is published, and the
+    // checkpoint after each of them. Acknowledged is `published`, except that zero-time moves
+    // at its end wait for a move that takes time (or for the planner to go idle): consumers
+    // tell a resumed planner's repeats from new moves by their times, and a resume point
+    // right after a zero-time move would make a zero-time move after it look repeated.
+    let mut published: (u64, Option<Checkpoint>) = (0, None);
+    let mut timed: (u64, Option<Checkpoint>) = (0, None);
     let mut planned_until = 0u64;
     let mut pending = 0usize;
     let started = Instant::now();
@@ -251,7 +261,28 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     if !producer.admits(&info) {
                         continue;
                     }
-                    if let Some(ack) = intake.on_progress(&p.consumers, &p.consumer_next_expected) {
+                    if let Some(ack) = intake.on_progress(&p) {
+                        if let Some((resume_at, state)) = intake.resume_state().filter(|(n, _)| *n > 0) {
+                            // Restarted mid-print: continue the timeline acknowledged there.
+                            if state.is_empty() {
+                                let reason = format!("restarted after move {resume_at} with no planner state from the streamer: the plan clock and joints cannot be continued");
+                                node.diagnose(DiagnosticStatus::ERROR, &reason, &[]);
+                                return Err(anyhow!(reason));
+                            }
+                            let c = Checkpoint::from_bytes(state, resume_at, digest)
+                                .map_err(|e| anyhow!("restarted after move {resume_at}: {e}"))?;
+                            planner = Planner::resume(options.clone(), &c.resume_point())
+                                .map_err(|e| anyhow!("restarted after move {resume_at}: {e}"))?;
+                            steps = StepGenerator::at_position(step_options.clone(), c.step_position);
+                            published = (resume_at, Some(c.clone()));
+                            timed = published.clone();
+                            epoch_ns = c.plan_epoch_ns;
+                            next_state_t = c.next_sample_t_s;
+                            planned_until = resume_at;
+                            moves_planned = c.moves_planned;
+                            plan_time = c.t_s;
+                            cell_runtime::cell_log!(node, LogLevel::Info, "resumed after move {resume_at}: plan time {:.6} s, joints {:?}, path speed {:.6} m/s, steps {:?}", c.t_s, c.q, c.path_speed2.sqrt(), c.step_position);
+                        }
                         let _ = acks.publish(GcodeAck::from(ack));
                     }
                 }
@@ -272,7 +303,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         }
         // Feed the planner what the credit allows and publish each plan as it comes, so the
         // credit is judged against the plan actually published.
-        let mut published = false;
+        let mut any_published = false;
         loop {
             while planned.is_empty()
                 && !held.is_empty()
@@ -291,7 +322,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             if planned.is_empty() {
                 break;
             }
-            published = true;
+            any_published = true;
             for plan in planned.drain(..) {
                 publish(
                     &trajectory_pub,
@@ -316,14 +347,34 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                         .await
                         .context("/polar/planned_joint_states")?;
                 }
-                planned_until = plan.sequence + 1;
                 moves_planned += 1;
                 plan_time = plan.end_time();
                 pending = pending.saturating_sub(1);
+                let checkpoint = Checkpoint::new(
+                    plan.sequence + 1,
+                    digest,
+                    epoch_ns,
+                    &plan.resume,
+                    steps.position(),
+                    next_state_t,
+                    moves_planned,
+                );
+                published = (plan.sequence + 1, Some(checkpoint));
+                if plan.end_time() > plan.start_time() {
+                    timed = published.clone();
+                }
             }
         }
-        if !published {
+        if !any_published {
             continue;
+        }
+        let idle = pending == 0 && held.is_empty();
+        let (until, checkpoint) = if idle { &published } else { &timed };
+        if *until > planned_until {
+            planned_until = *until;
+            if let Some(c) = checkpoint {
+                intake.note_resume_state(planned_until, c.to_bytes());
+            }
         }
         // Acknowledge what is planned and published; the lookahead queue is not.
         if let Some(ack) = intake.ack(planned_until, started.elapsed()) {

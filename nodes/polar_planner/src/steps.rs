@@ -31,6 +31,11 @@ impl StepGenerator {
         StepGenerator { options, position }
     }
 
+    /// A generator that continues from an absolute step position (a resumed planner's).
+    pub fn at_position(options: StepOptions, position: [i64; 3]) -> Self {
+        StepGenerator { options, position }
+    }
+
     /// Absolute step position of each axis.
     pub fn position(&self) -> [i64; 3] {
         self.position

@@ -268,7 +268,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     }
                     // Every move of the file acknowledged by every consumer (us included).
                     stream_finished |= p.finished;
-                    if let Some(ack) = intake.on_progress(&p.consumers, &p.consumer_next_expected) {
+                    if let Some(ack) = intake.on_progress(&p) {
                         let _ = acks.publish(GcodeAck::from(ack));
                     }
                 }

@@ -1,0 +1,165 @@
+//! Telling a restarted producer's repeats from new messages, on links whose messages follow an
+//! order of their own (a move's step segments by move sequence, trajectories by their times).
+//!
+//! A producer acknowledges its input only after publishing what it made of it, so a producer
+//! killed after publishing and before its acknowledgement got through is sent that input again
+//! when it restarts, and publishes the same messages again (the planner does so bit for bit:
+//! `polar_planner::resume`). No acknowledgement can close that window — the publication and the
+//! acknowledgement are two messages, and the process can die between them — so every consumer
+//! drops the repeats itself, with [`ReplayFilter`].
+//!
+//! Each message has a key that never decreases along the stream. A message with a key below
+//! the highest seen is a repeat. Several messages may share a key (the segments of one move,
+//! zero-time moves at one instant): of those, a new writer's first ones are repeats as long as
+//! it has not sent more of that key than were seen. This needs the repeated stretch to start
+//! at a key no message before it shares, which is why the planner acknowledges only after a
+//! move that takes time.
+
+/// What to do with a message ([`ReplayFilter::admit`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Admit {
+    New,
+    /// Seen before: from a restarted producer going over what it had already sent.
+    Repeat,
+}
+
+/// The keys seen on one link and the writer sending it now. `W` identifies a writer (a DDS
+/// publisher GID).
+#[derive(Clone, Debug)]
+pub struct ReplayFilter<K, W> {
+    highest: Option<K>,
+    /// Messages seen with key `highest`.
+    at_highest: u64,
+    writer: Option<W>,
+    /// Messages the current writer sent with key `highest`.
+    from_writer_at_highest: u64,
+    repeats: u64,
+}
+
+impl<K, W> Default for ReplayFilter<K, W> {
+    fn default() -> Self {
+        ReplayFilter {
+            highest: None,
+            at_highest: 0,
+            writer: None,
+            from_writer_at_highest: 0,
+            repeats: 0,
+        }
+    }
+}
+
+impl<K: Ord, W: PartialEq> ReplayFilter<K, W> {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Judge the next message from `writer` with `key`.
+    pub fn admit(&mut self, key: K, writer: W) -> Admit {
+        if self.writer.as_ref() != Some(&writer) {
+            self.writer = Some(writer);
+            self.from_writer_at_highest = 0;
+        }
+        let verdict = match self.highest.as_ref().map(|h| key.cmp(h)) {
+            None | Some(std::cmp::Ordering::Greater) => {
+                self.highest = Some(key);
+                self.at_highest = 1;
+                self.from_writer_at_highest = 1;
+                Admit::New
+            }
+            Some(std::cmp::Ordering::Less) => Admit::Repeat,
+            Some(std::cmp::Ordering::Equal) => {
+                self.from_writer_at_highest += 1;
+                if self.from_writer_at_highest <= self.at_highest {
+                    Admit::Repeat
+                } else {
+                    self.at_highest += 1;
+                    Admit::New
+                }
+            }
+        };
+        if verdict == Admit::Repeat {
+            self.repeats += 1;
+        }
+        verdict
+    }
+
+    /// Messages dropped as repeats so far.
+    pub fn repeats(&self) -> u64 {
+        self.repeats
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn feed(filter: &mut ReplayFilter<u64, u8>, writer: u8, keys: &[u64]) -> Vec<u64> {
+        keys.iter()
+            .copied()
+            .filter(|&k| filter.admit(k, writer) == Admit::New)
+            .collect()
+    }
+
+    #[test]
+    fn one_writer_passes_everything_including_equal_keys() {
+        let mut f = ReplayFilter::new();
+        assert_eq!(feed(&mut f, 1, &[0, 0, 1, 1, 1, 2, 5]), vec![0, 0, 1, 1, 1, 2, 5]);
+        assert_eq!(f.repeats(), 0);
+    }
+
+    /// Moves 3 and 4 had 3 and 2 segments; the first writer died two segments into move 4's
+    /// (one lost); the restarted one sends again from move 3.
+    #[test]
+    fn a_restarted_writer_repeats_are_dropped_and_its_new_messages_kept() {
+        let mut f = ReplayFilter::new();
+        assert_eq!(feed(&mut f, 1, &[2, 3, 3, 3, 4]), vec![2, 3, 3, 3, 4]);
+        assert_eq!(feed(&mut f, 2, &[3, 3, 3, 4, 4, 5, 5]), vec![4, 5, 5]);
+        assert_eq!(f.repeats(), 4);
+        // And once more, after nothing new had been sent.
+        assert_eq!(feed(&mut f, 3, &[5, 5, 6]), vec![6]);
+    }
+
+    proptest! {
+        /// Whatever the stream and wherever a writer dies and its successor resumes (at a key
+        /// nothing before it shares, and no later than what it had sent), what comes through is
+        /// the stream once, in order.
+        #[test]
+        fn restarts_anywhere_deliver_the_stream_once(
+            runs in proptest::collection::vec(1u64..4, 1..30),
+            cuts in proptest::collection::vec((0usize..100, 0usize..100), 0..4),
+        ) {
+            // The stream: key k repeated runs[k] times.
+            let stream: Vec<u64> = runs
+                .iter()
+                .enumerate()
+                .flat_map(|(k, &n)| std::iter::repeat_n(k as u64, n as usize))
+                .collect();
+            let starts: Vec<usize> = (0..stream.len())
+                .filter(|&i| i == 0 || stream[i] != stream[i - 1])
+                .collect();
+            let mut f = ReplayFilter::new();
+            let mut out = Vec::new();
+            let mut at = 0usize; // next index the current writer sends
+            let mut resume = 0usize; // where the current writer started (its resume point)
+            let mut writer = 0u8;
+            for (sent, back) in cuts {
+                // It sends some, dies, and the next one resumes at a key start between its
+                // own resume point and what it sent.
+                let until = (at + sent % (stream.len() - at + 1)).min(stream.len());
+                out.extend(stream[at..until].iter().copied().filter(|&k| f.admit(k, writer) == Admit::New));
+                let candidates: Vec<usize> =
+                    starts.iter().copied().filter(|&s| s >= resume && s <= until).collect();
+                if candidates.is_empty() {
+                    at = until;
+                    continue;
+                }
+                resume = candidates[back % candidates.len()];
+                at = resume;
+                writer += 1;
+            }
+            out.extend(stream[at..].iter().copied().filter(|&k| f.admit(k, writer) == Admit::New));
+            prop_assert_eq!(out, stream);
+        }
+    }
+}

@@ -97,13 +97,10 @@ def test_mcu_launch_xml_names_existing_binaries_and_parameter_file():
         assert (BIN_DIR / binary).exists(), binary
 
 
-@pytest.mark.parametrize("restarted", ["screw_driver", "polar_planner"])
-def test_cell_sh_stops_on_the_path_when_a_planner_or_screw_driver_restarts(tmp_path, restarted):
-    """A plan producer killed and started again mid-print cannot continue the plan it began
-    (a restarted screw driver used to hang the print for good, a restarted planner to start
-    its plan clock again): the executor sees the new process, stops on the path (as a cancel
-    does, not an emergency stop) and ends the print with the reason, non-zero, and the bag is
-    finalised."""
+def run_cell_sh_and_restart(tmp_path, restarted, kill_after_s=8.0):
+    """finger.gcode under cell.sh at 4x; `restarted` SIGKILLed after `kill_after_s` (well into
+    finger's first 30 s of machine time) and started again. Returns cell.sh's return code,
+    its output and the bag."""
     bag = tmp_path / "cell.mcap"
     env = {"POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin", "POLAR_CELL_SPEED": "4"}
     # Its own process group, so that whatever happens every node of it goes at the end.
@@ -114,7 +111,7 @@ def test_cell_sh_stops_on_the_path_when_a_planner_or_screw_driver_restarts(tmp_p
     )
     again = None
     try:
-        time.sleep(8)  # well into the print (finger's first 30 s of machine time)
+        time.sleep(kill_after_s)
         pid = subprocess.run(
             ["pgrep", "-P", str(cell.pid), "-x", restarted], capture_output=True, text=True
         ).stdout.split()
@@ -124,10 +121,10 @@ def test_cell_sh_stops_on_the_path_when_a_planner_or_screw_driver_restarts(tmp_p
         again = subprocess.Popen(
             [str(BIN_DIR / restarted), "--ros-args", "--params-file",
              str(LAUNCH / "params" / "cell.yaml")],
-            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             start_new_session=True,
         )
-        output, _ = cell.communicate(timeout=30)
+        output, _ = cell.communicate(timeout=90)
     finally:
         for proc in (again, cell):
             if proc is not None:
@@ -136,8 +133,19 @@ def test_cell_sh_stops_on_the_path_when_a_planner_or_screw_driver_restarts(tmp_p
                 except ProcessLookupError:
                     pass
                 proc.wait(timeout=10)
-    assert cell.returncode != 0, output
-    assert f"/{restarted} restarted mid-print" in output, output
+    if again is not None:
+        output += "\n--- restarted " + restarted + " ---\n" + again.stdout.read()
+    return cell.returncode, output, bag
+
+
+def test_cell_sh_stops_on_the_path_when_the_screw_driver_restarts(tmp_path):
+    """A screw driver killed and started again mid-print cannot continue the commands it began
+    (it used to hang the print for good): the executor sees the new process, stops on the
+    path (as a cancel does, not an emergency stop) and ends the print with the reason,
+    non-zero, and the bag is finalised."""
+    returncode, output, bag = run_cell_sh_and_restart(tmp_path, "screw_driver")
+    assert returncode != 0, output
+    assert "/screw_driver restarted mid-print" in output, output
     # It was moving: the machine stopped on the path (a cancel's hold), and only then, at
     # rest, took the fault (an emergency stop of a machine standing still).
     assert "stopping on the path" in output, output
@@ -145,3 +153,60 @@ def test_cell_sh_stops_on_the_path_when_a_planner_or_screw_driver_restarts(tmp_p
     states = messages["/joint_states"]
     assert len(states) > 8 / 0.02, len(states)  # it had been running
     assert all(abs(v) < 1e-9 for v in states[-1].velocity), states[-1].velocity
+
+
+# One step of bed_theta (rad), arm_r and z (m) at the shipped steps_per_unit.
+ONE_STEP = (6.283185307179586 / 32000.0, 1.0 / 80000.0, 1.0 / 400000.0)
+
+
+@pytest.mark.parametrize("kill_after_s", [6.0, 9.5])
+def test_a_planner_restarted_mid_print_continues_the_plan(tmp_path, kill_after_s):
+    """A planner killed mid-print and started again resumes where it acknowledged, on the same
+    timeline (polar_planner::resume): the print completes, and the bag holds the plan once —
+    every move's trajectory and steps exactly once, each move starting where the one before
+    ended — and the machine ends where the plan ends."""
+    returncode, output, bag = run_cell_sh_and_restart(tmp_path, "polar_planner", kill_after_s)
+    assert returncode == 0, output
+    messages, _, _ = read_with_mcap_ros2(bag)
+    log = [(entry.name, entry.msg) for entry in messages["/rosout"]]
+    assert any(n == "polar_planner" and m.startswith("resumed after move") for n, m in log), log
+    assert any("/polar_planner restarted and continues the plan at move" in m for _, m in log), log
+    assert not any("lost part of the plan" in m for _, m in log), log
+    moves = messages["/gcode/moves"]
+    trajectories = messages["/polar/trajectory"]
+    segments = messages["/polar/steps"]
+    assert len(moves) == len(gcode_motion_lines(FIXTURES / "finger.gcode"))
+    # One trajectory per move, each starting where the one before ended (1 us: ns rounding).
+    assert len(trajectories) == len(moves), (len(trajectories), len(moves))
+
+    def ns(t):
+        return t.sec * 1_000_000_000 + t.nanosec
+
+    end = None
+    for k, tr in enumerate(trajectories):
+        start = ns(tr.header.stamp)
+        if end is not None:
+            assert abs(start - end) <= 1000, (k, start, end)
+        last = tr.points[-1].time_from_start
+        end = start + last.sec * 1_000_000_000 + last.nanosec
+    # Segments: moves in order, each move's first one where the move before ended.
+    move_start, move_end, last_sequence = None, None, -1
+    for seg in segments:
+        if seg.move_sequence != last_sequence:
+            assert seg.move_sequence > last_sequence, (seg.move_sequence, last_sequence)
+            if move_end is not None:
+                assert abs(ns(seg.header.stamp) - move_end) <= 1000, seg.move_sequence
+            last_sequence, move_start, move_end = seg.move_sequence, ns(seg.header.stamp), ns(seg.header.stamp)
+        move_end += round(seg.duration_s * 1e9)
+    # The machine ends where the plan ends, within a step of each joint.
+    final = messages["/joint_states"][-1]
+    planned = trajectories[-1].points[-1].positions
+    for j in range(3):
+        assert abs(final.position[j] - planned[j]) <= ONE_STEP[j] * 1.01, (j, final.position, planned)
+    # The steps add up to the plan's end: none lost, none doubled.
+    totals = [0, 0, 0]
+    for seg in segments:
+        for j in range(3):
+            totals[j] += seg.step_counts[j] * seg.directions[j]
+    for j, per_step in enumerate(ONE_STEP):
+        assert abs(totals[j] - round(planned[j] / per_step)) <= 1, (j, totals, planned)

@@ -89,8 +89,15 @@ pub fn grants_credit(params: &cell_runtime::Params) -> bool {
 
 /// What a message says of the plan's timeline, for the credit a recorder grants: the plan
 /// stamp (ns) a plan message starts at and how long it lasts, nothing for the rest.
+///
+/// Plan messages also have a key that never decreases along their stream, by which a
+/// restarted planner's repeats are left out of the bag ([`cell_runtime::replay`]): the bag
+/// holds the plan once, as the machine executed it.
 trait Recordable: RosMessage {
     fn plan_span_ns(&self) -> Option<(i64, i64)> {
+        None
+    }
+    fn replay_key(&self) -> Option<(i64, i64)> {
         None
     }
 }
@@ -122,6 +129,9 @@ impl Recordable for JointTrajectory {
             .map_or(0.0, |p| p.time_from_start.as_secs_f64());
         Some((self.header.stamp.as_nanos(), (last_s * 1e9).round() as i64))
     }
+    fn replay_key(&self) -> Option<(i64, i64)> {
+        Some(self.span_ns())
+    }
 }
 
 /// One piece of a move's steps: every segment of a move carries the move's start stamp, and
@@ -132,6 +142,9 @@ impl Recordable for StepSegment {
             self.header.stamp.as_nanos(),
             (self.duration_s * 1e9).round() as i64,
         ))
+    }
+    fn replay_key(&self) -> Option<(i64, i64)> {
+        Some((self.move_sequence as i64, 0))
     }
 }
 
@@ -347,11 +360,17 @@ fn spawn_tap<T: Recordable>(
     Ok(tokio::spawn(async move {
         let mut gaps = SequenceGaps::default();
         let mut plan_end = PlanEnd::default();
+        let mut replayed = cell_runtime::replay::ReplayFilter::new();
         loop {
             tokio::select! {
                 taken = sub.async_take() => match taken {
                     Ok((m, info)) => {
                         gaps.observe(info.publisher_gid(), info.sequence_number());
+                        if m.replay_key().is_some_and(|key| {
+                            replayed.admit(key, info.publisher_gid()) == cell_runtime::replay::Admit::Repeat
+                        }) {
+                            continue;
+                        }
                         if !forward(&tx, channel, &m, &info).await { break }
                         if let (Some(frontier), Some(span)) = (&frontier, m.plan_span_ns()) {
                             let end_ns = plan_end.after(span);
@@ -363,11 +382,22 @@ fn spawn_tap<T: Recordable>(
                 _ = stop.changed() => {
                     while let Ok(Some((m, info))) = sub.take() {
                         gaps.observe(info.publisher_gid(), info.sequence_number());
+                        if m.replay_key().is_some_and(|key| {
+                            replayed.admit(key, info.publisher_gid()) == cell_runtime::replay::Admit::Repeat
+                        }) {
+                            continue;
+                        }
                         forward(&tx, channel, &m, &info).await;
                     }
                     break;
                 }
             }
+        }
+        if replayed.repeats() > 0 {
+            tracing::info!(
+                "recorder: {topic}: {} repeats of a restarted producer left out",
+                replayed.repeats()
+            );
         }
         if gaps.out_of_order() > 0 {
             tracing::warn!(

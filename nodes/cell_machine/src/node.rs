@@ -19,6 +19,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
 use cell_runtime::graph::Producer;
+use cell_runtime::replay::Joined;
 use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
     now_ns, parse_service_mapping, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
@@ -67,6 +68,7 @@ pub fn param_specs(tick_period_s: f64) -> Vec<ParamSpec> {
         ParamSpec::new("pin_open_delay_s", ParamValue::Double(DEFAULT_PIN_OPEN_DELAY_S), "a resume waits this long at rest with the pin open: the screw driver's").range(0.0, 60.0),
         ParamSpec::new("screw_hold", ParamValue::String("zero_order".into()), "how rpm runs between screw commands: zero_order (compensated, smoothed or resampled commands) or first_order (raw breakpoints)"),
         ParamSpec::new("queue_capacity", ParamValue::Integer(4096), "step segments and screw commands held ahead of execution at most").range(16.0, 1e7),
+        ParamSpec::new("planner_resume_timeout_s", ParamValue::Double(10.0), "a planner restarted mid-print must continue the plan within this long (wall s; the machine holds on the path meanwhile) or the print stops and fails (0: never resume, stop at once)").range(0.0, 3600.0),
         ParamSpec::new("exit_when_done", ParamValue::Bool(false), "end the node once a complete plan (its stream finished) has been executed (for scripts)"),
         ParamSpec::new("service_mapping", ParamValue::String("cyclone".into()), "request/reply wire format of the services: cyclone (rmw_cyclonedds clients), enhanced (rmw_fastrtps) or basic"),
     ]
@@ -270,11 +272,17 @@ pub async fn run<M: Machine>(
     let mut steps_from = Producer::named(node, "steps_producer", true)?;
     let mut screw_from = Producer::named(node, "screw_producer", true)?;
     let mut progress_from = Producer::named(node, "producer", true)?;
-    // A plan producer restarted mid-print (each producer knows its first process) does not
-    // continue the plan it began (its plan clock starts again, its screw commands pair with
-    // other moves), so the machine stops on the path and the print fails, saying why,
-    // instead of waiting for input that never fits.
+    // A restarted planner resumes the plan where it acknowledged (polar_planner::resume):
+    // its repeats are dropped, and its first new segment must start where the plan taken so
+    // far ends. One that does not, or does not come back within `planner_resume_timeout_s`,
+    // and a restarted screw driver (which does not resume: its commands would pair with other
+    // moves) stop the machine on the path and fail the print, saying why, instead of waiting
+    // for input that never fits. A segment lost anywhere (a gap in the plan) does the same.
     let mut stopping_for: Option<String> = None;
+    let mut steps_join = cell_runtime::replay::StepsJoin::new();
+    let resume_timeout = Duration::from_secs_f64(node.params.f64("planner_resume_timeout_s"));
+    // When the planner was seen restarted and has not continued the plan yet.
+    let mut planner_restarted_at: Option<Instant> = None;
     let mut stop_issued = false;
     let mut last_graph_look = Instant::now();
     let mut fault_at_ns: Option<i64> = None;
@@ -362,14 +370,44 @@ pub async fn run<M: Machine>(
         tokio::select! {
             taken = steps_sub.async_take() => {
                 let (s, info) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
+                let over = input_finished && executor.is_drained();
                 if !steps_from.admits(&info) {
                     ignored.note(node, "/polar/steps", "ignored_foreign_steps", steps_from.name());
-                } else if steps_from.restarted(&info) && !(input_finished && executor.is_drained())
-                {
+                } else if steps_from.restarted(&info) && !over && resume_timeout.is_zero() {
                     stopping_for.get_or_insert_with(|| restarted(steps_from.name(), "/polar/steps"));
                 } else {
-                    received += 1;
-                    pending_steps.push_back(s);
+                    match steps_join.take(&s, info.publisher_gid()) {
+                        Joined::Repeat => {}
+                        Joined::Gap { move_sequence, expected_ns, found_ns } => {
+                            let after = if steps_from.restarted(&info) {
+                                format!(" after {} restarted", steps_from.name())
+                            } else {
+                                String::new()
+                            };
+                            stopping_for.get_or_insert_with(|| format!(
+                                "/polar/steps lost part of the plan{after}: move {move_sequence} (line {}) starts {:.6} s after the plan taken so far ends",
+                                s.source_line,
+                                (found_ns - expected_ns) as f64 * 1e-9
+                            ));
+                        }
+                        Joined::New => {
+                            if steps_from.restarted(&info) {
+                                steps_from.adopt(&info);
+                                planner_restarted_at = None;
+                                cell_runtime::cell_log!(
+                                    node,
+                                    LogLevel::Info,
+                                    "{} restarted and continues the plan at move {} (line {}); {} repeated segments dropped",
+                                    steps_from.name(),
+                                    s.move_sequence,
+                                    s.source_line,
+                                    steps_join.repeats()
+                                );
+                            }
+                            received += 1;
+                            pending_steps.push_back(s);
+                        }
+                    }
                 }
             }
             taken = screw_sub.async_take() => {
@@ -444,13 +482,34 @@ pub async fn run<M: Machine>(
             || screw_from.needs_look();
         if stopping_for.is_none() && graph_look_due && !(input_finished && executor.is_drained()) {
             last_graph_look = Instant::now();
-            for (from, topic) in [
-                (&mut steps_from, "/polar/steps"),
-                (&mut screw_from, "/screw/command"),
-            ] {
-                if from.announced_elsewhere() {
-                    stopping_for.get_or_insert_with(|| restarted(from.name(), topic));
+            if screw_from.announced_elsewhere() {
+                stopping_for.get_or_insert_with(|| restarted(screw_from.name(), "/screw/command"));
+            }
+            if steps_from.announced_elsewhere() {
+                if resume_timeout.is_zero() {
+                    stopping_for
+                        .get_or_insert_with(|| restarted(steps_from.name(), "/polar/steps"));
+                } else if planner_restarted_at.is_none() {
+                    planner_restarted_at = Some(Instant::now());
+                    cell_runtime::cell_log!(
+                        node,
+                        LogLevel::Warn,
+                        "{} restarted mid-print: waiting up to {} s for it to continue the plan (the machine holds on the path if the plan runs out)",
+                        steps_from.name(),
+                        resume_timeout.as_secs_f64()
+                    );
                 }
+            }
+        }
+        if let Some(at) = planner_restarted_at {
+            if at.elapsed() >= resume_timeout && !(input_finished && executor.is_drained()) {
+                stopping_for.get_or_insert_with(|| {
+                    format!(
+                        "{} restarted mid-print and did not continue the plan within {} s",
+                        steps_from.name(),
+                        resume_timeout.as_secs_f64()
+                    )
+                });
             }
         }
         // A producer restarted: stop on the path as a cancel does; at rest, the print fails.
@@ -685,6 +744,7 @@ pub async fn run<M: Machine>(
                 ("plan_ahead_s", format!("{:.3}", executor.plan_ahead_s())),
                 ("feed", format!("{:.3}", state.feed)),
                 ("segments_received", received.to_string()),
+                ("segments_repeated", steps_join.repeats().to_string()),
                 ("segments_completed", completed.to_string()),
                 ("underruns", underruns.to_string()),
                 ("screw_rpm", format!("{:.2}", state.screw_rpm)),
@@ -699,7 +759,8 @@ pub async fn run<M: Machine>(
     }
 }
 
-/// Why the machine stops when a plan producer's messages come from a new process.
+/// Why the machine stops when a plan producer's messages come from a new process (a screw
+/// driver, or a planner when resuming is off).
 fn restarted(producer: &str, topic: &str) -> String {
     format!(
         "{producer} restarted mid-print ({topic} now comes from another process): what it \

@@ -128,6 +128,8 @@ struct ConsumerState {
     ready: bool,
     /// The state that came with the acknowledgement of `next_expected` (empty: none).
     resume_state: Vec<u8>,
+    /// The process its acknowledgements last came from ([`SendWindow::on_ack_from`]).
+    process: Option<u128>,
 }
 
 /// The producer's side: a bounded buffer of unacknowledged messages.
@@ -165,6 +167,7 @@ impl<T: Sequenced + Clone> SendWindow<T> {
                     present: false,
                     ready: false,
                     resume_state: Vec::new(),
+                    process: None,
                 })
                 .collect(),
             last_progress: Duration::ZERO,
@@ -214,6 +217,30 @@ impl<T: Sequenced + Clone> SendWindow<T> {
     /// Moves published and not yet acknowledged by every consumer.
     pub fn in_flight(&self) -> u64 {
         self.next_to_send - self.base
+    }
+
+    /// [`Self::on_ack`] for an acknowledgement from `process` (`graph::process_of` its
+    /// writer). A consumer's first acknowledgement from another process than before is its
+    /// restart, even when it is not an announcement: a restarted consumer can learn its resume
+    /// point from a report that still lists its previous process, and confirm it, before any
+    /// announcement of its own got here. Taken as announced, it is sent everything after that
+    /// point again; otherwise it would wait for moves its previous process had received.
+    pub fn on_ack_from(&mut self, ack: &Ack, process: u128, now: Duration) -> AckOutcome {
+        let Some(c) = self.consumers.iter_mut().find(|c| c.name == ack.consumer) else {
+            return AckOutcome::UnknownConsumer;
+        };
+        let restarted = c.process.replace(process).is_some_and(|p| p != process);
+        if restarted && !ack.resume {
+            let announcement = Ack {
+                consumer: ack.consumer.clone(),
+                next_expected: 0,
+                resume: true,
+                received_until: 0,
+                resume_state: Vec::new(),
+            };
+            self.on_ack(&announcement, now);
+        }
+        self.on_ack(ack, now)
     }
 
     /// Apply an acknowledgement received at monotonic time `now`; one from an unknown
@@ -468,9 +495,15 @@ impl AckTracker {
         let Some(&n) = next_expected.get(i) else {
             return false;
         };
-        let start = if i == 0 { Some(0) } else { ends.get(i - 1).copied() };
+        let start = if i == 0 {
+            Some(0)
+        } else {
+            ends.get(i - 1).copied()
+        };
         self.resume_state = match (start, ends.get(i)) {
-            (Some(a), Some(&b)) if a <= b => states.get(a as usize..b as usize).unwrap_or(&[]).to_vec(),
+            (Some(a), Some(&b)) if a <= b => {
+                states.get(a as usize..b as usize).unwrap_or(&[]).to_vec()
+            }
             _ => Vec::new(),
         };
         self.resume_state_until = n;
@@ -1052,10 +1085,18 @@ mod tests {
         let mut restarted = Intake::new("/planner", true);
         w.on_ack(&restarted.ack(0, ms(400)).unwrap(), ms(400));
         let p = progress(&w);
-        assert_eq!(p.consumer_resume_state_ends, vec![7, 7], "the recorder keeps none");
+        assert_eq!(
+            p.consumer_resume_state_ends,
+            vec![7, 7],
+            "the recorder keeps none"
+        );
         restarted.on_progress(&p).unwrap();
         assert_eq!(restarted.resume_state(), Some((4, &b"after 4"[..])));
-        assert_eq!(w.peek_next().map(|m| m.sequence), None, "not before it confirms");
+        assert_eq!(
+            w.peek_next().map(|m| m.sequence),
+            None,
+            "not before it confirms"
+        );
 
         // An advance without a state drops the old one.
         let mut w2: SendWindow<GcodeMove> = SendWindow::new(WindowOptions::default(), &names[..1]);
@@ -1075,8 +1116,50 @@ mod tests {
         w2.on_ack(&with(2, b"s2"), ms(1));
         assert_eq!(w2.consumer_resume_states(), (b"s2".to_vec(), vec![2]));
         w2.on_ack(&with(1, b"old"), ms(2));
-        assert_eq!(w2.consumer_resume_states(), (b"s2".to_vec(), vec![2]), "a late one is not taken");
+        assert_eq!(
+            w2.consumer_resume_states(),
+            (b"s2".to_vec(), vec![2]),
+            "a late one is not taken"
+        );
         w2.on_ack(&with(3, b""), ms(3));
         assert_eq!(w2.consumer_resume_states(), (vec![], vec![0]));
+    }
+
+    /// A restarted consumer that learnt its resume point from a report still listing its
+    /// previous process, and confirmed it without announcing itself, is sent everything after
+    /// that point again (it used to wait for ever: the window held that its previous process
+    /// had received them all).
+    #[test]
+    fn a_consumer_confirming_from_a_new_process_is_sent_its_moves_again() {
+        let mut w: SendWindow<GcodeMove> =
+            SendWindow::new(WindowOptions::default(), &["/p".to_string()]);
+        let mut first = Intake::new("/p", true);
+        w.on_ack_from(&first.ack(0, ms(0)).unwrap(), 1, ms(0));
+        let told = |w: &SendWindow<GcodeMove>| {
+            let (consumers, consumer_next_expected) = w.consumer_acks();
+            GcodeProgress {
+                consumers,
+                consumer_next_expected,
+                ..GcodeProgress::default()
+            }
+        };
+        w.on_ack_from(&first.on_progress(&told(&w)).unwrap(), 1, ms(0));
+        for k in 0..10 {
+            w.push(mv(k));
+        }
+        while let Some(m) = w.next_to_send() {
+            assert!(first.accept(m.sequence));
+        }
+        // It finished 4 and received all 10, then died.
+        w.on_ack_from(&first.ack(4, ms(1)).unwrap(), 1, ms(1));
+        // Its successor reads a report before announcing itself, and confirms at once.
+        let mut second = Intake::new("/p", true);
+        let confirm = second.on_progress(&told(&w)).unwrap();
+        assert_eq!(confirm.next_expected, 4);
+        assert!(!confirm.resume);
+        w.on_ack_from(&confirm, 2, ms(2));
+        let again: Vec<u64> = std::iter::from_fn(|| w.next_to_send().map(|m| m.sequence)).collect();
+        assert_eq!(again, (4..10).collect::<Vec<_>>());
+        assert!(again.iter().all(|&k| second.accept(k)));
     }
 }

@@ -14,6 +14,14 @@ use ros2_client::{entities_info::NodeEntitiesInfo, Gid};
 /// The first 12 bytes of an RTPS GUID name its participant.
 const PREFIX_LEN: usize = 12;
 
+/// The process a writer belongs to, as a number: its participant (the first 12 bytes of its
+/// GUID). A restarted node comes back as another one.
+pub fn process_of(gid: &Gid) -> u128 {
+    prefix(gid)
+        .iter()
+        .fold(0u128, |acc, b| (acc << 8) | u128::from(*b))
+}
+
 fn prefix(gid: &Gid) -> [u8; PREFIX_LEN] {
     gid.as_bytes()[..PREFIX_LEN]
         .try_into()
@@ -254,6 +262,14 @@ impl Producer {
     /// not checked (no name given).
     pub fn restarted(&mut self, info: &ros2_client::MessageInfo) -> bool {
         self.check && !self.process.same(&info.publisher_gid())
+    }
+
+    /// Take the process of the message that came with `info` as the producer's from now on: a
+    /// restarted producer that continues what its first process began (a resumed planner).
+    /// The announcements are looked at afresh, with the old process among what was there.
+    pub fn adopt(&mut self, info: &ros2_client::MessageInfo) {
+        self.process = ProducerProcess::new();
+        self.process.same(&info.publisher_gid());
     }
 
     /// Whether the producer's first message came and the graph was not looked at since

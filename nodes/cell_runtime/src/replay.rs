@@ -89,6 +89,81 @@ impl<K: Ord, W: PartialEq> ReplayFilter<K, W> {
     }
 }
 
+/// How far a message's stamp may be from where the one before it ended (ns): the same plan
+/// time, rounded to a nanosecond separately; anything lost leaves a gap of its length.
+pub const TIMELINE_TOLERANCE_NS: i64 = 1_000;
+
+/// What became of a step segment ([`StepsJoin::take`]).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Joined {
+    /// Continues the plan: execute it.
+    New,
+    /// A restarted planner's repeat of a segment already taken: drop it.
+    Repeat,
+    /// It does not start where the plan taken so far ends: something before it was lost.
+    Gap {
+        move_sequence: u64,
+        /// Where the plan taken so far ends, and where this segment's move starts (ns).
+        expected_ns: i64,
+        found_ns: i64,
+    },
+}
+
+/// A machine's intake of `/polar/steps`: a restarted planner's repeats dropped (keyed by move
+/// sequence: a move's segments share it), and every segment checked to continue the plan —
+/// a move starts where the move before it ended — so a lost segment is found, not stepped over.
+#[derive(Clone, Debug)]
+pub struct StepsJoin<W> {
+    replay: ReplayFilter<u64, W>,
+    /// The move of the last segment taken: its sequence, start stamp, and the plan time of
+    /// its segments taken so far.
+    last: Option<(u64, i64, f64)>,
+}
+
+impl<W> Default for StepsJoin<W> {
+    fn default() -> Self {
+        StepsJoin {
+            replay: ReplayFilter::default(),
+            last: None,
+        }
+    }
+}
+
+impl<W: PartialEq> StepsJoin<W> {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Judge the next segment, from `writer`.
+    pub fn take(&mut self, segment: &polar_cell_msgs::StepSegment, writer: W) -> Joined {
+        if self.replay.admit(segment.move_sequence, writer) == Admit::Repeat {
+            return Joined::Repeat;
+        }
+        let start_ns = segment.header.stamp.as_nanos();
+        match self.last {
+            Some((sequence, move_start_ns, taken_s)) if sequence != segment.move_sequence => {
+                let expected_ns = move_start_ns + (taken_s * 1e9).round() as i64;
+                if (start_ns - expected_ns).abs() > TIMELINE_TOLERANCE_NS {
+                    return Joined::Gap {
+                        move_sequence: segment.move_sequence,
+                        expected_ns,
+                        found_ns: start_ns,
+                    };
+                }
+                self.last = Some((segment.move_sequence, start_ns, segment.duration_s));
+            }
+            Some((_, _, ref mut taken_s)) => *taken_s += segment.duration_s,
+            None => self.last = Some((segment.move_sequence, start_ns, segment.duration_s)),
+        }
+        Joined::New
+    }
+
+    /// Segments dropped as repeats so far.
+    pub fn repeats(&self) -> u64 {
+        self.replay.repeats()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -104,7 +179,10 @@ mod tests {
     #[test]
     fn one_writer_passes_everything_including_equal_keys() {
         let mut f = ReplayFilter::new();
-        assert_eq!(feed(&mut f, 1, &[0, 0, 1, 1, 1, 2, 5]), vec![0, 0, 1, 1, 1, 2, 5]);
+        assert_eq!(
+            feed(&mut f, 1, &[0, 0, 1, 1, 1, 2, 5]),
+            vec![0, 0, 1, 1, 1, 2, 5]
+        );
         assert_eq!(f.repeats(), 0);
     }
 
@@ -161,5 +239,40 @@ mod tests {
             out.extend(stream[at..].iter().copied().filter(|&k| f.admit(k, writer) == Admit::New));
             prop_assert_eq!(out, stream);
         }
+    }
+
+    fn segment(move_sequence: u64, start_s: f64, duration_s: f64) -> polar_cell_msgs::StepSegment {
+        polar_cell_msgs::StepSegment {
+            header: polar_cell_msgs::Header {
+                stamp: polar_cell_msgs::Time::after(1_000_000_000, start_s),
+                frame_id: String::new(),
+            },
+            move_sequence,
+            duration_s,
+            ..Default::default()
+        }
+    }
+
+    /// Move 1 (two segments, 0.3 s), move 2 (one, 0.1 s); the planner dies after move 2's
+    /// first... and resumes at move 2: its repeat is dropped, move 3 continues at 0.4 s.
+    #[test]
+    fn a_resumed_plan_joins_and_a_lost_segment_is_a_gap() {
+        let mut join = StepsJoin::new();
+        assert_eq!(join.take(&segment(1, 0.0, 0.1), 'a'), Joined::New);
+        assert_eq!(join.take(&segment(1, 0.0, 0.2), 'a'), Joined::New);
+        assert_eq!(join.take(&segment(2, 0.3, 0.1), 'a'), Joined::New);
+        assert_eq!(join.take(&segment(2, 0.3, 0.1), 'b'), Joined::Repeat);
+        assert_eq!(join.take(&segment(3, 0.4, 0.5), 'b'), Joined::New);
+        assert_eq!(join.repeats(), 1);
+        // Move 4's second segment is lost; move 5 starts where move 4 would have ended.
+        assert_eq!(join.take(&segment(4, 0.9, 0.25), 'b'), Joined::New);
+        assert_eq!(
+            join.take(&segment(5, 1.4, 0.1), 'b'),
+            Joined::Gap {
+                move_sequence: 5,
+                expected_ns: 2_150_000_000,
+                found_ns: 2_400_000_000
+            }
+        );
     }
 }

@@ -409,8 +409,11 @@ fn apply_ack(
     if let AckOutcome::Impossible {
         next_expected,
         sent,
-    } = window.on_ack(&ack.into(), now)
-    {
+    } = window.on_ack_from(
+        &ack.into(),
+        cell_runtime::graph::process_of(&info.publisher_gid()),
+        now,
+    ) {
         checks.impossible_count += 1;
         let sender = info.publisher_gid();
         if let Some(held_back) = impossible_acks.admit(sender, now) {

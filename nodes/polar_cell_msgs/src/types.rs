@@ -68,6 +68,9 @@ impl Duration {
     pub fn as_secs_f64(&self) -> f64 {
         self.sec as f64 + self.nanosec as f64 * 1e-9
     }
+    pub fn as_nanos(&self) -> i64 {
+        i64::from(self.sec) * 1_000_000_000 + i64::from(self.nanosec)
+    }
 }
 
 // ---------------------------------------------------------------- std_msgs
@@ -121,6 +124,18 @@ pub struct JointTrajectory {
     pub points: Vec<JointTrajectoryPoint>,
 }
 ros_message!(JointTrajectory => schema::JOINT_TRAJECTORY);
+
+impl JointTrajectory {
+    /// Stamps of its start and of its last point (ns): a planned move's place on the timeline.
+    pub fn span_ns(&self) -> (i64, i64) {
+        let start = self.header.stamp.as_nanos();
+        let last = self
+            .points
+            .last()
+            .map_or(0, |p| p.time_from_start.as_nanos());
+        (start, start + last)
+    }
+}
 
 // ---------------------------------------------------------------- geometry_msgs
 

@@ -147,13 +147,19 @@ impl Checkpoint {
                 found: c.options_digest,
             });
         }
-        let floats = [c.t_s, c.path_speed2, c.last_t_s, c.last_tool_speed, c.next_sample_t_s]
-            .into_iter()
-            .chain(c.q)
-            .chain(c.p_m)
-            .chain(c.last_q)
-            .chain(c.last_qd)
-            .chain(c.last_qdd);
+        let floats = [
+            c.t_s,
+            c.path_speed2,
+            c.last_t_s,
+            c.last_tool_speed,
+            c.next_sample_t_s,
+        ]
+        .into_iter()
+        .chain(c.q)
+        .chain(c.p_m)
+        .chain(c.last_q)
+        .chain(c.last_qd)
+        .chain(c.last_qdd);
         if let Some(bad) = floats.into_iter().find(|x| !x.is_finite()) {
             return Err(CheckpointError::NotAPlanState(format!("{bad}")));
         }
@@ -211,7 +217,10 @@ mod tests {
         let bytes = sample().to_bytes();
         assert_eq!(
             Checkpoint::from_bytes(&bytes, 43, 7),
-            Err(CheckpointError::WrongPoint { expected: 43, found: 42 })
+            Err(CheckpointError::WrongPoint {
+                expected: 43,
+                found: 42
+            })
         );
         assert!(matches!(
             Checkpoint::from_bytes(&bytes, 42, 8),

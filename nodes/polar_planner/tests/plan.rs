@@ -509,14 +509,31 @@ fn a_resumed_planner_continues_the_same_plan_bit_for_bit() {
     for k in 0..600 {
         let a = k as f64 * 0.3;
         let r = 20.0 + k as f64 * 0.05;
-        spiral += &format!("G1 X{:.3} Y{:.3} E{:.4}\n", r * a.cos(), r * a.sin(), 0.02 * k as f64);
-        spiral += if k % 2 == 0 { "G1 F2400\n" } else { "G92 E0\nG1 F3000\n" };
+        spiral += &format!(
+            "G1 X{:.3} Y{:.3} E{:.4}\n",
+            r * a.cos(),
+            r * a.sin(),
+            0.02 * k as f64
+        );
+        spiral += if k % 2 == 0 {
+            "G1 F2400\n"
+        } else {
+            "G92 E0\nG1 F3000\n"
+        };
     }
     let cases = [
-        ("finger.gcode", fixture("finger.gcode"), PlannerOptions::default()),
+        (
+            "finger.gcode",
+            fixture("finger.gcode"),
+            PlannerOptions::default(),
+        ),
         ("finger.gcode", fixture("finger.gcode"), dwell.clone()),
         ("polartest.gcode", fixture("polartest.gcode"), dwell),
-        ("spiral", moves_of(spiral.as_bytes()), PlannerOptions::default()),
+        (
+            "spiral",
+            moves_of(spiral.as_bytes()),
+            PlannerOptions::default(),
+        ),
     ];
     for (name, moves, options) in cases {
         let mut moving = 0;
@@ -570,7 +587,10 @@ fn a_resumed_planner_continues_the_same_plan_bit_for_bit() {
         eprintln!("{name}: {checked} resume points ({moving} in motion, {went_back} before zero-time moves) continue bit for bit");
         if name == "polartest.gcode" {
             // Queues flushed to a stop before a G92 or feed change: the zero-time case.
-            assert!(went_back >= 5, "{name}: the zero-time case ran {went_back} times");
+            assert!(
+                went_back >= 5,
+                "{name}: the zero-time case ran {went_back} times"
+            );
         }
     }
 }
@@ -586,4 +606,145 @@ fn a_resume_point_with_non_finite_values_is_refused() {
         .err()
         .unwrap();
     assert!(e.to_string().contains("resume point"), "{e}");
+}
+
+/// The plan messages of `plans` as the node publishes them: each move's trajectory, then its
+/// segments, stamped from `epoch_ns`.
+fn published(
+    plans: &[PlannedMove],
+    steps: &mut StepGenerator,
+    epoch_ns: i64,
+) -> Vec<(
+    polar_cell_msgs::JointTrajectory,
+    Vec<polar_cell_msgs::StepSegment>,
+)> {
+    plans
+        .iter()
+        .map(|plan| {
+            let mut segments = Vec::new();
+            steps.segments(plan, &mut segments);
+            for s in &mut segments {
+                s.header.stamp = polar_cell_msgs::Time::after(epoch_ns, plan.start_time());
+            }
+            (
+                polar_planner::messages::trajectory_message(plan, epoch_ns),
+                segments,
+            )
+        })
+        .collect()
+}
+
+/// A planner killed anywhere after its last acknowledgement — between two moves or inside
+/// one's segments — and resumed at that acknowledgement from its checkpoint publishes again
+/// what it had published since; the consumers' filters (`cell_runtime::replay`, keyed as the
+/// machine, the screw driver and the recorder key them) drop exactly those repeats, and what
+/// comes through is the uninterrupted plan, message for message.
+#[test]
+fn a_killed_and_resumed_planner_with_its_repeats_dropped_is_the_uninterrupted_plan() {
+    use cell_runtime::replay::{Admit, Joined, ReplayFilter, StepsJoin};
+    use polar_planner::resume::{options_digest, Checkpoint};
+    let options = PlannerOptions::default();
+    let step_options = StepOptions::default();
+    let digest = options_digest(&options, &step_options);
+    let epoch_ns = 1_790_000_000_000_000_000;
+    let moves = fixture("polartest.gcode");
+    let (whole, batch_ends) = plan_with_batches(&moves, &options);
+    let reference = published(
+        &whole,
+        &mut StepGenerator::new(step_options.clone(), [0.0; 3]),
+        epoch_ns,
+    );
+    let mut kills = 0;
+    for pair in batch_ends.windows(2).step_by(3) {
+        // Acknowledged: through the last timed move of the earlier batch. Published when
+        // killed: part of the next batch, cut inside a move's segments.
+        let acked = (1..=pair[0])
+            .rev()
+            .find(|&k| whole[k - 1].end_time() > whole[k - 1].start_time())
+            .unwrap();
+        let cut_move = (pair[0] + pair[1]) / 2;
+        let cut_segment = reference[cut_move].1.len() / 2;
+        let mut joined_steps = Vec::new();
+        let mut joined_trajectories = Vec::new();
+        let mut join = StepsJoin::new();
+        let mut trajectories = ReplayFilter::new();
+        let mut take = |writer: u8,
+                        (trajectory, segments): (
+            &polar_cell_msgs::JointTrajectory,
+            &[polar_cell_msgs::StepSegment],
+        )| {
+            if trajectories.admit(trajectory.span_ns(), writer) == Admit::New {
+                joined_trajectories.push(trajectory.clone());
+            }
+            for s in segments {
+                match join.take(s, writer) {
+                    Joined::New => joined_steps.push(s.clone()),
+                    Joined::Repeat => {}
+                    gap => panic!("{gap:?}"),
+                }
+            }
+        };
+        for (k, (t, s)) in reference[..=cut_move].iter().enumerate() {
+            let s = if k == cut_move {
+                &s[..cut_segment]
+            } else {
+                &s[..]
+            };
+            take(1, (t, s));
+        }
+        // The checkpoint the acknowledgement carried, through its bytes.
+        let mut steps_then = StepGenerator::new(step_options.clone(), [0.0; 3]);
+        let _ = published(&whole[..acked], &mut steps_then, epoch_ns);
+        let bytes = Checkpoint::new(
+            acked as u64,
+            digest,
+            epoch_ns,
+            &whole[acked - 1].resume,
+            steps_then.position(),
+            0.0,
+            acked as u64,
+        )
+        .to_bytes();
+        let checkpoint = Checkpoint::from_bytes(&bytes, acked as u64, digest).unwrap();
+        let mut resumed = Planner::resume(options.clone(), &checkpoint.resume_point()).unwrap();
+        let mut plans = Vec::new();
+        for m in &moves[acked..] {
+            resumed.push(m, &mut plans).unwrap();
+        }
+        resumed.flush(&mut plans);
+        let mut steps = StepGenerator::at_position(step_options.clone(), checkpoint.step_position);
+        for (t, s) in published(&plans, &mut steps, checkpoint.plan_epoch_ns) {
+            take(2, (&t, &s));
+        }
+        let expected_steps: Vec<_> = reference
+            .iter()
+            .flat_map(|(_, s)| s.iter().cloned())
+            .collect();
+        let expected_trajectories: Vec<_> = reference.iter().map(|(t, _)| t.clone()).collect();
+        assert_eq!(
+            joined_trajectories.len(),
+            expected_trajectories.len(),
+            "killed in move {cut_move}, resumed at {acked}"
+        );
+        assert!(
+            joined_trajectories == expected_trajectories,
+            "killed in move {cut_move}, resumed at {acked}"
+        );
+        assert_eq!(
+            joined_steps.len(),
+            expected_steps.len(),
+            "killed in move {cut_move}, resumed at {acked}"
+        );
+        assert!(
+            joined_steps == expected_steps,
+            "killed in move {cut_move}, resumed at {acked}"
+        );
+        assert!(
+            join.repeats() > 0,
+            "killed in move {cut_move}: something was repeated"
+        );
+        kills += 1;
+    }
+    assert!(kills >= 5, "{kills} kills");
+    eprintln!("polartest: {kills} kills, each resumed plan joined exactly");
 }

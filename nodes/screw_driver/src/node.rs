@@ -4,7 +4,11 @@
 //! joints are the executor's `/joint_states`).
 //!
 //! The k-th trajectory is the plan of the k-th move (the planner publishes exactly one per
-//! move, in order); they are paired whichever arrives first. Commands are computed per chunk of moves: a chunk ends when input goes
+//! move, in order); they are paired whichever arrives first. A restarted planner publishes
+//! again what it had published after its last acknowledgement: those repeats are told by
+//! their times and dropped ([`cell_runtime::replay`]), and every trajectory kept must start
+//! where the one before ended, so a lost one stops this node instead of shifting every later
+//! pairing. Commands are computed per chunk of moves: a chunk ends when input goes
 //! idle (`idle_flush_s`), or when it holds more than `max_buffer_s` of plan — cut at a pin
 //! closed for at least `pin_open_delay_s`, so no opening reaches back before the cut. A move
 //! is acknowledged once it is paired with its trajectory: the node then holds all it needs
@@ -15,12 +19,14 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _};
 use cell_runtime::flow::{Intake, LOOK_PERIOD};
+use cell_runtime::replay::Admit;
 use cell_runtime::topics::{publisher_qos, DEFAULT_MOVE_WINDOW};
 use cell_runtime::{
     publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, PUBLISH_PATIENCE,
 };
 use polar_cell_msgs::{
-    GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory, ScrewCommand, Time,
+    DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory,
+    ScrewCommand, Time,
 };
 
 use crate::compensation::FlowModel;
@@ -30,6 +36,10 @@ use crate::screw::{
     chunk_commands, position_after, Command, PinState, PinStrategy, RepeatFilter, RpmModel,
     ScrewOptions, TimedMove,
 };
+
+/// How far a plan may start from the end of the one before (ns): both are the same plan time
+/// rounded to a nanosecond separately; a lost plan leaves a gap of its whole length.
+const TIMELINE_TOLERANCE_NS: i64 = 1_000;
 
 /// Default node name.
 pub const NODE_NAME: &str = "screw_driver";
@@ -213,6 +223,9 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let mut producer = cell_runtime::graph::Producer::of(node, params.bool("acknowledge_moves"))?;
     let mut moves: VecDeque<GcodeMove> = VecDeque::new();
     let mut plans: VecDeque<JointTrajectory> = VecDeque::new();
+    let mut replayed = cell_runtime::replay::ReplayFilter::new();
+    // End stamp of the last trajectory kept (ns).
+    let mut last_end_ns: Option<i64> = None;
     let mut timed: VecDeque<TimedMove> = VecDeque::new();
     let mut from = [0.0f64; 3];
     let mut done_until = 0u64;
@@ -257,8 +270,23 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 }
             }
             taken = trajectories.async_take() => {
-                let (trajectory, _) = taken.map_err(|e| anyhow!("/polar/trajectory: {e:?}"))?;
+                let (trajectory, info) = taken.map_err(|e| anyhow!("/polar/trajectory: {e:?}"))?;
                 last_input = Instant::now();
+                let (start_ns, end_ns) = trajectory.span_ns();
+                if replayed.admit((start_ns, end_ns), info.publisher_gid()) == Admit::Repeat {
+                    continue;
+                }
+                if let Some(previous_end) = last_end_ns {
+                    if (start_ns - previous_end).abs() > TIMELINE_TOLERANCE_NS {
+                        let reason = format!(
+                            "/polar/trajectory is not continuous: a plan starts at {start_ns} ns, the one before ended at {previous_end} ns ({:+.6} s): a plan was lost, and pairing the moves after it would misplace every one",
+                            (start_ns - previous_end) as f64 * 1e-9
+                        );
+                        node.diagnose(DiagnosticStatus::ERROR, &reason, &[]);
+                        bail!(reason);
+                    }
+                }
+                last_end_ns = Some(end_ns);
                 plans.push_back(trajectory);
             }
             taken = progress_sub.async_take() => {

@@ -262,7 +262,12 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                         continue;
                     }
                     if let Some(ack) = intake.on_progress(&p) {
-                        if let Some((resume_at, state)) = intake.resume_state().filter(|(n, _)| *n > 0) {
+                        // Restarted before anything was acknowledged: the state, if any, has
+                        // the epoch the killed planner's first plans were stamped with.
+                        if let Some((resume_at, state)) = intake
+                            .resume_state()
+                            .filter(|(n, state)| *n > 0 || !state.is_empty())
+                        {
                             // Restarted mid-print: continue the timeline acknowledged there.
                             if state.is_empty() {
                                 let reason = format!("restarted after move {resume_at} with no planner state from the streamer: the plan clock and joints cannot be continued");
@@ -312,6 +317,12 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 let m = held.pop_front().expect("not empty");
                 if epoch_ns < 0 {
                     epoch_ns = now_ns() as i64;
+                    // Nothing published yet, but the epoch is chosen: a planner restarted
+                    // before its first acknowledgement stamps its plans the same way.
+                    let start = Planner::start_point(planner.options());
+                    let checkpoint =
+                        Checkpoint::new(0, digest, epoch_ns, &start, steps.position(), 0.0, 0);
+                    intake.note_resume_state(0, checkpoint.to_bytes());
                 }
                 pending += 1;
                 if let Err(e) = planner.push(&m, &mut planned) {

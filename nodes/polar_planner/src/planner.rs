@@ -374,6 +374,22 @@ impl Planner {
         })
     }
 
+    /// Where a new planner with `options` starts: resumed there, a planner is a new one.
+    pub fn start_point(options: &PlannerOptions) -> ResumePoint {
+        let q0 = options.initial_joints;
+        ResumePoint {
+            t_s: 0.0,
+            path_speed2: 0.0,
+            q: q0,
+            p_m: crate::path::forward(q0),
+            last_point: TrajPoint {
+                q: q0,
+                ..TrajPoint::default()
+            },
+            previous_extruding: false,
+        }
+    }
+
     /// A planner that continues where another one stood after emitting a move (its
     /// [`PlannedMove::resume`]): fed the moves after that one, it plans them on the same
     /// timeline, from the same joints and speed. `options` must be the other one's.

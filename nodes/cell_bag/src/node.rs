@@ -346,6 +346,17 @@ async fn forward<T: RosMessage>(
     }
 }
 
+/// Whether a plan message is a restarted producer's repeat of one already recorded.
+fn is_repeat<T: Recordable>(
+    replayed: &mut cell_runtime::replay::ReplayFilter<(i64, i64), cell_runtime::Gid>,
+    message: &T,
+    info: &ros2_client::MessageInfo,
+) -> bool {
+    message.replay_key().is_some_and(|key| {
+        replayed.admit(key, info.publisher_gid()) == cell_runtime::replay::Admit::Repeat
+    })
+}
+
 fn spawn_tap<T: Recordable>(
     node: &mut CellNode,
     topic: &str,
@@ -366,9 +377,7 @@ fn spawn_tap<T: Recordable>(
                 taken = sub.async_take() => match taken {
                     Ok((m, info)) => {
                         gaps.observe(info.publisher_gid(), info.sequence_number());
-                        if m.replay_key().is_some_and(|key| {
-                            replayed.admit(key, info.publisher_gid()) == cell_runtime::replay::Admit::Repeat
-                        }) {
+                        if is_repeat(&mut replayed, &m, &info) {
                             continue;
                         }
                         if !forward(&tx, channel, &m, &info).await { break }
@@ -382,9 +391,7 @@ fn spawn_tap<T: Recordable>(
                 _ = stop.changed() => {
                     while let Ok(Some((m, info))) = sub.take() {
                         gaps.observe(info.publisher_gid(), info.sequence_number());
-                        if m.replay_key().is_some_and(|key| {
-                            replayed.admit(key, info.publisher_gid()) == cell_runtime::replay::Admit::Repeat
-                        }) {
+                        if is_repeat(&mut replayed, &m, &info) {
                             continue;
                         }
                         forward(&tx, channel, &m, &info).await;

@@ -812,6 +812,43 @@ async fn next_request(
     futures::future::select_all(futures).await.0
 }
 
+/// Messages taken from writers that are not the named producer's: counted, and logged the
+/// first time per topic (a flood of forgeries must not flood the log) — but not in the first
+/// seconds: the producer's own first messages can arrive before its announcement (the
+/// streamer's first progress report did in most prints, and its warning alarmed for nothing).
+struct IgnoredWriters {
+    /// By diagnostics key, one per topic.
+    counts: std::collections::BTreeMap<&'static str, u64>,
+    logged: std::collections::BTreeSet<&'static str>,
+    started: Instant,
+}
+
+impl Default for IgnoredWriters {
+    fn default() -> Self {
+        IgnoredWriters {
+            counts: Default::default(),
+            logged: Default::default(),
+            started: Instant::now(),
+        }
+    }
+}
+
+/// How long after the machine starts an ignored writer is only counted.
+const ANNOUNCEMENT_GRACE: Duration = Duration::from_secs(2);
+
+impl IgnoredWriters {
+    fn note(&mut self, node: &CellNode, topic: &str, key: &'static str, producer: &str) {
+        *self.counts.entry(key).or_default() += 1;
+        if self.started.elapsed() >= ANNOUNCEMENT_GRACE && self.logged.insert(key) {
+            cell_runtime::cell_log!(
+                node,
+                LogLevel::Warn,
+                "ignored {topic} from a writer that is not {producer}'s (counted in diagnostics)"
+            );
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -915,43 +952,6 @@ mod tests {
         fn reset(&mut self) {
             self.calls.push("reset");
             self.stopped = false;
-        }
-    }
-}
-
-/// Messages taken from writers that are not the named producer's: counted, and logged the
-/// first time per topic (a flood of forgeries must not flood the log) — but not in the first
-/// seconds: the producer's own first messages can arrive before its announcement (the
-/// streamer's first progress report did in most prints, and its warning alarmed for nothing).
-struct IgnoredWriters {
-    /// By diagnostics key, one per topic.
-    counts: std::collections::BTreeMap<&'static str, u64>,
-    logged: std::collections::BTreeSet<&'static str>,
-    started: Instant,
-}
-
-impl Default for IgnoredWriters {
-    fn default() -> Self {
-        IgnoredWriters {
-            counts: Default::default(),
-            logged: Default::default(),
-            started: Instant::now(),
-        }
-    }
-}
-
-/// How long after the machine starts an ignored writer is only counted.
-const ANNOUNCEMENT_GRACE: Duration = Duration::from_secs(2);
-
-impl IgnoredWriters {
-    fn note(&mut self, node: &CellNode, topic: &str, key: &'static str, producer: &str) {
-        *self.counts.entry(key).or_default() += 1;
-        if self.started.elapsed() >= ANNOUNCEMENT_GRACE && self.logged.insert(key) {
-            cell_runtime::cell_log!(
-                node,
-                LogLevel::Warn,
-                "ignored {topic} from a writer that is not {producer}'s (counted in diagnostics)"
-            );
         }
     }
 }

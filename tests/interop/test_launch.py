@@ -97,7 +97,7 @@ def test_mcu_launch_xml_names_existing_binaries_and_parameter_file():
         assert (BIN_DIR / binary).exists(), binary
 
 
-def run_cell_sh_and_restart(tmp_path, restarted, kill_after_s=8.0):
+def run_cell_sh_and_restart(tmp_path, restarted, kill_after_s=8.0, extra_args=()):
     """finger.gcode under cell.sh at 4x; `restarted` SIGKILLed after `kill_after_s` (well into
     finger's first 30 s of machine time) and started again. Returns cell.sh's return code,
     its output and the bag."""
@@ -120,7 +120,7 @@ def run_cell_sh_and_restart(tmp_path, restarted, kill_after_s=8.0):
         time.sleep(0.5)
         again = subprocess.Popen(
             [str(BIN_DIR / restarted), "--ros-args", "--params-file",
-             str(LAUNCH / "params" / "cell.yaml")],
+             str(LAUNCH / "params" / "cell.yaml"), *extra_args],
             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             start_new_session=True,
         )
@@ -198,8 +198,10 @@ def test_a_planner_restarted_mid_print_continues_the_plan(tmp_path, kill_after_s
                 assert abs(ns(seg.header.stamp) - move_end) <= 1000, seg.move_sequence
             last_sequence, move_start, move_end = seg.move_sequence, ns(seg.header.stamp), ns(seg.header.stamp)
         move_end += round(seg.duration_s * 1e9)
-    # The machine ends where the plan ends, within a step of each joint.
+    # The machine ends at rest where the plan ends, within a step of each joint (the last
+    # sample used to come up to a sample period before the end).
     final = messages["/joint_states"][-1]
+    assert all(abs(v) < 1e-9 for v in final.velocity[:3]), final.velocity
     planned = trajectories[-1].points[-1].positions
     for j in range(3):
         assert abs(final.position[j] - planned[j]) <= ONE_STEP[j] * 1.01, (j, final.position, planned)
@@ -210,3 +212,19 @@ def test_a_planner_restarted_mid_print_continues_the_plan(tmp_path, kill_after_s
             totals[j] += seg.step_counts[j] * seg.directions[j]
     for j, per_step in enumerate(ONE_STEP):
         assert abs(totals[j] - round(planned[j] / per_step)) <= 1, (j, totals, planned)
+
+
+def test_a_restarted_planner_that_cannot_continue_stops_the_print(tmp_path):
+    """A planner restarted with other options (here a finer path tolerance) would plan another
+    timeline: it refuses the checkpoint, says why and exits; the machine, holding on the path
+    once its plan runs out, stops the print planner_resume_timeout_s (10 s) later, non-zero,
+    with the reason, at rest."""
+    returncode, output, bag = run_cell_sh_and_restart(
+        tmp_path, "polar_planner", 6.0, ("-p", "path_tolerance_m:=2e-6"))
+    assert returncode != 0, output
+    assert "/polar_planner restarted mid-print and did not continue the plan" in output, output
+    messages, _, _ = read_with_mcap_ros2(bag)
+    log = [(entry.name, entry.msg) for entry in messages["/rosout"]]
+    assert any(n == "polar_planner" and "cannot continue the plan: resume state was written by a "
+               "planner with other options" in m for n, m in log), log
+    assert all(abs(v) < 1e-9 for v in messages["/joint_states"][-1].velocity)

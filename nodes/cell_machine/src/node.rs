@@ -68,7 +68,7 @@ pub fn param_specs(tick_period_s: f64) -> Vec<ParamSpec> {
         ParamSpec::new("pin_open_delay_s", ParamValue::Double(DEFAULT_PIN_OPEN_DELAY_S), "a resume waits this long at rest with the pin open: the screw driver's").range(0.0, 60.0),
         ParamSpec::new("screw_hold", ParamValue::String("zero_order".into()), "how rpm runs between screw commands: zero_order (compensated, smoothed or resampled commands) or first_order (raw breakpoints)"),
         ParamSpec::new("queue_capacity", ParamValue::Integer(4096), "step segments and screw commands held ahead of execution at most").range(16.0, 1e7),
-        ParamSpec::new("planner_resume_timeout_s", ParamValue::Double(10.0), "a planner restarted mid-print must continue the plan within this long (wall s; the machine holds on the path meanwhile) or the print stops and fails (0: never resume, stop at once)").range(0.0, 3600.0),
+        ParamSpec::new("planner_resume_timeout_s", ParamValue::Double(10.0), "a planner restarted mid-print must continue the plan within this long of the machine running out of plan (wall s; it holds on the path meanwhile) or the print stops and fails (0: never resume, stop at once)").range(0.0, 3600.0),
         ParamSpec::new("exit_when_done", ParamValue::Bool(false), "end the node once a complete plan (its stream finished) has been executed (for scripts)"),
         ParamSpec::new("service_mapping", ParamValue::String("cyclone".into()), "request/reply wire format of the services: cyclone (rmw_cyclonedds clients), enhanced (rmw_fastrtps) or basic"),
     ]
@@ -281,11 +281,14 @@ pub async fn run<M: Machine>(
     let mut stopping_for: Option<String> = None;
     let mut steps_join = cell_runtime::replay::StepsJoin::new();
     let resume_timeout = Duration::from_secs_f64(node.params.f64("planner_resume_timeout_s"));
-    // When the planner was seen restarted and has not continued the plan yet.
+    // When the planner was seen restarted and has not continued the plan yet, and since when
+    // the machine has been starving for plan since then.
     let mut planner_restarted_at: Option<Instant> = None;
+    let mut planner_starved_since: Option<Instant> = None;
     let mut stop_issued = false;
     let mut last_graph_look = Instant::now();
     let mut fault_at_ns: Option<i64> = None;
+    let mut finished_at_ns: Option<i64> = None;
     let mut ignored = IgnoredWriters::default();
     let steps_sub = node.subscription::<StepSegment>("/polar/steps", &reliable_qos(capacity))?;
     let screw_sub = node.subscription::<ScrewCommand>("/screw/command", &reliable_qos(capacity))?;
@@ -394,6 +397,7 @@ pub async fn run<M: Machine>(
                             if steps_from.restarted(&info) {
                                 steps_from.adopt(&info);
                                 planner_restarted_at = None;
+                                planner_starved_since = None;
                                 cell_runtime::cell_log!(
                                     node,
                                     LogLevel::Info,
@@ -501,11 +505,23 @@ pub async fn run<M: Machine>(
                 }
             }
         }
-        if let Some(at) = planner_restarted_at {
+        // The wait counts only while the machine starves: paused by the operator with plan in
+        // hand, a resumed planner has nothing new to send until the machine moves again.
+        let state_now = executor.state();
+        let starving = state_now.hold == Some(HoldReason::Underrun)
+            || (state_now.state == PlayerState::Idle && !input_finished);
+        if planner_restarted_at.is_some() {
+            planner_starved_since = match (starving, planner_starved_since) {
+                (true, None) => Some(Instant::now()),
+                (true, since) => since,
+                (false, _) => None,
+            };
+        }
+        if let Some(at) = planner_starved_since.filter(|_| planner_restarted_at.is_some()) {
             if at.elapsed() >= resume_timeout && !(input_finished && executor.is_drained()) {
                 stopping_for.get_or_insert_with(|| {
                     format!(
-                        "{} restarted mid-print and did not continue the plan within {} s",
+                        "{} restarted mid-print and did not continue the plan within {} s of the machine running out of it",
                         steps_from.name(),
                         resume_timeout.as_secs_f64()
                     )
@@ -712,7 +728,10 @@ pub async fn run<M: Machine>(
                 anyhow::bail!("the machine stopped: {f}");
             }
         }
-        if done && exit_when_done {
+        // And at the end once the grid has passed it too: the last sample shows the machine
+        // at rest where the plan ends (it used to be up to a sample period short of it).
+        let done_at_ns = done.then(|| *finished_at_ns.get_or_insert(machine_now));
+        if done_at_ns.is_some_and(|at| next_sample_ns > at + sample_ns) && exit_when_done {
             cell_runtime::cell_log!(
                 node,
                 LogLevel::Info,

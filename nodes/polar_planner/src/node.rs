@@ -41,6 +41,9 @@ use crate::{PlannedMove, Planner, PlannerOptions, JOINT_NAMES};
 /// Default node name.
 pub const NODE_NAME: &str = "polar_planner";
 
+/// How long a restarted planner that cannot continue the plan stays before it exits.
+const RESTART_FAILURE_LINGER: Duration = Duration::from_secs(2);
+
 /// The node's parameters (defaults: the shipped URDF and [`PlannerOptions::default`]).
 pub fn param_specs() -> Vec<ParamSpec> {
     let d = PlannerOptions::default();
@@ -269,15 +272,29 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                             .filter(|(n, state)| *n > 0 || !state.is_empty())
                         {
                             // Restarted mid-print: continue the timeline acknowledged there.
-                            if state.is_empty() {
-                                let reason = format!("restarted after move {resume_at} with no planner state from the streamer: the plan clock and joints cannot be continued");
-                                node.diagnose(DiagnosticStatus::ERROR, &reason, &[]);
-                                return Err(anyhow!(reason));
-                            }
-                            let c = Checkpoint::from_bytes(state, resume_at, digest)
-                                .map_err(|e| anyhow!("restarted after move {resume_at}: {e}"))?;
-                            planner = Planner::resume(options.clone(), &c.resume_point())
-                                .map_err(|e| anyhow!("restarted after move {resume_at}: {e}"))?;
+                            let restored = match state.is_empty() {
+                                true => Err("no planner state came from the streamer: the plan clock and joints cannot be continued".to_string()),
+                                false => Checkpoint::from_bytes(state, resume_at, digest)
+                                    .map_err(|e| e.to_string())
+                                    .and_then(|c| {
+                                        let p = Planner::resume(options.clone(), &c.resume_point()).map_err(|e| e.to_string())?;
+                                        Ok((c, p))
+                                    }),
+                            };
+                            let (c, resumed) = match restored {
+                                Ok(both) => both,
+                                Err(why) => {
+                                    let reason = format!("restarted after move {resume_at}, cannot continue the plan: {why}");
+                                    node.diagnose(DiagnosticStatus::ERROR, &reason, &[]);
+                                    cell_runtime::cell_log!(node, LogLevel::Error, "{reason}");
+                                    // Stay in the graph a moment: the machine, which looks at it
+                                    // every half second, sees the restart and stops the print
+                                    // when its plan runs out instead of holding for ever.
+                                    tokio::time::sleep(RESTART_FAILURE_LINGER).await;
+                                    return Err(anyhow!(reason));
+                                }
+                            };
+                            planner = resumed;
                             steps = StepGenerator::at_position(step_options.clone(), c.step_position);
                             published = (resume_at, Some(c.clone()));
                             timed = published.clone();

@@ -123,11 +123,8 @@ recordable_without_plan_stamp!(
 /// A move's plan: from its stamp to its last point.
 impl Recordable for JointTrajectory {
     fn plan_span_ns(&self) -> Option<(i64, i64)> {
-        let last_s = self
-            .points
-            .last()
-            .map_or(0.0, |p| p.time_from_start.as_secs_f64());
-        Some((self.header.stamp.as_nanos(), (last_s * 1e9).round() as i64))
+        let (start_ns, end_ns) = self.span_ns();
+        Some((start_ns, end_ns - start_ns))
     }
     fn replay_key(&self) -> Option<(i64, i64)> {
         Some(self.span_ns())

@@ -281,9 +281,9 @@ pub async fn run<M: Machine>(
     let mut stopping_for: Option<String> = None;
     let mut steps_join = cell_runtime::replay::StepsJoin::new();
     let resume_timeout = Duration::from_secs_f64(node.params.f64("planner_resume_timeout_s"));
-    // When the planner was seen restarted and has not continued the plan yet, and since when
-    // the machine has been starving for plan since then.
-    let mut planner_restarted_at: Option<Instant> = None;
+    // Whether the planner was seen restarted and has not continued the plan yet, and since
+    // when the machine has been starving for plan since then.
+    let mut awaiting_planner = false;
     let mut planner_starved_since: Option<Instant> = None;
     let mut stop_issued = false;
     let mut last_graph_look = Instant::now();
@@ -374,15 +374,18 @@ pub async fn run<M: Machine>(
             taken = steps_sub.async_take() => {
                 let (s, info) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
                 let over = input_finished && executor.is_drained();
-                if !steps_from.admits(&info) {
+                let admitted = steps_from.admits(&info);
+                // From another process than the planner's first (or adopted) one.
+                let from_restarted = admitted && steps_from.restarted(&info);
+                if !admitted {
                     ignored.note(node, "/polar/steps", "ignored_foreign_steps", steps_from.name());
-                } else if steps_from.restarted(&info) && !over && resume_timeout.is_zero() {
+                } else if from_restarted && !over && resume_timeout.is_zero() {
                     stopping_for.get_or_insert_with(|| restarted(steps_from.name(), "/polar/steps"));
                 } else {
                     match steps_join.take(&s, info.publisher_gid()) {
                         Joined::Repeat => {}
                         Joined::Gap { move_sequence, expected_ns, found_ns } => {
-                            let after = if steps_from.restarted(&info) {
+                            let after = if from_restarted {
                                 format!(" after {} restarted", steps_from.name())
                             } else {
                                 String::new()
@@ -394,9 +397,9 @@ pub async fn run<M: Machine>(
                             ));
                         }
                         Joined::New => {
-                            if steps_from.restarted(&info) {
+                            if from_restarted {
                                 steps_from.adopt(&info);
-                                planner_restarted_at = None;
+                                awaiting_planner = false;
                                 planner_starved_since = None;
                                 cell_runtime::cell_log!(
                                     node,
@@ -493,8 +496,8 @@ pub async fn run<M: Machine>(
                 if resume_timeout.is_zero() {
                     stopping_for
                         .get_or_insert_with(|| restarted(steps_from.name(), "/polar/steps"));
-                } else if planner_restarted_at.is_none() {
-                    planner_restarted_at = Some(Instant::now());
+                } else if !awaiting_planner {
+                    awaiting_planner = true;
                     cell_runtime::cell_log!(
                         node,
                         LogLevel::Warn,
@@ -510,14 +513,14 @@ pub async fn run<M: Machine>(
         let state_now = executor.state();
         let starving = state_now.hold == Some(HoldReason::Underrun)
             || (state_now.state == PlayerState::Idle && !input_finished);
-        if planner_restarted_at.is_some() {
+        if awaiting_planner {
             planner_starved_since = match (starving, planner_starved_since) {
                 (true, None) => Some(Instant::now()),
                 (true, since) => since,
                 (false, _) => None,
             };
         }
-        if let Some(at) = planner_starved_since.filter(|_| planner_restarted_at.is_some()) {
+        if let Some(at) = planner_starved_since {
             if at.elapsed() >= resume_timeout && !(input_finished && executor.is_drained()) {
                 stopping_for.get_or_insert_with(|| {
                     format!(

@@ -226,8 +226,8 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     // at its end wait for a move that takes time (or for the planner to go idle): consumers
     // tell a resumed planner's repeats from new moves by their times, and a resume point
     // right after a zero-time move would make a zero-time move after it look repeated.
-    let mut published: (u64, Option<Checkpoint>) = (0, None);
-    let mut timed: (u64, Option<Checkpoint>) = (0, None);
+    let mut published: Option<Checkpoint> = None;
+    let mut timed: Option<Checkpoint> = None;
     let mut planned_until = 0u64;
     let mut pending = 0usize;
     let started = Instant::now();
@@ -296,7 +296,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                             };
                             planner = resumed;
                             steps = StepGenerator::at_position(step_options.clone(), c.step_position);
-                            published = (resume_at, Some(c.clone()));
+                            published = Some(c.clone());
                             timed = published.clone();
                             epoch_ns = c.plan_epoch_ns;
                             next_state_t = c.next_sample_t_s;
@@ -387,7 +387,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     next_state_t,
                     moves_planned,
                 );
-                published = (plan.sequence + 1, Some(checkpoint));
+                published = Some(checkpoint);
                 if plan.end_time() > plan.start_time() {
                     timed = published.clone();
                 }
@@ -397,12 +397,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             continue;
         }
         let idle = pending == 0 && held.is_empty();
-        let (until, checkpoint) = if idle { &published } else { &timed };
-        if *until > planned_until {
-            planned_until = *until;
-            if let Some(c) = checkpoint {
-                intake.note_resume_state(planned_until, c.to_bytes());
-            }
+        let checkpoint = if idle { &published } else { &timed };
+        if let Some(c) = checkpoint
+            .as_ref()
+            .filter(|c| c.next_sequence > planned_until)
+        {
+            planned_until = c.next_sequence;
+            intake.note_resume_state(planned_until, c.to_bytes());
         }
         // Acknowledge what is planned and published; the lookahead queue is not.
         if let Some(ack) = intake.ack(planned_until, started.elapsed()) {

@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _};
 use cell_runtime::flow::{Intake, LOOK_PERIOD};
-use cell_runtime::replay::Admit;
+use cell_runtime::replay::{Admit, TIMELINE_TOLERANCE_NS};
 use cell_runtime::topics::{publisher_qos, DEFAULT_MOVE_WINDOW};
 use cell_runtime::{
     publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, PUBLISH_PATIENCE,
@@ -36,10 +36,6 @@ use crate::screw::{
     chunk_commands, position_after, Command, PinState, PinStrategy, RepeatFilter, RpmModel,
     ScrewOptions, TimedMove,
 };
-
-/// How far a plan may start from the end of the one before (ns): both are the same plan time
-/// rounded to a nanosecond separately; a lost plan leaves a gap of its whole length.
-const TIMELINE_TOLERANCE_NS: i64 = 1_000;
 
 /// Default node name.
 pub const NODE_NAME: &str = "screw_driver";

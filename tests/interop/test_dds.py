@@ -398,7 +398,7 @@ def test_forged_steps_and_screw_commands_from_a_foreign_participant_move_nothing
         steps_w.write(StepSegment(
             header, 5, 1, ["bed", "arm", "z"], [100_000, 0, 0], [1, 1, 1], 0, 1e6,
             100.0, 0.0, 100.0, 0, 100_000, 0, 10.0, True))
-        screw_w.write(ScrewCommand(header, 500.0, True, 1, "forged"))
+        screw_w.write(ScrewCommand(header, 500.0, True, 1, "forged", 0))
         progress_w.write(GcodeProgress(header, "forged", 0, 0, 0, 0, 0, 0, [], [], True))
         # "Closed": a planner that believed it would stop planning, and the print would stall.
         credit_w.write(PlanCredit(header, "forged", Time(0, 0), Time(0, 0), 0.0, True))

@@ -89,6 +89,7 @@ class ScrewCommand(IdlStruct, typename="polar_cell_msgs::msg::dds_::ScrewCommand
     pin_open: bool
     source_line: t.uint32
     model: str
+    sequence: t.uint64
 
 
 def stamp(m):

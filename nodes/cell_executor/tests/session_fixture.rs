@@ -60,7 +60,8 @@ fn finger() -> Print {
     rpm_s += last.rpm * (plan_end_s - last.t).max(0.0);
     let commands = points
         .iter()
-        .map(|c| ScrewCommand {
+        .zip(0u64..)
+        .map(|(c, sequence)| ScrewCommand {
             header: Header {
                 stamp: Time::after(EPOCH_NS, c.t),
                 frame_id: String::new(),
@@ -69,6 +70,7 @@ fn finger() -> Print {
             pin_open: c.pin_open,
             source_line: c.source_line,
             model: "polar_speed".into(),
+            sequence,
         })
         .collect();
     Print {

@@ -5,7 +5,7 @@
 //! that hangs must not hold up the machine) and keeps enough history that a recorder or a
 //! viewer a moment behind still gets every sample; flow-controlled links keep as much as their
 //! window; latched topics (`/robot_description`, `/tf_static`) are transient-local with depth
-//! 1. `/rosout` is as ros2-client publishes it (rclcpp's own is transient-local too).
+//! 1, and `/polar/trajectory` keeps its history for a restarted screw driver. `/rosout` is as ros2-client publishes it (rclcpp's own is transient-local too).
 
 use ros2_client::QosProfile;
 
@@ -116,10 +116,12 @@ pub const SUITE_TOPICS: &[SuiteTopic] = &[
         "polar_cell_msgs/msg/GcodeAck",
         TopicQos::reliable(1000),
     ),
+    // Transient-local: a restarted screw driver gets again the plans published since its
+    // last acknowledgement (never more than the move window, 4096, behind the planner).
     topic(
         "/polar/trajectory",
         "trajectory_msgs/msg/JointTrajectory",
-        TopicQos::reliable(10_000),
+        TopicQos::latched(10_000),
     ),
     topic(
         "/polar/steps",

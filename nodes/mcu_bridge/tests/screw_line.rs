@@ -116,6 +116,7 @@ fn screw_message((t, rpm, pin_open): (f64, f64, bool)) -> ScrewCommand {
         pin_open,
         source_line: 0,
         model: "polar_speed".into(),
+        ..ScrewCommand::default()
     }
 }
 

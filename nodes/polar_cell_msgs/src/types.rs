@@ -125,6 +125,10 @@ pub struct JointTrajectory {
 }
 ros_message!(JointTrajectory => schema::JOINT_TRAJECTORY);
 
+/// How far a planned message's stamp may be from where the one before it ended (ns): the same
+/// plan time, rounded to a nanosecond separately; anything lost leaves a gap of its length.
+pub const TIMELINE_TOLERANCE_NS: i64 = 1_000;
+
 impl JointTrajectory {
     /// Stamps of its start and of its last point (ns): a planned move's place on the timeline.
     pub fn span_ns(&self) -> (i64, i64) {
@@ -506,6 +510,7 @@ pub struct ScrewCommand {
     pub pin_open: bool,
     pub source_line: u32,
     pub model: String,
+    pub sequence: u64,
 }
 ros_message!(ScrewCommand => schema::SCREW_COMMAND);
 

@@ -26,7 +26,7 @@ pub struct ScrewSample {
 pub use polar_cell_msgs::Hold;
 
 /// Samples the screw angle across consecutive chunks of commands.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ScrewAngle {
     period_s: f64,
     hold: Hold,
@@ -47,6 +47,23 @@ impl ScrewAngle {
             origin_t: 0.0,
             next_index: 0,
         }
+    }
+
+    /// The last command seen and the angle there.
+    pub fn last(&self) -> Option<(Command, f64)> {
+        self.last
+    }
+
+    /// The sample grid: its origin (s) and the index of the next sample.
+    pub fn grid(&self) -> (f64, u64) {
+        (self.origin_t, self.next_index)
+    }
+
+    /// Continue from a saved [`ScrewAngle::last`] and [`ScrewAngle::grid`].
+    pub fn restore(&mut self, last: Option<(Command, f64)>, origin_t: f64, next_index: u64) {
+        self.last = last;
+        self.origin_t = origin_t;
+        self.next_index = next_index;
     }
 
     /// Angle at the last command seen, rad (0 before any).

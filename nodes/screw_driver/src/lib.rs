@@ -10,6 +10,7 @@ pub mod flow;
 pub mod joint;
 pub mod reduced;
 pub mod screw;
+pub mod stream;
 
 #[cfg(feature = "node")]
 pub mod node;

@@ -3,45 +3,41 @@
 //! angle on `/polar/planned_joint_states` (beside the planner's stage joints; the executed
 //! joints are the executor's `/joint_states`).
 //!
-//! The k-th trajectory is the plan of the k-th move (the planner publishes exactly one per
-//! move, in order); they are paired whichever arrives first. A restarted planner publishes
-//! again what it had published after its last acknowledgement: those repeats are told by
-//! their times and dropped ([`cell_runtime::replay`]), and every trajectory kept must start
-//! where the one before ended, so a lost one stops this node instead of shifting every later
-//! pairing. Commands are computed per chunk of moves: a chunk ends when input goes
-//! idle (`idle_flush_s`), or when it holds more than `max_buffer_s` of plan — cut at a pin
-//! closed for at least `pin_open_delay_s`, so no opening reaches back before the cut. A move
-//! is acknowledged once it is paired with its trajectory: the node then holds all it needs
-//! (a restart loses the commands of the chunk being buffered).
+//! The work itself is [`crate::stream`]: moves paired with their plans, commands computed per
+//! chunk and numbered. This node feeds it: a chunk is cut when the buffer is full, when input
+//! goes idle (`idle_flush_s`; with flow compensation only at a closed-pin gap until the file
+//! is all read or input stalls for `stall_flush_s`). A move is acknowledged once its commands
+//! are published, with the stream's checkpoint there, so a restarted driver continues the
+//! same commands with the same numbers: the streamer sends its moves again, and the planner's
+//! transient-local `/polar/trajectory` their plans. A restarted planner publishes again what
+//! it had published after its last acknowledgement: those repeats are told by their times and
+//! dropped ([`cell_runtime::replay`]).
 
-use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _};
 use cell_runtime::flow::{Intake, LOOK_PERIOD};
-use cell_runtime::replay::{Admit, TIMELINE_TOLERANCE_NS};
+use cell_runtime::replay::Admit;
 use cell_runtime::topics::{publisher_qos, DEFAULT_MOVE_WINDOW};
 use cell_runtime::{
     publish, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params, PUBLISH_PATIENCE,
 };
 use polar_cell_msgs::{
-    DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory,
-    ScrewCommand, Time,
+    DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, JointState, JointTrajectory, ScrewCommand,
 };
 
 use crate::compensation::FlowModel;
 use crate::fir::{FILTER_1, FILTER_2, FILTER_2_60DB};
-use crate::joint::{Hold, ScrewAngle, ScrewSample};
-use crate::screw::{
-    chunk_commands, position_after, Command, PinState, PinStrategy, RepeatFilter, RpmModel,
-    ScrewOptions, TimedMove,
-};
+use crate::screw::{PinStrategy, RpmModel, ScrewOptions};
+pub use crate::stream::{command_hold, command_message, joint_state_message, SCREW_JOINT};
+use crate::stream::{Checkpoint, Cut, Stream, StreamOptions};
+
+/// How long a driver that cannot continue a print stays in the graph (so the machine sees
+/// the restart) before it exits.
+const RESTART_FAILURE_LINGER: Duration = Duration::from_secs(2);
 
 /// Default node name.
 pub const NODE_NAME: &str = "screw_driver";
-
-/// The screw's joint in `urdf/polar_cell.urdf`.
-pub const SCREW_JOINT: &str = "screw";
 
 pub fn param_specs() -> Vec<ParamSpec> {
     let d = ScrewOptions::default();
@@ -65,10 +61,22 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.1), "compute commands when no trajectory came for this long").range(0.001, 60.0),
         ParamSpec::new("stall_flush_s", ParamValue::Double(2.0), "with flow compensation: when input pauses before the file is all read, commands are computed up to a closed-pin gap; after this long without input, for everything (the pin closes)").range(0.001, 3600.0),
         ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
+        ParamSpec::new("max_buffer_moves", ParamValue::Integer(1024), "compute commands once this many moves are buffered (moves are acknowledged once commanded: keep it below the streamer's window)").range(1.0, 1e7),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
         cell_runtime::graph::Producer::param_spec(),
         ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of the screw joint's /polar/planned_joint_states samples (0: none)").range(0.0, 10.0),
     ]
+}
+
+/// The stream's options from the node's parameters.
+pub fn stream_options_from_params(p: &Params) -> anyhow::Result<StreamOptions> {
+    Ok(StreamOptions {
+        screw: options_from_params(p)?,
+        command_period_s: p.f64("command_period_s"),
+        joint_state_period_s: p.f64("joint_state_period_s"),
+        max_buffer_s: p.f64("max_buffer_s"),
+        max_buffer_moves: p.i64("max_buffer_moves") as usize,
+    })
 }
 
 /// Screw options from the node's parameters.
@@ -111,86 +119,23 @@ pub fn options_from_params(p: &Params) -> anyhow::Result<ScrewOptions> {
     })
 }
 
-fn model_name(options: &ScrewOptions) -> &'static str {
-    match options.model {
-        RpmModel::PolarSpeed { .. } => "polar_speed",
-        RpmModel::Radius { .. } => "radius",
-    }
-}
-
-/// How the published commands run between each other: raw breakpoints are linear, smoothed
-/// or resampled commands are held.
-pub fn command_hold(options: &ScrewOptions, command_period_s: f64) -> Hold {
-    if options.smoothing.is_some() || command_period_s > 0.0 || options.compensation.is_some() {
-        Hold::ZeroOrder
-    } else {
-        Hold::FirstOrder
-    }
-}
-
-/// A command as its message, stamped on the plan timeline starting at `base_ns`.
-pub fn command_message(c: &Command, options: &ScrewOptions, base_ns: i64) -> ScrewCommand {
-    ScrewCommand {
-        header: Header {
-            stamp: Time::after(base_ns, c.t),
-            frame_id: String::new(),
-        },
-        rpm: c.rpm,
-        pin_open: c.pin_open,
-        source_line: c.source_line,
-        model: model_name(options).to_string(),
-    }
-}
-
-/// The `screw` joint's state (the planner publishes the stage's joints on the same topic).
-pub fn joint_state_message(s: &ScrewSample, base_ns: i64) -> JointState {
-    JointState {
-        header: Header {
-            stamp: Time::after(base_ns, s.t),
-            frame_id: String::new(),
-        },
-        name: vec![SCREW_JOINT.to_string()],
-        position: vec![s.angle_rad],
-        velocity: vec![s.velocity_rad_per_s],
-        effort: vec![],
-    }
-}
-
-/// Where a chunk of buffered moves may end: after the last move that starts a closed-pin gap
-/// of at least `delay` (so no later opening reaches back into it).
-fn safe_cut(moves: &VecDeque<TimedMove>, delay: f64) -> Option<usize> {
-    let mut cut = None;
-    let mut gap_start: Option<f64> = None;
-    for (i, m) in moves.iter().enumerate() {
-        let (Some(&t0), Some(&t1)) = (m.t.first(), m.t.last()) else {
-            continue;
-        };
-        if m.extrude {
-            gap_start = None;
-        } else if t1 > t0 {
-            let start = *gap_start.get_or_insert(t0);
-            if t1 - start >= delay {
-                cut = Some(i + 1);
-            }
-        }
-    }
-    cut
-}
-
 /// Run the screw driver on `node` until an error.
 pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let params = node.params.clone();
-    let options = options_from_params(&params)?;
+    let stream_options = stream_options_from_params(&params)?;
     let idle_flush = Duration::from_secs_f64(params.f64("idle_flush_s"));
-    let max_buffer_s = params.f64("max_buffer_s");
-    let command_period_s = params.f64("command_period_s");
+    let compensating = stream_options.screw.compensation.is_some();
     // Neither input runs more than the streamer's window ahead of this node's acknowledgements
     // (the planner plans only moves the streamer sent). RustDDS keeps `depth` samples after
     // they are taken, so a deeper history is memory that grows with the print, not safety.
     let depth = 2 * DEFAULT_MOVE_WINDOW;
     let moves_sub = node.subscription::<GcodeMove>("/gcode/moves", &reliable_qos(depth))?;
-    let trajectories =
-        node.subscription::<JointTrajectory>("/polar/trajectory", &reliable_qos(depth))?;
+    // Transient-local: a restarted driver gets again the plans published since its last
+    // acknowledgement (the planner's writer keeps more than a window of them).
+    let trajectories = node.subscription::<JointTrajectory>(
+        "/polar/trajectory",
+        &publisher_qos("/polar/trajectory"),
+    )?;
     let progress_sub =
         node.subscription::<GcodeProgress>("/gcode/progress", &reliable_qos(1000))?;
     let acks = node.publisher::<GcodeAck>("/gcode/ack", &publisher_qos("/gcode/ack"))?;
@@ -203,37 +148,17 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         &publisher_qos("/polar/planned_joint_states"),
     )?);
     node.keep(joint_states_pub.clone());
-    let joint_state_period_s = params.f64("joint_state_period_s");
-    let mut angle = (joint_state_period_s > 0.0).then(|| {
-        ScrewAngle::new(
-            joint_state_period_s,
-            command_hold(&options, command_period_s),
-        )
-    });
-    let mut samples = Vec::new();
     let mut intake = Intake::new(
         node.fully_qualified_name(),
         params.bool("acknowledge_moves"),
     );
     // Moves and progress only from the streamer (a forged move would get material).
     let mut producer = cell_runtime::graph::Producer::of(node, params.bool("acknowledge_moves"))?;
-    let mut moves: VecDeque<GcodeMove> = VecDeque::new();
-    let mut plans: VecDeque<JointTrajectory> = VecDeque::new();
+    let mut stream = Stream::new(stream_options.clone());
+    let digest = stream.options_digest();
     let mut replayed = cell_runtime::replay::ReplayFilter::new();
-    // End stamp of the last trajectory kept (ns).
-    let mut last_end_ns: Option<i64> = None;
-    let mut timed: VecDeque<TimedMove> = VecDeque::new();
-    let mut from = [0.0f64; 3];
-    let mut done_until = 0u64;
-    let mut pin = PinState::default();
     let started = Instant::now();
     let mut last_input = Instant::now();
-    // Times are kept relative to the first trajectory's stamp (integer ns).
-    let mut base_ns: Option<i64> = None;
-    // Stamp of the last command published: stamps never go back.
-    let mut last_stamp_ns = i64::MIN;
-    let hold = command_hold(&options, command_period_s);
-    let mut repeats = RepeatFilter::default();
     // Acknowledgement repeats and announcements are looked at every LOOK_PERIOD; the idle and
     // stall cuts have deadlines of their own, so this loop wakes only when something is due.
     let mut tick = tokio::time::interval(LOOK_PERIOD);
@@ -242,48 +167,41 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         node,
         LogLevel::Info,
         "screw commands, model {}",
-        model_name(&options)
+        match stream_options.screw.model {
+            RpmModel::PolarSpeed { .. } => "polar_speed",
+            RpmModel::Radius { .. } => "radius",
+        }
     );
     let stall_flush = Duration::from_secs_f64(params.f64("stall_flush_s"));
     let mut stream_finished = false;
     loop {
-        let mut flush_all = false;
-        let mut idle_cut = false;
+        let mut cut = Cut::IfFull;
         let mut look = false;
         let cut_deadline = [idle_flush, stall_flush]
             .into_iter()
             .map(|after| last_input + after)
             .filter(|&at| at > last_look)
             .min()
-            .filter(|_| !timed.is_empty());
+            .filter(|_| stream.buffered_moves() > 0);
         tokio::select! {
             taken = moves_sub.async_take() => {
                 let (m, info) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
                 if producer.admits(&info)
                     && intake.accept(m.sequence)
                 {
-                    moves.push_back(m);
+                    stream.on_move(m);
                 }
             }
             taken = trajectories.async_take() => {
                 let (trajectory, info) = taken.map_err(|e| anyhow!("/polar/trajectory: {e:?}"))?;
                 last_input = Instant::now();
-                let (start_ns, end_ns) = trajectory.span_ns();
-                if replayed.admit((start_ns, end_ns), info.publisher_gid()) == Admit::Repeat {
+                if replayed.admit(trajectory.span_ns(), info.publisher_gid()) == Admit::Repeat {
                     continue;
                 }
-                if let Some(previous_end) = last_end_ns {
-                    if (start_ns - previous_end).abs() > TIMELINE_TOLERANCE_NS {
-                        let reason = format!(
-                            "/polar/trajectory is not continuous: a plan starts at {start_ns} ns, the one before ended at {previous_end} ns ({:+.6} s): a plan was lost, and pairing the moves after it would misplace every one",
-                            (start_ns - previous_end) as f64 * 1e-9
-                        );
-                        node.diagnose(DiagnosticStatus::ERROR, &reason, &[]);
-                        bail!(reason);
-                    }
+                if let Err(e) = stream.on_trajectory(trajectory) {
+                    node.diagnose(DiagnosticStatus::ERROR, &e.to_string(), &[]);
+                    bail!(e);
                 }
-                last_end_ns = Some(end_ns);
-                plans.push_back(trajectory);
             }
             taken = progress_sub.async_take() => {
                 if let Ok((p, info)) = taken {
@@ -293,6 +211,30 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     // Every move of the file acknowledged by every consumer (us included).
                     stream_finished |= p.finished;
                     if let Some(ack) = intake.on_progress(&p) {
+                        if let Some((resume_at, state)) = intake
+                            .resume_state()
+                            .filter(|(n, state)| *n > 0 || !state.is_empty())
+                        {
+                            // Restarted mid-print: continue the commands acknowledged there.
+                            let restored = match state.is_empty() {
+                                true => Err("no screw driver state came from the streamer: the pin, the modelled flow and the command numbers cannot be continued".to_string()),
+                                false => Checkpoint::from_bytes(state, resume_at, digest).map_err(|e| e.to_string()),
+                            };
+                            let c = match restored {
+                                Ok(c) => c,
+                                Err(why) => {
+                                    let reason = format!("restarted after move {resume_at}, cannot continue the screw commands: {why}");
+                                    node.diagnose(DiagnosticStatus::ERROR, &reason, &[]);
+                                    cell_runtime::cell_log!(node, LogLevel::Error, "{reason}");
+                                    // Stay in the graph a moment: the machine sees the restart
+                                    // and stops the print instead of holding for ever.
+                                    tokio::time::sleep(RESTART_FAILURE_LINGER).await;
+                                    return Err(anyhow!(reason));
+                                }
+                            };
+                            stream = Stream::resume(stream_options.clone(), &c);
+                            cell_runtime::cell_log!(node, LogLevel::Info, "resumed after move {resume_at}: next command {}, plan time {:.6} s", c.next_command, c.commanded_end_ns.saturating_sub(c.base_ns) as f64 * 1e-9);
+                        }
                         let _ = acks.publish(GcodeAck::from(ack));
                     }
                 }
@@ -304,72 +246,37 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         }
         if look {
             last_look = Instant::now();
-            let idle = !timed.is_empty() && last_input.elapsed() >= idle_flush;
+            let idle = stream.buffered_moves() > 0 && last_input.elapsed() >= idle_flush;
             // With flow compensation a cut inside a run would close the pin mid-run (and
             // its reopening delay would starve the next moves): when input pauses, cut
             // at a closed-pin gap and wait for more, unless the file is all here or the
             // pause has become a stall.
             let stalled = last_input.elapsed() >= stall_flush;
-            flush_all = idle && (options.compensation.is_none() || stream_finished || stalled);
-            idle_cut = idle && !flush_all;
-            if let Some(ack) = intake.ack(done_until, started.elapsed()) {
+            if idle {
+                cut = if !compensating || stream_finished || stalled {
+                    Cut::All
+                } else {
+                    Cut::AtGap
+                };
+            }
+            if let Some(ack) = intake.ack(stream.commanded_until(), started.elapsed()) {
                 let _ = acks.publish(GcodeAck::from(ack));
             }
         }
-        // The k-th trajectory is the plan of the k-th move, whichever arrives first.
-        while !moves.is_empty() && !plans.is_empty() {
-            let (m, trajectory) = (moves.pop_front().unwrap(), plans.pop_front().unwrap());
-            let base = *base_ns.get_or_insert(trajectory.header.stamp.as_nanos());
-            timed.push_back(TimedMove::from_trajectory(&m, from, &trajectory, base));
-            done_until = m.sequence + 1;
-            from = position_after(&m, from);
-        }
-        let buffered_s = match (
-            timed.front().and_then(|m| m.t.first()),
-            timed.back().and_then(|m| m.t.last()),
-        ) {
-            (Some(a), Some(b)) => b - a,
-            _ => 0.0,
-        };
-        // Full buffer: cut at a safe gap, or (a long print without one) everything.
-        let cut = if flush_all {
-            Some(timed.len())
-        } else if idle_cut {
-            safe_cut(&timed, options.pin_open_delay_s)
-        } else if buffered_s > max_buffer_s {
-            safe_cut(&timed, options.pin_open_delay_s).or(Some(timed.len()))
-        } else {
-            None
-        };
-        if let Some(cut) = cut.filter(|&c| c > 0) {
-            let chunk: Vec<TimedMove> = timed.drain(..cut).collect();
-            let commands = chunk_commands(&chunk, &options, &mut pin, flush_all, command_period_s);
-            let base = base_ns.unwrap_or(0);
-            for c in repeats.chunk(&commands, hold) {
-                let mut message = command_message(c, &options, base);
-                // A chunk's first command can round to a nanosecond before the previous
-                // chunk's last (its time comes from another sum of the same plan): the
-                // same instant, kept in order.
-                let stamp_ns = message.header.stamp.as_nanos().max(last_stamp_ns);
-                message.header.stamp = Time::from_nanos(stamp_ns);
-                last_stamp_ns = stamp_ns;
+        if let Some(chunk) = stream.cut(cut) {
+            for message in chunk.commands {
                 publish(&commands_pub, message, PUBLISH_PATIENCE)
                     .await
                     .context("/screw/command")?;
             }
-            if let Some(angle) = angle.as_mut() {
-                angle.extend(&commands, &mut samples);
-                for s in samples.drain(..) {
-                    publish(
-                        &joint_states_pub,
-                        joint_state_message(&s, base),
-                        PUBLISH_PATIENCE,
-                    )
+            for message in chunk.joint_states {
+                publish(&joint_states_pub, message, PUBLISH_PATIENCE)
                     .await
                     .context("/polar/planned_joint_states")?;
-                }
             }
-            if let Some(ack) = intake.ack(done_until, started.elapsed()) {
+            // Published: a restart continues after this chunk.
+            intake.note_resume_state(stream.commanded_until(), stream.checkpoint().to_bytes());
+            if let Some(ack) = intake.ack(stream.commanded_until(), started.elapsed()) {
                 let _ = acks.publish(GcodeAck::from(ack));
             }
         }

@@ -541,12 +541,22 @@ pub const REPEAT_TOLERANCE_RPM: f64 = 1e-6;
 /// there ends a ramp. A chunk's last command is kept too: it marks how far the commanded
 /// timeline reaches (the planned screw angle and whoever integrates a flow after the screw
 /// run to it).
-#[derive(Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct RepeatFilter {
     last_kept: Option<(f64, bool, u32)>,
 }
 
 impl RepeatFilter {
+    /// A filter that last kept a command with (rpm, pin open, source line): a restored one.
+    pub fn with_last_kept(last_kept: Option<(f64, bool, u32)>) -> RepeatFilter {
+        RepeatFilter { last_kept }
+    }
+
+    /// The last command kept: (rpm, pin open, source line).
+    pub fn last_kept(&self) -> Option<(f64, bool, u32)> {
+        self.last_kept
+    }
+
     /// Whether `command` (the next in time order) must be published; `ends_chunk` for the
     /// last command of a chunk.
     pub fn keep(&mut self, command: &Command, hold: Hold, ends_chunk: bool) -> bool {

@@ -22,6 +22,7 @@ pub fn fixture(name: &str) -> Vec<GcodeMove> {
 }
 
 /// `moves` planned with `options`, as the screw driver receives them, and the plans.
+#[allow(dead_code)] // not every test file that shares this module plans
 pub fn plan_and_time(
     moves: &[GcodeMove],
     options: PlannerOptions,

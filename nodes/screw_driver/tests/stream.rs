@@ -1,0 +1,288 @@
+//! A screw driver restarted from any of its checkpoints continues the very same commands: the
+//! stream is resumed at every chunk boundary of real prints and compared, message for message,
+//! with the uninterrupted run. The resumed stream is given the plans from well before its
+//! checkpoint (as the planner's transient-local history gives them) and must drop exactly
+//! those of moves already commanded.
+
+mod common;
+
+use gcode_streamer::GcodeMove;
+use polar_cell_msgs::{JointState, JointTrajectory, ScrewCommand};
+use polar_planner::messages::trajectory_message;
+use polar_planner::{Planner, PlannerOptions};
+use screw_driver::compensation::FlowModel;
+use screw_driver::fir::FILTER_1;
+use screw_driver::screw::ScrewOptions;
+use screw_driver::stream::{
+    Checkpoint, CheckpointError, Cut, Stream, StreamError, StreamOptions, Taken,
+};
+
+const EPOCH_NS: i64 = 1_795_318_512_024_268_371;
+
+/// The moves of a fixture and their trajectories, one per move, as the planner publishes them.
+fn planned(name: &str) -> (Vec<GcodeMove>, Vec<JointTrajectory>) {
+    let moves = common::fixture(name);
+    let mut planner = Planner::new(PlannerOptions::default()).unwrap();
+    let mut plans = Vec::new();
+    for m in &moves {
+        planner.push(m, &mut plans).unwrap();
+    }
+    planner.flush(&mut plans);
+    assert_eq!(plans.len(), moves.len());
+    let trajectories = plans
+        .iter()
+        .map(|p| trajectory_message(p, EPOCH_NS))
+        .collect();
+    (moves, trajectories)
+}
+
+fn compensated() -> StreamOptions {
+    StreamOptions {
+        screw: ScrewOptions {
+            compensation: Some(FlowModel::default_extruder()),
+            ..ScrewOptions::default()
+        },
+        command_period_s: 0.0,
+        joint_state_period_s: 0.02,
+        max_buffer_s: 0.5,
+        max_buffer_moves: 64,
+    }
+}
+
+fn smoothed() -> StreamOptions {
+    StreamOptions {
+        screw: ScrewOptions {
+            smoothing: Some(FILTER_1.taps()),
+            ..ScrewOptions::default()
+        },
+        command_period_s: 0.0,
+        joint_state_period_s: 0.05,
+        max_buffer_s: 2.0,
+        max_buffer_moves: 40,
+    }
+}
+
+/// What the node would publish, and the checkpoint after every chunk: (commanded until,
+/// checkpoint bytes, commands and joint states published before it).
+#[derive(Debug)]
+struct Run {
+    commands: Vec<ScrewCommand>,
+    joint_states: Vec<JointState>,
+    checkpoints: Vec<(u64, Vec<u8>, usize, usize)>,
+}
+
+/// The cut the node would ask for after trajectory `k`: mostly a full buffer, sometimes an
+/// input pause, and everything after some zero-time plans, as a stall would (deterministic, so
+/// a resumed run asks the same).
+fn cut_after(k: usize, trajectory: &JointTrajectory) -> Cut {
+    let (start_ns, end_ns) = trajectory.span_ns();
+    if start_ns == end_ns && k.is_multiple_of(2) {
+        Cut::All
+    } else if k % 11 == 5 {
+        Cut::AtGap
+    } else {
+        Cut::IfFull
+    }
+}
+
+/// Feed `moves` (from the stream's resume point on) at once, then trajectories
+/// `trajectories[first..]` one by one, cutting after each as the node would, and everything
+/// at the end.
+fn run(
+    mut stream: Stream,
+    moves: &[GcodeMove],
+    trajectories: &[JointTrajectory],
+    first: usize,
+) -> Result<(Run, usize), StreamError> {
+    let mut out = Run {
+        commands: Vec::new(),
+        joint_states: Vec::new(),
+        checkpoints: Vec::new(),
+    };
+    for m in &moves[stream.commanded_until() as usize..] {
+        stream.on_move(m.clone());
+    }
+    let mut skipped = 0;
+    for (k, t) in trajectories.iter().enumerate().skip(first) {
+        if stream.on_trajectory(t.clone())? == Taken::BeforeResume {
+            skipped += 1;
+            continue;
+        }
+        let how = if k + 1 == trajectories.len() {
+            Cut::All
+        } else {
+            cut_after(k, t)
+        };
+        if let Some(chunk) = stream.cut(how) {
+            out.commands.extend(chunk.commands);
+            out.joint_states.extend(chunk.joint_states);
+            out.checkpoints.push((
+                stream.commanded_until(),
+                stream.checkpoint().to_bytes(),
+                out.commands.len(),
+                out.joint_states.len(),
+            ));
+        }
+    }
+    assert_eq!(stream.buffered_moves(), 0);
+    Ok((out, skipped))
+}
+
+fn resumes_bit_for_bit(name: &str, options: StreamOptions) {
+    let (moves, trajectories) = planned(name);
+    let stream = Stream::new(options.clone());
+    let digest = stream.options_digest();
+    let (whole, skipped) = run(stream, &moves, &trajectories, 0).unwrap();
+    assert_eq!(skipped, 0);
+    assert!(
+        whole.checkpoints.len() > 20,
+        "{name}: {} chunks",
+        whole.checkpoints.len()
+    );
+    // Commands are numbered 0, 1, 2, … and their stamps never go back.
+    for (k, c) in whole.commands.iter().enumerate() {
+        assert_eq!(c.sequence, k as u64);
+    }
+    assert!(whole
+        .commands
+        .windows(2)
+        .all(|w| w[0].header.stamp.as_nanos() <= w[1].header.stamp.as_nanos()));
+    let mut zero_time_points = 0;
+    for (until, bytes, commands, joint_states) in &whole.checkpoints {
+        let checkpoint = Checkpoint::from_bytes(bytes, *until, digest).unwrap();
+        zero_time_points += usize::from(checkpoint.zero_time_at_end > 0);
+        let resumed = Stream::resume(options.clone(), &checkpoint);
+        assert_eq!(resumed.commanded_until(), *until);
+        // The planner's history reaches 100 plans back.
+        let first = (*until as usize).saturating_sub(100);
+        let (rest, skipped) = run(resumed, &moves, &trajectories, first).unwrap();
+        assert_eq!(
+            skipped,
+            *until as usize - first,
+            "{name}: resumed at move {until}"
+        );
+        assert_eq!(
+            rest.commands.len(),
+            whole.commands.len() - commands,
+            "{name}: resumed at move {until}"
+        );
+        assert!(
+            rest.commands == whole.commands[*commands..],
+            "{name}: resumed at move {until}, commands differ"
+        );
+        assert!(
+            rest.joint_states == whole.joint_states[*joint_states..],
+            "{name}: resumed at move {until}, joint states differ"
+        );
+    }
+    // Some checkpoints sit right after zero-time moves (a G92, a feed-rate line): the resumed
+    // stream must skip exactly those plans at that instant.
+    assert!(
+        zero_time_points > 0,
+        "{name}: no checkpoint after a zero-time move"
+    );
+}
+
+#[test]
+fn compensated_finger_resumes_at_every_chunk() {
+    resumes_bit_for_bit("finger.gcode", compensated());
+}
+
+#[test]
+fn compensated_polartest_resumes_at_every_chunk() {
+    resumes_bit_for_bit("polartest.gcode", compensated());
+}
+
+#[test]
+fn smoothed_polartest_resumes_at_every_chunk() {
+    resumes_bit_for_bit("polartest.gcode", smoothed());
+}
+
+/// A chunk never holds more moves than asked, so acknowledgements (given once commanded)
+/// always move on within the streamer's window.
+#[test]
+fn chunks_hold_at_most_max_buffer_moves() {
+    let (moves, trajectories) = planned("polartest.gcode");
+    let options = StreamOptions {
+        max_buffer_s: 1e6,
+        max_buffer_moves: 25,
+        ..compensated()
+    };
+    let (whole, _) = run(Stream::new(options), &moves, &trajectories, 0).unwrap();
+    let mut before = 0;
+    for (until, ..) in &whole.checkpoints {
+        assert!(until - before <= 25, "a chunk of {} moves", until - before);
+        before = *until;
+    }
+    assert_eq!(before, moves.len() as u64);
+}
+
+/// A history that does not reach back to the checkpoint leaves moves without their plans: the
+/// stream refuses to pair the rest instead of misplacing it.
+#[test]
+fn a_history_too_short_is_refused() {
+    let (moves, trajectories) = planned("finger.gcode");
+    let options = compensated();
+    let (whole, _) = run(Stream::new(options.clone()), &moves, &trajectories, 0).unwrap();
+    let (until, bytes, ..) = &whole.checkpoints[10];
+    let checkpoint =
+        Checkpoint::from_bytes(bytes, *until, Stream::new(options.clone()).options_digest())
+            .unwrap();
+    // The first plan after the checkpoint is missing, and the one after it takes time.
+    let missing = (*until as usize..trajectories.len())
+        .find(|&k| {
+            let (a, b) = trajectories[k + 1].span_ns();
+            b > a
+        })
+        .unwrap();
+    let err = run(
+        Stream::resume(options, &checkpoint),
+        &moves,
+        &trajectories,
+        missing + 1,
+    )
+    .unwrap_err();
+    assert!(matches!(err, StreamError::Discontinuous { .. }), "{err}");
+    assert!(err.to_string().contains("not continuous"), "{err}");
+}
+
+#[test]
+fn checkpoints_of_other_options_or_points_are_refused() {
+    let (moves, trajectories) = planned("finger.gcode");
+    let (whole, _) = run(Stream::new(compensated()), &moves, &trajectories, 0).unwrap();
+    let (until, bytes, ..) = &whole.checkpoints[3];
+    let ours = Stream::new(compensated()).options_digest();
+    let theirs = Stream::new(smoothed()).options_digest();
+    assert_ne!(ours, theirs);
+    assert!(matches!(
+        Checkpoint::from_bytes(bytes, *until, theirs),
+        Err(CheckpointError::OtherOptions { .. })
+    ));
+    assert!(matches!(
+        Checkpoint::from_bytes(bytes, until + 1, ours),
+        Err(CheckpointError::WrongPoint { .. })
+    ));
+    for len in [0, 3, 10, bytes.len() - 1] {
+        assert!(
+            matches!(
+                Checkpoint::from_bytes(&bytes[..len], *until, ours),
+                Err(CheckpointError::Malformed { .. })
+            ),
+            "{len} bytes"
+        );
+    }
+    let mut c = Checkpoint::from_bytes(bytes, *until, ours).unwrap();
+    c.flow_rpm = f64::NAN;
+    assert!(matches!(
+        Checkpoint::from_bytes(&c.to_bytes(), *until, ours),
+        Err(CheckpointError::NotAScrewState(_))
+    ));
+}
+
+proptest::proptest! {
+    /// Any bytes: a checkpoint or a clean error, never a panic.
+    #[test]
+    fn any_bytes_read_cleanly(bytes in proptest::collection::vec(proptest::num::u8::ANY, 0..400)) {
+        let _ = Checkpoint::from_bytes(&bytes, 0, 0);
+    }
+}

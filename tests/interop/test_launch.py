@@ -97,10 +97,10 @@ def test_mcu_launch_xml_names_existing_binaries_and_parameter_file():
         assert (BIN_DIR / binary).exists(), binary
 
 
-def run_cell_sh_and_restart(tmp_path, restarted, kill_after_s=8.0, extra_args=()):
+def run_cell_sh_and_restart(tmp_path, restarted, kill_after_s=8.0, extra_args=(), away_s=0.5):
     """finger.gcode under cell.sh at 4x; `restarted` SIGKILLed after `kill_after_s` (well into
-    finger's first 30 s of machine time) and started again. Returns cell.sh's return code,
-    its output and the bag."""
+    finger's first 30 s of machine time) and started again `away_s` later. Returns cell.sh's
+    return code, its output and the bag."""
     bag = tmp_path / "cell.mcap"
     env = {"POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin", "POLAR_CELL_SPEED": "4"}
     # Its own process group, so that whatever happens every node of it goes at the end.
@@ -117,7 +117,7 @@ def run_cell_sh_and_restart(tmp_path, restarted, kill_after_s=8.0, extra_args=()
         ).stdout.split()
         assert pid, f"no {restarted} under cell.sh"
         os.kill(int(pid[0]), signal.SIGKILL)
-        time.sleep(0.5)
+        time.sleep(away_s)
         again = subprocess.Popen(
             [str(BIN_DIR / restarted), "--ros-args", "--params-file",
              str(LAUNCH / "params" / "cell.yaml"), *extra_args],
@@ -138,21 +138,56 @@ def run_cell_sh_and_restart(tmp_path, restarted, kill_after_s=8.0, extra_args=()
     return cell.returncode, output, bag
 
 
-def test_cell_sh_stops_on_the_path_when_the_screw_driver_restarts(tmp_path):
-    """A screw driver killed and started again mid-print cannot continue the commands it began
-    (it used to hang the print for good): the executor sees the new process, stops on the
-    path (as a cancel does, not an emergency stop) and ends the print with the reason,
-    non-zero, and the bag is finalised."""
-    returncode, output, bag = run_cell_sh_and_restart(tmp_path, "screw_driver")
-    assert returncode != 0, output
-    assert "/screw_driver restarted mid-print" in output, output
-    # It was moving: the machine stopped on the path (a cancel's hold), and only then, at
-    # rest, took the fault (an emergency stop of a machine standing still).
-    assert "stopping on the path" in output, output
+def stamp_ns(t):
+    return t.sec * 1_000_000_000 + t.nanosec
+
+
+def test_a_screw_driver_restarted_mid_print_continues_its_commands(tmp_path):
+    """A screw driver killed mid-print and started again resumes from the checkpoint it
+    acknowledged (screw_driver::stream): the streamer sends its moves again, the planner's
+    transient-local /polar/trajectory their plans, and it publishes the same numbered commands
+    again from there. The machine drops the repeats by number, holds on the path if it is
+    about to run out of commands, and the print completes: the bag holds every command once,
+    numbered without a gap, in time order, and the screw turned as much as in a print that was
+    not interrupted."""
+    returncode, output, bag = run_cell_sh_and_restart(tmp_path, "screw_driver", 6.0)
+    assert returncode == 0, output
     messages, _, _ = read_with_mcap_ros2(bag)
-    states = messages["/joint_states"]
-    assert len(states) > 8 / 0.02, len(states)  # it had been running
-    assert all(abs(v) < 1e-9 for v in states[-1].velocity), states[-1].velocity
+    log = [(entry.name, entry.msg) for entry in messages["/rosout"]]
+    assert any(n == "screw_driver" and m.startswith("resumed after move") for n, m in log), log
+    assert any("/screw_driver restarted and continues the screw commands at command" in m
+               for _, m in log), log
+    commands = messages["/screw/command"]
+    assert [c.sequence for c in commands] == list(range(len(commands)))
+    stamps = [stamp_ns(c.header.stamp) for c in commands]
+    assert all(a <= b for a, b in zip(stamps, stamps[1:]))
+    final = messages["/joint_states"][-1]
+    assert all(abs(v) < 1e-9 for v in final.velocity), final.velocity
+    # The screw's executed angle against the same print uninterrupted (held commands: the
+    # angle is their exact integral, whatever the chunks).
+    reference_bag = tmp_path / "reference.mcap"
+    env = {"POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin", "POLAR_CELL_SPEED": "4"}
+    subprocess.run([str(LAUNCH / "cell.sh"), str(FIXTURES / "finger.gcode"), str(reference_bag)],
+                   env=env, check=True, capture_output=True, timeout=120)
+    reference, _, _ = read_with_mcap_ros2(reference_bag)
+    turned, expected = final.position[3], reference["/joint_states"][-1].position[3]
+    assert abs(turned - expected) <= 1e-6 * abs(expected), (turned, expected)
+
+
+def test_a_restarted_screw_driver_that_cannot_continue_stops_the_print(tmp_path):
+    """A screw driver restarted with other options (here another pin delay) would command
+    another screw: it refuses the checkpoint, says why and exits; the machine holds on the
+    path before the commands it has run out, and stops the print screw_resume_timeout_s
+    (10 s) later, non-zero, with the reason, at rest."""
+    returncode, output, bag = run_cell_sh_and_restart(
+        tmp_path, "screw_driver", 6.0, ("-p", "pin_open_delay_s:=0.3"))
+    assert returncode != 0, output
+    assert "/screw_driver did not continue the screw commands" in output, output
+    messages, _, _ = read_with_mcap_ros2(bag)
+    log = [(entry.name, entry.msg) for entry in messages["/rosout"]]
+    assert any(n == "screw_driver" and "cannot continue the screw commands: resume state was "
+               "written by a screw driver with other options" in m for n, m in log), log
+    assert all(abs(v) < 1e-9 for v in messages["/joint_states"][-1].velocity)
 
 
 # One step of bed_theta (rad), arm_r and z (m) at the shipped steps_per_unit.

@@ -116,9 +116,15 @@ recordable_without_plan_stamp!(
     Log,
     Clock,
     TFMessage,
-    PlanCredit,
-    ScrewCommand
+    PlanCredit
 );
+
+/// Screw commands are numbered by the screw driver across its restarts.
+impl Recordable for ScrewCommand {
+    fn replay_key(&self) -> Option<(i64, i64)> {
+        Some((self.sequence as i64, 0))
+    }
+}
 
 /// A move's plan: from its stamp to its last point.
 impl Recordable for JointTrajectory {

@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
 use cell_runtime::graph::Producer;
-use cell_runtime::replay::Joined;
+use cell_runtime::replay::{Joined, Numbered};
 use cell_runtime::topics::publisher_qos;
 use cell_runtime::{
     now_ns, parse_service_mapping, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
@@ -69,6 +69,7 @@ pub fn param_specs(tick_period_s: f64) -> Vec<ParamSpec> {
         ParamSpec::new("screw_hold", ParamValue::String("zero_order".into()), "how rpm runs between screw commands: zero_order (compensated, smoothed or resampled commands) or first_order (raw breakpoints)"),
         ParamSpec::new("queue_capacity", ParamValue::Integer(4096), "step segments and screw commands held ahead of execution at most").range(16.0, 1e7),
         ParamSpec::new("planner_resume_timeout_s", ParamValue::Double(10.0), "a planner restarted mid-print must continue the plan within this long of the machine running out of plan (wall s; it holds on the path meanwhile) or the print stops and fails (0: never resume, stop at once)").range(0.0, 3600.0),
+        ParamSpec::new("screw_resume_timeout_s", ParamValue::Double(10.0), "a screw driver restarted mid-print must continue its commands within this long of the machine holding for them (wall s; it holds on the path before the commands it has run out) or the print stops and fails (0: never resume, stop at once)").range(0.0, 3600.0),
         ParamSpec::new("exit_when_done", ParamValue::Bool(false), "end the node once a complete plan (its stream finished) has been executed (for scripts)"),
         ParamSpec::new("service_mapping", ParamValue::String("cyclone".into()), "request/reply wire format of the services: cyclone (rmw_cyclonedds clients), enhanced (rmw_fastrtps) or basic"),
     ]
@@ -274,10 +275,12 @@ pub async fn run<M: Machine>(
     let mut progress_from = Producer::named(node, "producer", true)?;
     // A restarted planner resumes the plan where it acknowledged (polar_planner::resume):
     // its repeats are dropped, and its first new segment must start where the plan taken so
-    // far ends. One that does not, or does not come back within `planner_resume_timeout_s`,
-    // and a restarted screw driver (which does not resume: its commands would pair with other
-    // moves) stop the machine on the path and fail the print, saying why, instead of waiting
-    // for input that never fits. A segment lost anywhere (a gap in the plan) does the same.
+    // far ends. A restarted screw driver resumes its numbered commands (screw_driver::stream):
+    // repeats are dropped by number, and its first new command must be the next one. Until
+    // it continues, the machine holds on the path before the commands it has run out. One
+    // that does not continue within its timeout stops the machine on the path and fails the
+    // print, saying why, instead of waiting for input that never fits. A segment or a command
+    // lost anywhere (a gap) does the same.
     let mut stopping_for: Option<String> = None;
     let mut steps_join = cell_runtime::replay::StepsJoin::new();
     let resume_timeout = Duration::from_secs_f64(node.params.f64("planner_resume_timeout_s"));
@@ -285,6 +288,21 @@ pub async fn run<M: Machine>(
     // when the machine has been starving for plan since then.
     let mut awaiting_planner = false;
     let mut planner_starved_since: Option<Instant> = None;
+    let mut screw_join = cell_runtime::replay::SequenceJoin::new();
+    let screw_resume_timeout =
+        Duration::from_secs_f64(node.params.f64("screw_resume_timeout_s"));
+    // The same for the screw driver; the stamp of the last command taken (how far the screw
+    // is commanded); whether the machine holds for commands, and since when.
+    let mut awaiting_screw = false;
+    let mut screw_covered_ns: Option<i64> = None;
+    let mut held_for_screw = false;
+    let mut screw_starved_since: Option<Instant> = None;
+    let mut operator_paused = false;
+    let mut screw_holds = 0u64;
+    let screw_margin_ns = (options.horizon_s / 4.0 * 1e9) as i64;
+    // The least the screw commands were ahead of the running machine (a measure of the
+    // margin a lost screw driver leaves).
+    let mut screw_ahead_min_ns = i64::MAX;
     let mut stop_issued = false;
     let mut last_graph_look = Instant::now();
     let mut fault_at_ns: Option<i64> = None;
@@ -426,12 +444,48 @@ pub async fn run<M: Machine>(
                         "ignored_foreign_screw_commands",
                         screw_from.name(),
                     );
-                } else if screw_from.restarted(&info) && !(input_finished && executor.is_drained())
-                {
-                    stopping_for
-                        .get_or_insert_with(|| restarted(screw_from.name(), "/screw/command"));
                 } else {
-                    pending_screw.push_back(c);
+                    let from_restarted = screw_from.restarted(&info);
+                    let over = input_finished && executor.is_drained();
+                    if from_restarted && !over && screw_resume_timeout.is_zero() {
+                        stopping_for
+                            .get_or_insert_with(|| restarted(screw_from.name(), "/screw/command"));
+                    } else {
+                        match screw_join.take(c.sequence) {
+                            Numbered::Repeat => {}
+                            Numbered::Gap { expected, found } => {
+                                let after = if from_restarted {
+                                    format!(" after {} restarted", screw_from.name())
+                                } else {
+                                    String::new()
+                                };
+                                stopping_for.get_or_insert_with(|| format!(
+                                    "/screw/command lost {} commands{after}: command {found} (line {}) came after command {}",
+                                    found - expected,
+                                    c.source_line,
+                                    expected.saturating_sub(1),
+                                ));
+                            }
+                            Numbered::New => {
+                                if from_restarted {
+                                    screw_from.adopt(&info);
+                                    awaiting_screw = false;
+                                    screw_starved_since = None;
+                                    cell_runtime::cell_log!(
+                                        node,
+                                        LogLevel::Info,
+                                        "{} restarted and continues the screw commands at command {} (line {}); {} repeated commands dropped",
+                                        screw_from.name(),
+                                        c.sequence,
+                                        c.source_line,
+                                        screw_join.repeats()
+                                    );
+                                }
+                                screw_covered_ns = Some(c.header.stamp.as_nanos());
+                                pending_screw.push_back(c);
+                            }
+                        }
+                    }
                 }
             }
             taken = progress_sub.async_take() => {
@@ -458,6 +512,11 @@ pub async fn run<M: Machine>(
         }
         if let Some((command, caller)) = requested {
             let (success, message) = apply(executor, command);
+            operator_paused = match (command, success) {
+                (Command::Pause, true) => true,
+                (Command::Resume | Command::Cancel | Command::Reset, true) => false,
+                _ => operator_paused,
+            };
             cancelled = next_cancelled(cancelled, command, success);
             match caller {
                 None => cell_runtime::cell_log!(node, LogLevel::Info, "{}", message),
@@ -490,7 +549,19 @@ pub async fn run<M: Machine>(
         if stopping_for.is_none() && graph_look_due && !(input_finished && executor.is_drained()) {
             last_graph_look = Instant::now();
             if screw_from.announced_elsewhere() {
-                stopping_for.get_or_insert_with(|| restarted(screw_from.name(), "/screw/command"));
+                if screw_resume_timeout.is_zero() {
+                    stopping_for
+                        .get_or_insert_with(|| restarted(screw_from.name(), "/screw/command"));
+                } else if !awaiting_screw {
+                    awaiting_screw = true;
+                    cell_runtime::cell_log!(
+                        node,
+                        LogLevel::Warn,
+                        "{} restarted mid-print: waiting up to {} s for it to continue the screw commands (the machine holds on the path before the commands it has run out)",
+                        screw_from.name(),
+                        screw_resume_timeout.as_secs_f64()
+                    );
+                }
             }
             if steps_from.announced_elsewhere() {
                 if resume_timeout.is_zero() {
@@ -527,6 +598,61 @@ pub async fn run<M: Machine>(
                         "{} restarted mid-print and did not continue the plan within {} s of the machine running out of it",
                         steps_from.name(),
                         resume_timeout.as_secs_f64()
+                    )
+                });
+            }
+        }
+        // Screw commands must cover the plan the machine runs: when they reach less than a
+        // quarter of the horizon ahead (the driver cuts its chunks at a quarter, so they
+        // normally reach three quarters ahead: 1.45 s at least in a 2 s-horizon print of
+        // finger), hold on the path, and go on once they reach half the horizon again and
+        // no restarted driver is awaited. Once the file is all acknowledged, every command
+        // is published.
+        let plan_now_ns = executor
+            .epoch_ns()
+            .map(|epoch| epoch + (state_now.plan_time_s * 1e9) as i64);
+        let screw_ahead_ns = plan_now_ns
+            .zip(screw_covered_ns)
+            .map(|(now, covered)| covered - now);
+        if let Some(ahead) = screw_ahead_ns.filter(|_| {
+            !input_finished && state_now.state == PlayerState::Running && !awaiting_screw
+        }) {
+            screw_ahead_min_ns = screw_ahead_min_ns.min(ahead);
+        }
+        let must_hold = !input_finished
+            && stopping_for.is_none()
+            && screw_ahead_ns.is_some_and(|ahead| ahead < screw_margin_ns);
+        if must_hold && !held_for_screw && state_now.state == PlayerState::Running {
+            held_for_screw = true;
+            screw_holds += 1;
+            executor.pause();
+            cell_runtime::cell_log!(
+                node,
+                LogLevel::Warn,
+                "screw commands end {:.3} s of plan ahead: holding on the path until {} continues them",
+                screw_ahead_ns.unwrap_or(0) as f64 * 1e-9,
+                screw_from.name()
+            );
+        } else if held_for_screw
+            && (input_finished
+                || stopping_for.is_some()
+                || screw_ahead_ns.is_some_and(|ahead| !awaiting_screw && ahead >= 2 * screw_margin_ns))
+        {
+            held_for_screw = false;
+            screw_starved_since = None;
+            if !operator_paused && !cancelled && stopping_for.is_none() {
+                executor.resume();
+                cell_runtime::cell_log!(node, LogLevel::Info, "screw commands continue: resuming");
+            }
+        }
+        if held_for_screw {
+            let since = *screw_starved_since.get_or_insert_with(Instant::now);
+            if since.elapsed() >= screw_resume_timeout && !screw_resume_timeout.is_zero() {
+                stopping_for.get_or_insert_with(|| {
+                    format!(
+                        "{} did not continue the screw commands within {} s of the machine holding for them",
+                        screw_from.name(),
+                        screw_resume_timeout.as_secs_f64()
                     )
                 });
             }
@@ -767,6 +893,12 @@ pub async fn run<M: Machine>(
                 ("feed", format!("{:.3}", state.feed)),
                 ("segments_received", received.to_string()),
                 ("segments_repeated", steps_join.repeats().to_string()),
+                ("screw_commands_repeated", screw_join.repeats().to_string()),
+                ("screw_holds", screw_holds.to_string()),
+                (
+                    "screw_ahead_min_s",
+                    format!("{:.3}", screw_ahead_min_ns as f64 * 1e-9),
+                ),
                 ("segments_completed", completed.to_string()),
                 ("underruns", underruns.to_string()),
                 ("screw_rpm", format!("{:.2}", state.screw_rpm)),

@@ -13,7 +13,8 @@
 //! zero-time moves at one instant): of those, a new writer's first ones are repeats as long as
 //! it has not sent more of that key than were seen. This needs the repeated stretch to start
 //! at a key no message before it shares, which is why the planner acknowledges only after a
-//! move that takes time.
+//! move that takes time. A stream numbered by its producer across restarts (the screw
+//! driver's commands) needs no key: [`SequenceJoin`] drops repeats by number.
 
 /// What to do with a message ([`ReplayFilter::admit`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -164,6 +165,58 @@ impl<W: PartialEq> StepsJoin<W> {
     }
 }
 
+/// What became of a numbered message ([`SequenceJoin::take`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Numbered {
+    /// The next one: take it.
+    New,
+    /// Taken before (a restarted producer sends again what followed its last
+    /// acknowledgement, with the same numbers): drop it.
+    Repeat,
+    /// Messages between the last taken and this one were lost.
+    Gap { expected: u64, found: u64 },
+}
+
+/// A consumer's intake of a stream its producer numbers 0, 1, 2, … across restarts
+/// (`/screw/command`): repeats are dropped by number, and a lost message is found.
+#[derive(Clone, Debug, Default)]
+pub struct SequenceJoin {
+    next: u64,
+    repeats: u64,
+}
+
+impl SequenceJoin {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Judge the next message, numbered `sequence`.
+    pub fn take(&mut self, sequence: u64) -> Numbered {
+        if sequence < self.next {
+            self.repeats += 1;
+            Numbered::Repeat
+        } else if sequence > self.next {
+            Numbered::Gap {
+                expected: self.next,
+                found: sequence,
+            }
+        } else {
+            self.next += 1;
+            Numbered::New
+        }
+    }
+
+    /// The number of the next message to take.
+    pub fn next(&self) -> u64 {
+        self.next
+    }
+
+    /// Messages dropped as repeats so far.
+    pub fn repeats(&self) -> u64 {
+        self.repeats
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -174,6 +227,25 @@ mod tests {
             .copied()
             .filter(|&k| filter.admit(k, writer) == Admit::New)
             .collect()
+    }
+
+    #[test]
+    fn numbered_repeats_are_dropped_and_gaps_found() {
+        let mut join = SequenceJoin::new();
+        let taken: Vec<Numbered> = [0, 1, 2, 1, 2, 3].iter().map(|&k| join.take(k)).collect();
+        use Numbered::*;
+        assert_eq!(taken, [New, New, New, Repeat, Repeat, New]);
+        assert_eq!(join.repeats(), 2);
+        assert_eq!(
+            join.take(6),
+            Gap {
+                expected: 4,
+                found: 6
+            }
+        );
+        // A gap takes nothing: the stream is still waiting for 4.
+        assert_eq!(join.next(), 4);
+        assert_eq!(join.take(4), New);
     }
 
     #[test]

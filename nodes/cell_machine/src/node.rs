@@ -289,8 +289,7 @@ pub async fn run<M: Machine>(
     let mut awaiting_planner = false;
     let mut planner_starved_since: Option<Instant> = None;
     let mut screw_join = cell_runtime::replay::SequenceJoin::new();
-    let screw_resume_timeout =
-        Duration::from_secs_f64(node.params.f64("screw_resume_timeout_s"));
+    let screw_resume_timeout = Duration::from_secs_f64(node.params.f64("screw_resume_timeout_s"));
     // The same for the screw driver; the stamp of the last command taken (how far the screw
     // is commanded); whether the machine holds for commands, and since when.
     let mut awaiting_screw = false;
@@ -582,7 +581,10 @@ pub async fn run<M: Machine>(
         // The wait counts only while the machine starves: paused by the operator with plan in
         // hand, a resumed planner has nothing new to send until the machine moves again.
         let state_now = executor.state();
+        // Held for screw commands counts too: with the planner away, the screw driver has no
+        // plans to command, and its commands end before the plan does.
         let starving = state_now.hold == Some(HoldReason::Underrun)
+            || held_for_screw
             || (state_now.state == PlayerState::Idle && !input_finished);
         if awaiting_planner {
             planner_starved_since = match (starving, planner_starved_since) {
@@ -636,7 +638,8 @@ pub async fn run<M: Machine>(
         } else if held_for_screw
             && (input_finished
                 || stopping_for.is_some()
-                || screw_ahead_ns.is_some_and(|ahead| !awaiting_screw && ahead >= 2 * screw_margin_ns))
+                || screw_ahead_ns
+                    .is_some_and(|ahead| !awaiting_screw && ahead >= 2 * screw_margin_ns))
         {
             held_for_screw = false;
             screw_starved_since = None;
@@ -645,7 +648,8 @@ pub async fn run<M: Machine>(
                 cell_runtime::cell_log!(node, LogLevel::Info, "screw commands continue: resuming");
             }
         }
-        if held_for_screw {
+        // Only the screw driver's own wait: without plans it has nothing to command.
+        if held_for_screw && !awaiting_planner {
             let since = *screw_starved_since.get_or_insert_with(Instant::now);
             if since.elapsed() >= screw_resume_timeout && !screw_resume_timeout.is_zero() {
                 stopping_for.get_or_insert_with(|| {

@@ -253,6 +253,12 @@ pub async fn stream(
             .moves_published
             .max(window.acknowledged() + window.in_flight());
         window.on_tick(start.elapsed());
+        // Every move of the file published once: consumers that have them all know their
+        // input is complete (a screw driver then computes its last chunk).
+        if eof && window.peek_next().is_none() && !progress.end_of_file {
+            progress.end_of_file = true;
+            progress_due = true;
+        }
         let finished = eof && window.is_drained();
         if progress_due || finished || last_progress.elapsed() >= progress_period {
             progress_due = false;

@@ -373,6 +373,7 @@ pub struct GcodeProgress {
     pub finished: bool,
     pub consumer_resume_states: Vec<u8>,
     pub consumer_resume_state_ends: Vec<u32>,
+    pub end_of_file: bool,
 }
 ros_message!(GcodeProgress => schema::GCODE_PROGRESS);
 

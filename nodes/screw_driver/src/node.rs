@@ -173,7 +173,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         }
     );
     let stall_flush = Duration::from_secs_f64(params.f64("stall_flush_s"));
-    let mut stream_finished = false;
+    let mut moves_in_file: Option<u64> = None;
     loop {
         let mut cut = Cut::IfFull;
         let mut look = false;
@@ -208,8 +208,11 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     if !producer.admits(&info) {
                         continue;
                     }
-                    // Every move of the file acknowledged by every consumer (us included).
-                    stream_finished |= p.finished;
+                    // The file's moves all published: once every one is paired, the input
+                    // is complete (our own acknowledgements wait for the last chunk).
+                    if p.end_of_file || p.finished {
+                        moves_in_file = Some(p.moves_published);
+                    }
                     if let Some(ack) = intake.on_progress(&p) {
                         if let Some((resume_at, state)) = intake
                             .resume_state()
@@ -252,8 +255,9 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             // at a closed-pin gap and wait for more, unless the file is all here or the
             // pause has become a stall.
             let stalled = last_input.elapsed() >= stall_flush;
+            let input_complete = moves_in_file.is_some_and(|n| stream.paired_until() >= n);
             if idle {
-                cut = if !compensating || stream_finished || stalled {
+                cut = if !compensating || input_complete || stalled {
                     Cut::All
                 } else {
                     Cut::AtGap

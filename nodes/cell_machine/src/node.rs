@@ -35,6 +35,10 @@ use tokio::sync::{mpsc, watch};
 use crate::tf::TfTree;
 use crate::{HoldReason, Machine, PlayerState};
 
+/// The most plan (s) the screw commands must reach ahead of the machine: it holds on the path
+/// before that (a quarter of the horizon when that is less).
+const SCREW_HOLD_MARGIN_MAX_S: f64 = 0.5;
+
 /// The cell's URDF (the default of `urdf_file`).
 pub const POLAR_CELL_URDF: &str = include_str!("../../../urdf/polar_cell.urdf");
 
@@ -298,7 +302,11 @@ pub async fn run<M: Machine>(
     let mut screw_starved_since: Option<Instant> = None;
     let mut operator_paused = false;
     let mut screw_holds = 0u64;
-    let screw_margin_ns = (options.horizon_s / 4.0 * 1e9) as i64;
+    // Enough plan to stop in (a hold from full speed takes well under 0.1 s of plan) and to
+    // notice in time at a high --speed; never more than the quarter of the horizon the
+    // commands are normally short of it.
+    let screw_margin_ns = (options.horizon_s / 4.0).min(SCREW_HOLD_MARGIN_MAX_S) * 1e9;
+    let screw_margin_ns = screw_margin_ns as i64;
     // The least the screw commands were ahead of the running machine (a measure of the
     // margin a lost screw driver leaves).
     let mut screw_ahead_min_ns = i64::MAX;
@@ -604,11 +612,11 @@ pub async fn run<M: Machine>(
                 });
             }
         }
-        // Screw commands must cover the plan the machine runs: when they reach less than a
-        // quarter of the horizon ahead (the driver cuts its chunks at a quarter, so they
-        // normally reach three quarters ahead: 1.45 s at least in a 2 s-horizon print of
-        // finger), hold on the path, and go on once they reach half the horizon again and
-        // no restarted driver is awaited. Once the file is all acknowledged, every command
+        // Screw commands must cover the plan the machine runs: when they reach less than the
+        // margin ahead (0.5 s, or a quarter of a shorter horizon; the driver cuts its chunks
+        // at a quarter, so they normally reach three quarters ahead: 1.45 s at least in a
+        // 2 s-horizon print of finger), hold on the path, and go on once they reach twice
+        // the margin again and no restarted driver is awaited. Once the file is all acknowledged, every command
         // is published.
         let plan_now_ns = executor
             .epoch_ns()
@@ -624,17 +632,20 @@ pub async fn run<M: Machine>(
         let must_hold = !input_finished
             && stopping_for.is_none()
             && screw_ahead_ns.is_some_and(|ahead| ahead < screw_margin_ns);
-        if must_hold && !held_for_screw && state_now.state == PlayerState::Running {
-            held_for_screw = true;
-            screw_holds += 1;
+        if must_hold && state_now.state == PlayerState::Running && state_now.hold.is_none() {
+            // (Again after an operator's resume meanwhile: the commands still end.)
+            if !held_for_screw {
+                held_for_screw = true;
+                screw_holds += 1;
+                cell_runtime::cell_log!(
+                    node,
+                    LogLevel::Warn,
+                    "screw commands end {:.3} s of plan ahead: holding on the path until {} continues them",
+                    screw_ahead_ns.unwrap_or(0) as f64 * 1e-9,
+                    screw_from.name()
+                );
+            }
             executor.pause();
-            cell_runtime::cell_log!(
-                node,
-                LogLevel::Warn,
-                "screw commands end {:.3} s of plan ahead: holding on the path until {} continues them",
-                screw_ahead_ns.unwrap_or(0) as f64 * 1e-9,
-                screw_from.name()
-            );
         } else if held_for_screw
             && (input_finished
                 || stopping_for.is_some()
@@ -901,7 +912,10 @@ pub async fn run<M: Machine>(
                 ("screw_holds", screw_holds.to_string()),
                 (
                     "screw_ahead_min_s",
-                    format!("{:.3}", screw_ahead_min_ns as f64 * 1e-9),
+                    match screw_ahead_min_ns {
+                        i64::MAX => "none".to_string(),
+                        ns => format!("{:.3}", ns as f64 * 1e-9),
+                    },
                 ),
                 ("segments_completed", completed.to_string()),
                 ("underruns", underruns.to_string()),

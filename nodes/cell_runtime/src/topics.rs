@@ -83,6 +83,11 @@ pub struct SuiteTopic {
 /// many moves as may be unacknowledged; a changed `window` changes it).
 pub const DEFAULT_MOVE_WINDOW: usize = 4096;
 
+/// What the planner's `/polar/trajectory` writer keeps for a restarted screw driver: the
+/// default window and a quarter (a screw driver acknowledges at most a window behind the
+/// planner; with a larger `window`, a restart further behind is refused as a gap).
+pub const TRAJECTORY_HISTORY: usize = DEFAULT_MOVE_WINDOW + DEFAULT_MOVE_WINDOW / 4;
+
 /// Depth of the live-state writers (`/joint_states`, `/tf`, the planned joint states). The
 /// machine's state never waits for a subscriber, so this is what it can still repair: 20 s of
 /// 50 Hz at 1x, 0.5 s at 40x (a lost sample is asked for again within milliseconds, on the
@@ -117,11 +122,12 @@ pub const SUITE_TOPICS: &[SuiteTopic] = &[
         TopicQos::reliable(1000),
     ),
     // Transient-local: a restarted screw driver gets again the plans published since its
-    // last acknowledgement (never more than the move window, 4096, behind the planner).
+    // last acknowledgement (never more than the move window behind the planner). The writer
+    // keeps them all the time: a window and a quarter, not more (memory).
     topic(
         "/polar/trajectory",
         "trajectory_msgs/msg/JointTrajectory",
-        TopicQos::latched(10_000),
+        TopicQos::latched(TRAJECTORY_HISTORY),
     ),
     topic(
         "/polar/steps",

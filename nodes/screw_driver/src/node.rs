@@ -174,6 +174,9 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     );
     let stall_flush = Duration::from_secs_f64(params.f64("stall_flush_s"));
     let mut moves_in_file: Option<u64> = None;
+    // Moves the streamer has published: with all of them paired and more to come, it waits
+    // for our acknowledgement (its window is full), which waits for a chunk.
+    let mut moves_published = 0u64;
     loop {
         let mut cut = Cut::IfFull;
         let mut look = false;
@@ -213,6 +216,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     if p.end_of_file || p.finished {
                         moves_in_file = Some(p.moves_published);
                     }
+                    moves_published = moves_published.max(p.moves_published);
                     if let Some(ack) = intake.on_progress(&p) {
                         if let Some((resume_at, state)) = intake
                             .resume_state()
@@ -266,6 +270,14 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             if let Some(ack) = intake.ack(stream.commanded_until(), started.elapsed()) {
                 let _ = acks.publish(GcodeAck::from(ack));
             }
+        }
+        // (Equal, not at least: a report older than the moves taken since says less.)
+        let window_full = stream.buffered_moves() > 0
+            && stream.unpaired_moves() == 0
+            && stream.paired_until() == moves_published
+            && moves_in_file.is_none();
+        if window_full && cut != Cut::All {
+            cut = Cut::Now;
         }
         if let Some(chunk) = stream.cut(cut) {
             for message in chunk.commands {

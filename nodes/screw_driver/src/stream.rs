@@ -115,6 +115,9 @@ pub enum Cut {
     IfFull,
     /// Input paused: at the last closed-pin gap (or all of a full buffer).
     AtGap,
+    /// Everything buffered, the pin left as the plan has it: the producer waits for this
+    /// driver's acknowledgement before it sends more (its window is full).
+    Now,
     /// Everything buffered, the pin closed after the last move (input finished or stalled).
     All,
 }
@@ -367,6 +370,11 @@ impl Stream {
         self.carried.next_sequence
     }
 
+    /// Moves taken that wait for their plan.
+    pub fn unpaired_moves(&self) -> usize {
+        self.moves.len()
+    }
+
     /// Paired moves waiting for a chunk.
     pub fn buffered_moves(&self) -> usize {
         self.timed.len()
@@ -415,7 +423,7 @@ impl Stream {
             || self.timed.len() >= self.options.max_buffer_moves;
         let whole = || Some(self.timed.len());
         let n = match how {
-            Cut::All => whole(),
+            Cut::All | Cut::Now => whole(),
             Cut::AtGap => self.safe_cut().or(if full { whole() } else { None }),
             Cut::IfFull if full => self.safe_cut().or(whole()),
             Cut::IfFull => None,

@@ -9,6 +9,7 @@
 //! Serialization is CDR little-endian, as on the wire (see [`cdr`]).
 
 pub mod cdr;
+pub mod checkpoint;
 mod schema;
 mod types;
 

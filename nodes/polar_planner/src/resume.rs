@@ -12,6 +12,7 @@
 //! by a format number, and carry a digest of the planner's options: a planner started with
 //! other options (another URDF, other step rates) would plan another timeline, and refuses.
 
+use polar_cell_msgs::checkpoint::{self, ResumeStateError};
 use serde::{Deserialize, Serialize};
 
 use crate::steps::StepOptions;
@@ -50,19 +51,25 @@ pub struct Checkpoint {
 /// Why acknowledged bytes are not a checkpoint this planner can continue from.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum CheckpointError {
-    #[error("resume state of {len} bytes is not a planner checkpoint: {reason}")]
-    Malformed { len: usize, reason: String },
-    #[error("resume state has format {found}, this planner reads format {CHECKPOINT_FORMAT}")]
-    Format { found: u32 },
-    #[error("resume state is for move {found}, the resume point is move {expected}")]
-    WrongPoint { expected: u64, found: u64 },
-    #[error(
-        "resume state was written by a planner with other options (digest {found:016x}, ours \
-         {ours:016x}): it would plan another timeline"
-    )]
-    OtherOptions { ours: u64, found: u64 },
+    #[error(transparent)]
+    State(#[from] ResumeStateError),
     #[error("resume state holds a value that is not a plan state: {0}")]
     NotAPlanState(String),
+}
+
+impl checkpoint::Checkpoint for Checkpoint {
+    const FORMAT: u32 = CHECKPOINT_FORMAT;
+    const WRITER: &'static str = "planner";
+    const OTHER_OPTIONS_WOULD: &'static str = "it would plan another timeline";
+    fn format(&self) -> u32 {
+        self.format
+    }
+    fn next_sequence(&self) -> u64 {
+        self.next_sequence
+    }
+    fn options_digest(&self) -> u64 {
+        self.options_digest
+    }
 }
 
 impl Checkpoint {
@@ -116,8 +123,7 @@ impl Checkpoint {
     }
 
     pub fn to_bytes(&self) -> Vec<u8> {
-        // Plain numbers and arrays: CDR encoding cannot fail.
-        polar_cell_msgs::cdr::encode(self).unwrap_or_default()
+        checkpoint::to_bytes(self)
     }
 
     /// Read the checkpoint acknowledged at `resume_point` by a planner whose options have
@@ -127,26 +133,7 @@ impl Checkpoint {
         resume_point: u64,
         options_digest: u64,
     ) -> Result<Checkpoint, CheckpointError> {
-        let c: Checkpoint =
-            polar_cell_msgs::cdr::decode(bytes).map_err(|e| CheckpointError::Malformed {
-                len: bytes.len(),
-                reason: e.to_string(),
-            })?;
-        if c.format != CHECKPOINT_FORMAT {
-            return Err(CheckpointError::Format { found: c.format });
-        }
-        if c.next_sequence != resume_point {
-            return Err(CheckpointError::WrongPoint {
-                expected: resume_point,
-                found: c.next_sequence,
-            });
-        }
-        if c.options_digest != options_digest {
-            return Err(CheckpointError::OtherOptions {
-                ours: options_digest,
-                found: c.options_digest,
-            });
-        }
+        let c: Checkpoint = checkpoint::from_bytes(bytes, resume_point, options_digest)?;
         let floats = [
             c.t_s,
             c.path_speed2,
@@ -176,10 +163,7 @@ impl Checkpoint {
 /// A digest of everything that shapes the plan and its steps (FNV-1a over the options' exact
 /// `Debug` text: every float printed so that it reads back the same).
 pub fn options_digest(planner: &PlannerOptions, steps: &StepOptions) -> u64 {
-    let text = format!("{planner:?} {steps:?}");
-    text.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
-        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
-    })
+    checkpoint::options_digest(&format!("{planner:?} {steps:?}"))
 }
 
 #[cfg(test)]
@@ -217,14 +201,16 @@ mod tests {
         let bytes = sample().to_bytes();
         assert_eq!(
             Checkpoint::from_bytes(&bytes, 43, 7),
-            Err(CheckpointError::WrongPoint {
+            Err(CheckpointError::State(ResumeStateError::WrongPoint {
                 expected: 43,
                 found: 42
-            })
+            }))
         );
         assert!(matches!(
             Checkpoint::from_bytes(&bytes, 42, 8),
-            Err(CheckpointError::OtherOptions { .. })
+            Err(CheckpointError::State(
+                ResumeStateError::OtherOptions { .. }
+            ))
         ));
         let e = Checkpoint::from_bytes(&bytes[..20], 42, 7).unwrap_err();
         assert!(e.to_string().contains("20 bytes"), "{e}");
@@ -236,10 +222,13 @@ mod tests {
         ));
         let mut future = sample();
         future.format = 9;
-        assert_eq!(
+        assert!(matches!(
             Checkpoint::from_bytes(&future.to_bytes(), 42, 7),
-            Err(CheckpointError::Format { found: 9 })
-        );
+            Err(CheckpointError::State(ResumeStateError::Format {
+                found: 9,
+                ..
+            }))
+        ));
     }
 
     #[test]

@@ -239,7 +239,15 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                                     return Err(anyhow!(reason));
                                 }
                             };
-                            stream = Stream::resume(stream_options.clone(), &c);
+                            // Plans that came before the resume point was known (the
+                            // planner's history) are the resumed stream's to sort.
+                            let earlier = std::mem::replace(&mut stream, Stream::resume(stream_options.clone(), &c));
+                            for trajectory in earlier.into_unpaired_plans() {
+                                if let Err(e) = stream.on_trajectory(trajectory) {
+                                    node.diagnose(DiagnosticStatus::ERROR, &e.to_string(), &[]);
+                                    bail!(e);
+                                }
+                            }
                             cell_runtime::cell_log!(node, LogLevel::Info, "resumed after move {resume_at}: next command {}, plan time {:.6} s", c.next_command, c.commanded_end_ns.saturating_sub(c.base_ns) as f64 * 1e-9);
                         }
                         let _ = acks.publish(GcodeAck::from(ack));

@@ -31,6 +31,7 @@
 
 use std::collections::VecDeque;
 
+use polar_cell_msgs::checkpoint::{self, ResumeStateError};
 use polar_cell_msgs::{
     GcodeMove, Header, JointState, JointTrajectory, ScrewCommand, Time, TIMELINE_TOLERANCE_NS,
 };
@@ -370,6 +371,13 @@ impl Stream {
         self.carried.next_sequence
     }
 
+    /// The plans taken that wait for their moves, in order: a driver restarted mid-print may
+    /// get plans (the planner's history) before it learns where to resume, and hands them
+    /// over to the resumed stream ([`Stream::resume`]).
+    pub fn into_unpaired_plans(self) -> VecDeque<JointTrajectory> {
+        self.plans
+    }
+
     /// Moves taken that wait for their plan.
     pub fn unpaired_moves(&self) -> usize {
         self.moves.len()
@@ -587,25 +595,30 @@ pub struct Checkpoint {
 /// Why acknowledged bytes are not a checkpoint this screw driver can continue from.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum CheckpointError {
-    #[error("resume state of {len} bytes is not a screw driver checkpoint: {reason}")]
-    Malformed { len: usize, reason: String },
-    #[error("resume state has format {found}, this screw driver reads format {CHECKPOINT_FORMAT}")]
-    Format { found: u32 },
-    #[error("resume state is for move {found}, the resume point is move {expected}")]
-    WrongPoint { expected: u64, found: u64 },
-    #[error(
-        "resume state was written by a screw driver with other options (digest {found:016x}, \
-         ours {ours:016x}): it would command another screw"
-    )]
-    OtherOptions { ours: u64, found: u64 },
+    #[error(transparent)]
+    State(#[from] ResumeStateError),
     #[error("resume state holds a value that is not a screw state: {0}")]
     NotAScrewState(String),
 }
 
+impl checkpoint::Checkpoint for Checkpoint {
+    const FORMAT: u32 = CHECKPOINT_FORMAT;
+    const WRITER: &'static str = "screw driver";
+    const OTHER_OPTIONS_WOULD: &'static str = "it would command another screw";
+    fn format(&self) -> u32 {
+        self.format
+    }
+    fn next_sequence(&self) -> u64 {
+        self.next_sequence
+    }
+    fn options_digest(&self) -> u64 {
+        self.options_digest
+    }
+}
+
 impl Checkpoint {
     pub fn to_bytes(&self) -> Vec<u8> {
-        // Plain numbers and flags: CDR encoding cannot fail.
-        polar_cell_msgs::cdr::encode(self).unwrap_or_default()
+        checkpoint::to_bytes(self)
     }
 
     /// Read the checkpoint acknowledged at `resume_point` by a screw driver whose options
@@ -615,26 +628,7 @@ impl Checkpoint {
         resume_point: u64,
         options_digest: u64,
     ) -> Result<Checkpoint, CheckpointError> {
-        let c: Checkpoint =
-            polar_cell_msgs::cdr::decode(bytes).map_err(|e| CheckpointError::Malformed {
-                len: bytes.len(),
-                reason: e.to_string(),
-            })?;
-        if c.format != CHECKPOINT_FORMAT {
-            return Err(CheckpointError::Format { found: c.format });
-        }
-        if c.next_sequence != resume_point {
-            return Err(CheckpointError::WrongPoint {
-                expected: resume_point,
-                found: c.next_sequence,
-            });
-        }
-        if c.options_digest != options_digest {
-            return Err(CheckpointError::OtherOptions {
-                ours: options_digest,
-                found: c.options_digest,
-            });
-        }
+        let c: Checkpoint = checkpoint::from_bytes(bytes, resume_point, options_digest)?;
         // The pin's closing time may be −∞ (never opened); nothing may be NaN, and what is
         // measured must be finite.
         let finite = [
@@ -660,14 +654,11 @@ impl Checkpoint {
     }
 }
 
-/// A digest of everything that shapes the commands (FNV-1a over the options' exact `Debug`
-/// text). The cut sizes are not in it: they change where chunks end, not what a chunk left.
+/// A digest of everything that shapes the commands ([`checkpoint::options_digest`]). The cut
+/// sizes are not in it: they change where chunks end, not what a chunk left.
 pub fn options_digest(options: &StreamOptions) -> u64 {
-    let text = format!(
+    checkpoint::options_digest(&format!(
         "{:?} {:?} {:?}",
         options.screw, options.command_period_s, options.joint_state_period_s
-    );
-    text.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
-        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
-    })
+    ))
 }

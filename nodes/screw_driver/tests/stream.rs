@@ -7,6 +7,7 @@
 mod common;
 
 use gcode_streamer::GcodeMove;
+use polar_cell_msgs::checkpoint::ResumeStateError;
 use polar_cell_msgs::{JointState, JointTrajectory, ScrewCommand};
 use polar_planner::messages::trajectory_message;
 use polar_planner::{Planner, PlannerOptions};
@@ -85,9 +86,9 @@ fn cut_after(k: usize, trajectory: &JointTrajectory) -> Cut {
     }
 }
 
-/// Feed `moves` (from the stream's resume point on) at once, then trajectories
-/// `trajectories[first..]` one by one, cutting after each as the node would, and everything
-/// at the end.
+/// Feed `moves` (from the stream's resume point on), then trajectories `trajectories[first..]`,
+/// one by one, cutting as the node would after each move paired (each message pairs one at
+/// most), and everything after the last.
 fn run(
     mut stream: Stream,
     moves: &[GcodeMove],
@@ -99,19 +100,13 @@ fn run(
         joint_states: Vec::new(),
         checkpoints: Vec::new(),
     };
-    for m in &moves[stream.commanded_until() as usize..] {
-        stream.on_move(m.clone());
-    }
     let mut skipped = 0;
-    for (k, t) in trajectories.iter().enumerate().skip(first) {
-        if stream.on_trajectory(t.clone())? == Taken::BeforeResume {
-            skipped += 1;
-            continue;
-        }
+    let after_pairing = |stream: &mut Stream, out: &mut Run| {
+        let k = stream.paired_until() as usize - 1;
         let how = if k + 1 == trajectories.len() {
             Cut::All
         } else {
-            cut_after(k, t)
+            cut_after(k, &trajectories[k])
         };
         if let Some(chunk) = stream.cut(how) {
             out.commands.extend(chunk.commands);
@@ -122,6 +117,21 @@ fn run(
                 out.commands.len(),
                 out.joint_states.len(),
             ));
+        }
+    };
+    for m in &moves[stream.commanded_until() as usize..] {
+        let paired = stream.paired_until();
+        stream.on_move(m.clone());
+        if stream.paired_until() > paired {
+            after_pairing(&mut stream, &mut out);
+        }
+    }
+    for t in &trajectories[first..] {
+        let paired = stream.paired_until();
+        if stream.on_trajectory(t.clone())? == Taken::BeforeResume {
+            skipped += 1;
+        } else if stream.paired_until() > paired {
+            after_pairing(&mut stream, &mut out);
         }
     }
     assert_eq!(stream.buffered_moves(), 0);
@@ -181,6 +191,38 @@ fn resumes_bit_for_bit(name: &str, options: StreamOptions) {
         zero_time_points > 0,
         "{name}: no checkpoint after a zero-time move"
     );
+}
+
+/// A restarted driver may get the planner's history before it learns where to resume: those
+/// plans are handed to the resumed stream, which sorts them as if they came after.
+#[test]
+fn plans_taken_before_the_resume_point_was_known_are_handed_over() {
+    let (moves, trajectories) = planned("finger.gcode");
+    let options = compensated();
+    let (whole, _) = run(Stream::new(options.clone()), &moves, &trajectories, 0).unwrap();
+    let digest = Stream::new(options.clone()).options_digest();
+    let mut resumed_at = 0;
+    for (until, bytes, commands, joint_states) in whole.checkpoints.iter().step_by(7) {
+        let checkpoint = Checkpoint::from_bytes(bytes, *until, digest).unwrap();
+        let first = (*until as usize).saturating_sub(100);
+        let early = (first + 150).min(trajectories.len());
+        let mut fresh = Stream::new(options.clone());
+        for t in &trajectories[first..early] {
+            assert_eq!(fresh.on_trajectory(t.clone()).unwrap(), Taken::Kept);
+        }
+        let mut resumed = Stream::resume(options.clone(), &checkpoint);
+        for t in fresh.into_unpaired_plans() {
+            resumed.on_trajectory(t).unwrap();
+        }
+        let (rest, _) = run(resumed, &moves, &trajectories, early).unwrap();
+        assert!(
+            rest.commands == whole.commands[*commands..],
+            "resumed at move {until}, commands differ"
+        );
+        assert!(rest.joint_states == whole.joint_states[*joint_states..]);
+        resumed_at += 1;
+    }
+    assert!(resumed_at > 10, "{resumed_at}");
 }
 
 #[test]
@@ -256,17 +298,19 @@ fn checkpoints_of_other_options_or_points_are_refused() {
     assert_ne!(ours, theirs);
     assert!(matches!(
         Checkpoint::from_bytes(bytes, *until, theirs),
-        Err(CheckpointError::OtherOptions { .. })
+        Err(CheckpointError::State(
+            ResumeStateError::OtherOptions { .. }
+        ))
     ));
     assert!(matches!(
         Checkpoint::from_bytes(bytes, until + 1, ours),
-        Err(CheckpointError::WrongPoint { .. })
+        Err(CheckpointError::State(ResumeStateError::WrongPoint { .. }))
     ));
     for len in [0, 3, 10, bytes.len() - 1] {
         assert!(
             matches!(
                 Checkpoint::from_bytes(&bytes[..len], *until, ours),
-                Err(CheckpointError::Malformed { .. })
+                Err(CheckpointError::State(ResumeStateError::Malformed { .. }))
             ),
             "{len} bytes"
         );

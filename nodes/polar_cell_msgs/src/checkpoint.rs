@@ -1,0 +1,175 @@
+//! What the nodes' restart checkpoints share: the bytes a consumer of `/gcode/moves`
+//! acknowledges with (`GcodeAck.resume_state`), read back by the same node restarted.
+//!
+//! A checkpoint is a flat CDR struct led by three fields — its format, the first move it has
+//! not finished, and a digest of the options that shaped its output — so a restarted node can
+//! refuse, by name, a state that is not its own to continue: of another format, of another
+//! point, or written with other options (which would continue another plan or other
+//! commands). What its values must satisfy is each node's to check.
+
+/// A node's checkpoint type.
+pub trait Checkpoint: serde::Serialize + serde::de::DeserializeOwned {
+    /// The format this build writes and reads.
+    const FORMAT: u32;
+    /// Who writes it ("planner"), for messages.
+    const WRITER: &'static str;
+    /// What continuing from another writer's options would do, for messages.
+    const OTHER_OPTIONS_WOULD: &'static str;
+    fn format(&self) -> u32;
+    /// The first move not finished (the acknowledged point).
+    fn next_sequence(&self) -> u64;
+    fn options_digest(&self) -> u64;
+}
+
+/// Why acknowledged bytes are not a checkpoint this node can continue from.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ResumeStateError {
+    #[error("resume state of {len} bytes is not a {writer} checkpoint: {reason}")]
+    Malformed {
+        writer: &'static str,
+        len: usize,
+        reason: String,
+    },
+    #[error("resume state has format {found}, this {writer} reads format {ours}")]
+    Format {
+        writer: &'static str,
+        ours: u32,
+        found: u32,
+    },
+    #[error("resume state is for move {found}, the resume point is move {expected}")]
+    WrongPoint { expected: u64, found: u64 },
+    #[error(
+        "resume state was written by a {writer} with other options (digest {found:016x}, ours \
+         {ours:016x}): {would}"
+    )]
+    OtherOptions {
+        writer: &'static str,
+        would: &'static str,
+        ours: u64,
+        found: u64,
+    },
+}
+
+/// The bytes of `checkpoint` (plain numbers and flags: CDR encoding cannot fail).
+pub fn to_bytes<C: Checkpoint>(checkpoint: &C) -> Vec<u8> {
+    crate::cdr::encode(checkpoint).unwrap_or_default()
+}
+
+/// Read the checkpoint acknowledged at `resume_point` by a node whose options have
+/// `options_digest`, refusing any other.
+pub fn from_bytes<C: Checkpoint>(
+    bytes: &[u8],
+    resume_point: u64,
+    options_digest: u64,
+) -> Result<C, ResumeStateError> {
+    let c: C = crate::cdr::decode(bytes).map_err(|e| ResumeStateError::Malformed {
+        writer: C::WRITER,
+        len: bytes.len(),
+        reason: e.to_string(),
+    })?;
+    if c.format() != C::FORMAT {
+        return Err(ResumeStateError::Format {
+            writer: C::WRITER,
+            ours: C::FORMAT,
+            found: c.format(),
+        });
+    }
+    if c.next_sequence() != resume_point {
+        return Err(ResumeStateError::WrongPoint {
+            expected: resume_point,
+            found: c.next_sequence(),
+        });
+    }
+    if c.options_digest() != options_digest {
+        return Err(ResumeStateError::OtherOptions {
+            writer: C::WRITER,
+            would: C::OTHER_OPTIONS_WOULD,
+            ours: options_digest,
+            found: c.options_digest(),
+        });
+    }
+    Ok(c)
+}
+
+/// A digest of options (FNV-1a over their exact `Debug` text: every float printed so that it
+/// reads back the same), stable across builds and platforms, unlike `std`'s hashers.
+pub fn options_digest(debug_text: &str) -> u64 {
+    debug_text.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+    struct Sample {
+        format: u32,
+        next_sequence: u64,
+        options_digest: u64,
+        value: f64,
+    }
+
+    impl Checkpoint for Sample {
+        const FORMAT: u32 = 3;
+        const WRITER: &'static str = "sampler";
+        const OTHER_OPTIONS_WOULD: &'static str = "it would sample otherwise";
+        fn format(&self) -> u32 {
+            self.format
+        }
+        fn next_sequence(&self) -> u64 {
+            self.next_sequence
+        }
+        fn options_digest(&self) -> u64 {
+            self.options_digest
+        }
+    }
+
+    fn sample(format: u32) -> Vec<u8> {
+        to_bytes(&Sample {
+            format,
+            next_sequence: 12,
+            options_digest: 99,
+            value: 0.5,
+        })
+    }
+
+    #[test]
+    fn its_own_checkpoint_reads_back_and_others_are_refused_by_name() {
+        let back: Sample = from_bytes(&sample(3), 12, 99).unwrap();
+        assert_eq!(back.value, 0.5);
+        let e = from_bytes::<Sample>(&sample(4), 12, 99).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "resume state has format 4, this sampler reads format 3"
+        );
+        let e = from_bytes::<Sample>(&sample(3), 13, 99).unwrap_err();
+        assert_eq!(
+            e,
+            ResumeStateError::WrongPoint {
+                expected: 13,
+                found: 12
+            }
+        );
+        let e = from_bytes::<Sample>(&sample(3), 12, 98).unwrap_err();
+        assert!(
+            e.to_string().ends_with(
+                "written by a sampler with other options (digest 0000000000000063, ours \
+                 0000000000000062): it would sample otherwise"
+            ),
+            "{e}"
+        );
+        let e = from_bytes::<Sample>(&sample(3)[..9], 12, 99).unwrap_err();
+        assert!(e
+            .to_string()
+            .starts_with("resume state of 9 bytes is not a sampler checkpoint"));
+    }
+
+    /// FNV-1a's published test vectors (the empty string and "a").
+    #[test]
+    fn options_digest_is_fnv_1a() {
+        assert_eq!(options_digest(""), 0xcbf2_9ce4_8422_2325);
+        assert_eq!(options_digest("a"), 0xaf63_dc4c_8601_ec8c);
+    }
+}

@@ -5,7 +5,8 @@
 //! that hangs must not hold up the machine) and keeps enough history that a recorder or a
 //! viewer a moment behind still gets every sample; flow-controlled links keep as much as their
 //! window; latched topics (`/robot_description`, `/tf_static`) are transient-local with depth
-//! 1, and `/polar/trajectory` keeps its history for a restarted screw driver. `/rosout` is as ros2-client publishes it (rclcpp's own is transient-local too).
+//! 1, and `/polar/trajectory` keeps its history for a restarted screw driver. `/rosout` is as
+//! ros2-client publishes it (rclcpp's own is transient-local too).
 
 use ros2_client::QosProfile;
 

@@ -7,6 +7,17 @@
 //! point, or written with other options (which would continue another plan or other
 //! commands). What its values must satisfy is each node's to check.
 
+/// What leads every checkpoint (its first field: the CDR layout is that of the three fields
+/// written flat).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct CheckpointHeader {
+    pub format: u32,
+    /// The first move not finished (the acknowledged point).
+    pub next_sequence: u64,
+    /// [`options_digest`] of the options of the node that wrote it.
+    pub options_digest: u64,
+}
+
 /// A node's checkpoint type.
 pub trait Checkpoint: serde::Serialize + serde::de::DeserializeOwned {
     /// The format this build writes and reads.
@@ -15,10 +26,16 @@ pub trait Checkpoint: serde::Serialize + serde::de::DeserializeOwned {
     const WRITER: &'static str;
     /// What continuing from another writer's options would do, for messages.
     const OTHER_OPTIONS_WOULD: &'static str;
-    fn format(&self) -> u32;
-    /// The first move not finished (the acknowledged point).
-    fn next_sequence(&self) -> u64;
-    fn options_digest(&self) -> u64;
+    fn header(&self) -> &CheckpointHeader;
+
+    /// The header of a checkpoint of this type for the move `next_sequence`.
+    fn header_for(next_sequence: u64, options_digest: u64) -> CheckpointHeader {
+        CheckpointHeader {
+            format: Self::FORMAT,
+            next_sequence,
+            options_digest,
+        }
+    }
 }
 
 /// Why acknowledged bytes are not a checkpoint this node can continue from.
@@ -67,25 +84,26 @@ pub fn from_bytes<C: Checkpoint>(
         len: bytes.len(),
         reason: e.to_string(),
     })?;
-    if c.format() != C::FORMAT {
+    let header = *c.header();
+    if header.format != C::FORMAT {
         return Err(ResumeStateError::Format {
             writer: C::WRITER,
             ours: C::FORMAT,
-            found: c.format(),
+            found: header.format,
         });
     }
-    if c.next_sequence() != resume_point {
+    if header.next_sequence != resume_point {
         return Err(ResumeStateError::WrongPoint {
             expected: resume_point,
-            found: c.next_sequence(),
+            found: header.next_sequence,
         });
     }
-    if c.options_digest() != options_digest {
+    if header.options_digest != options_digest {
         return Err(ResumeStateError::OtherOptions {
             writer: C::WRITER,
             would: C::OTHER_OPTIONS_WOULD,
             ours: options_digest,
-            found: c.options_digest(),
+            found: header.options_digest,
         });
     }
     Ok(c)
@@ -105,6 +123,13 @@ mod tests {
 
     #[derive(Debug, PartialEq, serde::Serialize, serde::Deserialize)]
     struct Sample {
+        header: CheckpointHeader,
+        value: f64,
+    }
+
+    /// The header is its three fields written flat, as before it was shared.
+    #[derive(serde::Serialize)]
+    struct Flat {
         format: u32,
         next_sequence: u64,
         options_digest: u64,
@@ -115,24 +140,27 @@ mod tests {
         const FORMAT: u32 = 3;
         const WRITER: &'static str = "sampler";
         const OTHER_OPTIONS_WOULD: &'static str = "it would sample otherwise";
-        fn format(&self) -> u32 {
-            self.format
-        }
-        fn next_sequence(&self) -> u64 {
-            self.next_sequence
-        }
-        fn options_digest(&self) -> u64 {
-            self.options_digest
+        fn header(&self) -> &CheckpointHeader {
+            &self.header
         }
     }
 
     fn sample(format: u32) -> Vec<u8> {
-        to_bytes(&Sample {
+        let bytes = to_bytes(&Sample {
+            header: CheckpointHeader {
+                format,
+                ..Sample::header_for(12, 99)
+            },
+            value: 0.5,
+        });
+        let flat = Flat {
             format,
             next_sequence: 12,
             options_digest: 99,
             value: 0.5,
-        })
+        };
+        assert_eq!(bytes, crate::cdr::encode(&flat).unwrap());
+        bytes
     }
 
     #[test]

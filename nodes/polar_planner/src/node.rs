@@ -400,9 +400,9 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         let checkpoint = if idle { &published } else { &timed };
         if let Some(c) = checkpoint
             .as_ref()
-            .filter(|c| c.next_sequence > planned_until)
+            .filter(|c| c.header.next_sequence > planned_until)
         {
-            planned_until = c.next_sequence;
+            planned_until = c.header.next_sequence;
             intake.note_resume_state(planned_until, c.to_bytes());
         }
         // Acknowledge what is planned and published; the lookahead queue is not.

@@ -12,7 +12,7 @@
 //! by a format number, and carry a digest of the planner's options: a planner started with
 //! other options (another URDF, other step rates) would plan another timeline, and refuses.
 
-use polar_cell_msgs::checkpoint::{self, ResumeStateError};
+use polar_cell_msgs::checkpoint::{self, CheckpointHeader, ResumeStateError};
 use serde::{Deserialize, Serialize};
 
 use crate::steps::StepOptions;
@@ -24,11 +24,9 @@ pub const CHECKPOINT_FORMAT: u32 = 1;
 /// A planner node's state after every move before `next_sequence` was published.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Checkpoint {
-    pub format: u32,
-    /// The first move not yet published (the acknowledged point).
-    pub next_sequence: u64,
+    /// Format, the first move not yet published (the acknowledged point), and the
     /// [`options_digest`] of the planner that wrote it.
-    pub options_digest: u64,
+    pub header: CheckpointHeader,
     /// Stamp of plan time 0 (ns).
     pub plan_epoch_ns: i64,
     pub t_s: f64,
@@ -61,14 +59,8 @@ impl checkpoint::Checkpoint for Checkpoint {
     const FORMAT: u32 = CHECKPOINT_FORMAT;
     const WRITER: &'static str = "planner";
     const OTHER_OPTIONS_WOULD: &'static str = "it would plan another timeline";
-    fn format(&self) -> u32 {
-        self.format
-    }
-    fn next_sequence(&self) -> u64 {
-        self.next_sequence
-    }
-    fn options_digest(&self) -> u64 {
-        self.options_digest
+    fn header(&self) -> &CheckpointHeader {
+        &self.header
     }
 }
 
@@ -84,9 +76,10 @@ impl Checkpoint {
         moves_planned: u64,
     ) -> Checkpoint {
         Checkpoint {
-            format: CHECKPOINT_FORMAT,
-            next_sequence,
-            options_digest,
+            header: <Checkpoint as checkpoint::Checkpoint>::header_for(
+                next_sequence,
+                options_digest,
+            ),
             plan_epoch_ns,
             t_s: at.t_s,
             path_speed2: at.path_speed2,
@@ -221,7 +214,7 @@ mod tests {
             Err(CheckpointError::NotAPlanState(_))
         ));
         let mut future = sample();
-        future.format = 9;
+        future.header.format = 9;
         assert!(matches!(
             Checkpoint::from_bytes(&future.to_bytes(), 42, 7),
             Err(CheckpointError::State(ResumeStateError::Format {

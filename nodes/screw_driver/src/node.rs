@@ -30,7 +30,7 @@ use crate::compensation::FlowModel;
 use crate::fir::{FILTER_1, FILTER_2, FILTER_2_60DB};
 use crate::screw::{PinStrategy, RpmModel, ScrewOptions};
 pub use crate::stream::{command_hold, command_message, joint_state_message, SCREW_JOINT};
-use crate::stream::{Checkpoint, Cut, Stream, StreamOptions};
+use crate::stream::{model_name, Checkpoint, Cut, Stream, StreamOptions};
 
 /// How long a driver that cannot continue a print stays in the graph (so the machine sees
 /// the restart) before it exits.
@@ -167,10 +167,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         node,
         LogLevel::Info,
         "screw commands, model {}",
-        match stream_options.screw.model {
-            RpmModel::PolarSpeed { .. } => "polar_speed",
-            RpmModel::Radius { .. } => "radius",
-        }
+        model_name(&stream_options.screw)
     );
     let stall_flush = Duration::from_secs_f64(params.f64("stall_flush_s"));
     let mut moves_in_file: Option<u64> = None;
@@ -240,14 +237,14 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                                 }
                             };
                             // Plans that came before the resume point was known (the
-                            // planner's history) are the resumed stream's to sort.
-                            let earlier = std::mem::replace(&mut stream, Stream::resume(stream_options.clone(), &c));
-                            for trajectory in earlier.into_unpaired_plans() {
-                                if let Err(e) = stream.on_trajectory(trajectory) {
+                            // planner's history) go to the resumed stream.
+                            stream = match std::mem::replace(&mut stream, Stream::new(stream_options.clone())).resumed(&c) {
+                                Ok(resumed) => resumed,
+                                Err(e) => {
                                     node.diagnose(DiagnosticStatus::ERROR, &e.to_string(), &[]);
                                     bail!(e);
                                 }
-                            }
+                            };
                             cell_runtime::cell_log!(node, LogLevel::Info, "resumed after move {resume_at}: next command {}, plan time {:.6} s", c.next_command, c.commanded_end_ns.saturating_sub(c.base_ns) as f64 * 1e-9);
                         }
                         let _ = acks.publish(GcodeAck::from(ack));

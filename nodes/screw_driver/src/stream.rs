@@ -31,7 +31,7 @@
 
 use std::collections::VecDeque;
 
-use polar_cell_msgs::checkpoint::{self, ResumeStateError};
+use polar_cell_msgs::checkpoint::{self, CheckpointHeader, ResumeStateError};
 use polar_cell_msgs::{
     GcodeMove, Header, JointState, JointTrajectory, ScrewCommand, Time, TIMELINE_TOLERANCE_NS,
 };
@@ -72,7 +72,8 @@ pub fn command_hold(options: &ScrewOptions, command_period_s: f64) -> Hold {
     }
 }
 
-fn model_name(options: &ScrewOptions) -> &'static str {
+/// The rpm model's name, as commands carry it.
+pub fn model_name(options: &ScrewOptions) -> &'static str {
     match options.model {
         RpmModel::PolarSpeed { .. } => "polar_speed",
         RpmModel::Radius { .. } => "radius",
@@ -262,7 +263,7 @@ impl Stream {
             a
         });
         stream.carried = Carried {
-            next_sequence: c.next_sequence,
+            next_sequence: c.header.next_sequence,
             from_m: c.from_m,
             pin: PinState {
                 extruding: c.pin_extruding,
@@ -290,7 +291,7 @@ impl Stream {
             zero_time_at_end: c.zero_time_at_end,
         };
         stream.paired_from_m = c.from_m;
-        stream.paired_until = c.next_sequence;
+        stream.paired_until = c.header.next_sequence;
         stream.last_end_ns = stream.carried.commanded_end_ns;
         stream.skip = stream.carried.commanded_end_ns.map(|end_ns| Skip {
             end_ns,
@@ -371,11 +372,15 @@ impl Stream {
         self.carried.next_sequence
     }
 
-    /// The plans taken that wait for their moves, in order: a driver restarted mid-print may
-    /// get plans (the planner's history) before it learns where to resume, and hands them
-    /// over to the resumed stream ([`Stream::resume`]).
-    pub fn into_unpaired_plans(self) -> VecDeque<JointTrajectory> {
-        self.plans
+    /// This stream continued from `checkpoint`, learnt after it had taken plans: a driver
+    /// restarted mid-print may get the planner's history before it learns where to resume.
+    /// The resumed stream takes those plans as if they came now.
+    pub fn resumed(self, checkpoint: &Checkpoint) -> Result<Stream, StreamError> {
+        let mut resumed = Stream::resume(self.options, checkpoint);
+        for trajectory in self.plans {
+            resumed.on_trajectory(trajectory)?;
+        }
+        Ok(resumed)
     }
 
     /// Moves taken that wait for their plan.
@@ -512,9 +517,10 @@ impl Stream {
             0.0,
         ));
         Checkpoint {
-            format: CHECKPOINT_FORMAT,
-            next_sequence: c.next_sequence,
-            options_digest: self.digest,
+            header: <Checkpoint as checkpoint::Checkpoint>::header_for(
+                c.next_sequence,
+                self.digest,
+            ),
             has_base: c.base_ns.is_some(),
             base_ns: c.base_ns.unwrap_or(0),
             last_stamp_ns: c.last_stamp_ns,
@@ -557,9 +563,7 @@ pub const CHECKPOINT_FORMAT: u32 = 1;
 /// the options that shape the commands). Flat, with flags for what may be absent.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Checkpoint {
-    pub format: u32,
-    pub next_sequence: u64,
-    pub options_digest: u64,
+    pub header: CheckpointHeader,
     pub has_base: bool,
     pub base_ns: i64,
     pub last_stamp_ns: i64,
@@ -605,14 +609,8 @@ impl checkpoint::Checkpoint for Checkpoint {
     const FORMAT: u32 = CHECKPOINT_FORMAT;
     const WRITER: &'static str = "screw driver";
     const OTHER_OPTIONS_WOULD: &'static str = "it would command another screw";
-    fn format(&self) -> u32 {
-        self.format
-    }
-    fn next_sequence(&self) -> u64 {
-        self.next_sequence
-    }
-    fn options_digest(&self) -> u64 {
-        self.options_digest
+    fn header(&self) -> &CheckpointHeader {
+        &self.header
     }
 }
 

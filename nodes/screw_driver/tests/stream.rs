@@ -210,10 +210,7 @@ fn plans_taken_before_the_resume_point_was_known_are_handed_over() {
         for t in &trajectories[first..early] {
             assert_eq!(fresh.on_trajectory(t.clone()).unwrap(), Taken::Kept);
         }
-        let mut resumed = Stream::resume(options.clone(), &checkpoint);
-        for t in fresh.into_unpaired_plans() {
-            resumed.on_trajectory(t).unwrap();
-        }
+        let resumed = fresh.resumed(&checkpoint).unwrap();
         let (rest, _) = run(resumed, &moves, &trajectories, early).unwrap();
         assert!(
             rest.commands == whole.commands[*commands..],

@@ -426,7 +426,31 @@ fn print_without_a_file_prints_the_built_in_demo() {
         "{stderr}"
     );
     assert!(stderr.contains("executed 3795 step segments"), "{stderr}");
+    assert_file_end_told_right_and_no_instant_pin_closing(&bag, 735);
     std::fs::remove_file(&bag).ok();
+}
+
+/// The streamer says the file has ended only with all its moves published (a screw driver
+/// told so early closes the pin mid-run), and no screw command closes the pin for an
+/// instant (closed and reopened at one stamp: a chunk cut as if the file had ended).
+fn assert_file_end_told_right_and_no_instant_pin_closing(bag: &Path, moves_in_file: u64) {
+    use polar_cell_msgs::{GcodeProgress, ScrewCommand};
+    let progress: Vec<GcodeProgress> = topic_messages(bag, "/gcode/progress");
+    let told = progress.iter().filter(|p| p.end_of_file).count();
+    assert!(told > 0, "no /gcode/progress says the file ended");
+    for p in progress.iter().filter(|p| p.end_of_file) {
+        assert_eq!(p.moves_published, moves_in_file, "end of file told early");
+        assert!(!p.moves_waiting, "moves waiting at the end of the file");
+    }
+    let commands: Vec<ScrewCommand> = topic_messages(bag, "/screw/command");
+    for w in commands.windows(2) {
+        assert!(
+            w[0].pin_open || !w[1].pin_open || w[0].header.stamp != w[1].header.stamp,
+            "the pin closed for an instant at command {} (line {})",
+            w[0].sequence,
+            w[0].source_line
+        );
+    }
 }
 
 /// The same print on the MCU: `--device emulator` starts mcu_emulator on a pseudo-terminal

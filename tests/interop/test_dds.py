@@ -87,6 +87,7 @@ class GcodeProgress(IdlStruct, typename="polar_cell_msgs::msg::dds_::GcodeProgre
     consumer_resume_states: t.sequence[t.uint8] = field(default_factory=list)
     consumer_resume_state_ends: t.sequence[t.uint32] = field(default_factory=list)
     end_of_file: bool = False
+    moves_waiting: bool = False
 
 
 @dataclass

@@ -328,6 +328,12 @@ impl<T: Sequenced + Clone> SendWindow<T> {
         self.base
     }
 
+    /// True when every queued move has been published at least once (before every consumer
+    /// announced itself nothing is, whatever [`Self::peek_next`] says).
+    pub fn all_sent(&self) -> bool {
+        self.sent_end >= self.base + self.buffer.len() as u64
+    }
+
     /// True when every queued move is acknowledged by every consumer.
     pub fn is_drained(&self) -> bool {
         self.buffer.is_empty()
@@ -890,6 +896,11 @@ mod tests {
         assert_eq!(w.consumer_acks(), (vec!["/a".to_string()], vec![0]));
         w.on_ack(&ack("/a", 0), ms(0));
         assert!(w.next_to_send().is_none(), "/b has not announced itself");
+        assert!(w.peek_next().is_none());
+        assert!(
+            !w.all_sent(),
+            "nothing is published before /b announces itself"
+        );
         assert_eq!(w.missing_consumers(), ["/b"]);
         w.on_ack(&AckTracker::new("/b", 1).hello(), ms(0));
         assert!(
@@ -899,6 +910,7 @@ mod tests {
         w.on_ack(&ack("/b", 0), ms(0));
         let sent: Vec<u64> = std::iter::from_fn(|| w.next_to_send().map(|m| m.sequence)).collect();
         assert_eq!(sent, [0, 1, 2, 3]);
+        assert!(w.all_sent());
         w.on_ack(&ack("/a", 4), ms(1));
         assert_eq!(w.acknowledged(), 0, "/b still holds the window");
         w.on_ack(&ack("/b", 2), ms(2));

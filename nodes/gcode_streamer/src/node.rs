@@ -191,6 +191,8 @@ pub async fn stream(
         ..Default::default()
     };
     let mut eof = false;
+    // A move taken from the parser while the window had no room for it.
+    let mut held: Option<Parsed> = None;
     let mut last_progress = Instant::now() - progress_period;
     let mut consumers_announced = consumers.is_empty();
     // A consumer that (re)announces itself needs its resume point from /gcode/progress now.
@@ -207,10 +209,26 @@ pub async fn stream(
         while let Some((ack, info)) = acks.take().context("reading /gcode/ack")? {
             progress_due |= apply_ack(node, &mut window, &mut ack_checks, &ack, &info, now);
         }
-        // Parser output into the window.
-        while window.has_room() && !eof {
-            match parsed.try_recv() {
-                Ok(Parsed::Event(event, lines, bytes)) => {
+        // Parser output into the window. With the window full, one move is taken ahead and
+        // held: the end of the file is then known as soon as the parser reaches it, and a
+        // held move tells the consumers that more waits for their acknowledgements.
+        while !eof {
+            let next = match held.take() {
+                Some(next) => next,
+                None => match parsed.try_recv() {
+                    Ok(next) => next,
+                    Err(TryRecvError::Empty) => break,
+                    Err(TryRecvError::Disconnected) => {
+                        bail!("G-code parser stopped unexpectedly")
+                    }
+                },
+            };
+            if !window.has_room() && matches!(next, Parsed::Event(Event::Move(_), ..)) {
+                held = Some(next);
+                break;
+            }
+            match next {
+                Parsed::Event(event, lines, bytes) => {
                     progress.lines_read = lines;
                     progress.bytes_read = bytes;
                     match event {
@@ -221,18 +239,20 @@ pub async fn stream(
                         }
                     }
                 }
-                Ok(Parsed::Error(e)) => {
+                Parsed::Error(e) => {
                     node.diagnose(DiagnosticStatus::ERROR, &e.to_string(), &[]);
                     return Err(e.into());
                 }
-                Ok(Parsed::Done { lines, bytes }) => {
+                Parsed::Done { lines, bytes } => {
                     progress.lines_read = lines;
                     progress.bytes_read = bytes;
                     eof = true;
                 }
-                Err(TryRecvError::Empty) => break,
-                Err(TryRecvError::Disconnected) => bail!("G-code parser stopped unexpectedly"),
             }
+        }
+        if progress.moves_waiting != held.is_some() {
+            progress.moves_waiting = held.is_some();
+            progress_due = true;
         }
         // Publish what the window allows.
         let mut sent_any = false;
@@ -255,7 +275,7 @@ pub async fn stream(
         window.on_tick(start.elapsed());
         // Every move of the file published once: consumers that have them all know their
         // input is complete (a screw driver then computes its last chunk).
-        if eof && window.peek_next().is_none() && !progress.end_of_file {
+        if eof && window.all_sent() && !progress.end_of_file {
             progress.end_of_file = true;
             progress_due = true;
         }

@@ -374,6 +374,7 @@ pub struct GcodeProgress {
     pub consumer_resume_states: Vec<u8>,
     pub consumer_resume_state_ends: Vec<u32>,
     pub end_of_file: bool,
+    pub moves_waiting: bool,
 }
 ros_message!(GcodeProgress => schema::GCODE_PROGRESS);
 

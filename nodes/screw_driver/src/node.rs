@@ -5,8 +5,10 @@
 //!
 //! The work itself is [`crate::stream`]: moves paired with their plans, commands computed per
 //! chunk and numbered. This node feeds it: a chunk is cut when the buffer is full, when input
-//! goes idle (`idle_flush_s`; with flow compensation only at a closed-pin gap until the file
-//! is all read or input stalls for `stall_flush_s`). A move is acknowledged once its commands
+//! goes idle (`idle_flush_s`; the pin closed after the last move only once the file is all
+//! here; with flow compensation only at a closed-pin gap until input stalls for
+//! `stall_flush_s`), and
+//! when the streamer holds moves for our acknowledgement (`GcodeProgress.moves_waiting`). A move is acknowledged once its commands
 //! are published, with the stream's checkpoint there, so a restarted driver continues the
 //! same commands with the same numbers: the streamer sends its moves again, and the planner's
 //! transient-local `/polar/trajectory` their plans. A restarted planner publishes again what
@@ -59,7 +61,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("flow_tau_closed_s", ParamValue::Double(flow.tau_closed_s), "decay of the held pressure with the pin closed (back flow through the screw)").range(0.0, 1e4),
         ParamSpec::new("compensation_period_s", ParamValue::Double(d.compensation_period_s), "grid of the compensated commands when command_period_s is 0").range(1e-5, 10.0),
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.1), "compute commands when no trajectory came for this long").range(0.001, 60.0),
-        ParamSpec::new("stall_flush_s", ParamValue::Double(2.0), "with flow compensation: when input pauses before the file is all read, commands are computed up to a closed-pin gap; after this long without input, for everything (the pin closes)").range(0.001, 3600.0),
+        ParamSpec::new("stall_flush_s", ParamValue::Double(2.0), "with flow compensation: when input pauses before the file is all read, commands are computed up to a closed-pin gap; after this long without input, for everything (the pin as planned: a machine whose commands run out holds with its pin closed)").range(0.001, 3600.0),
         ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
         ParamSpec::new("max_buffer_moves", ParamValue::Integer(1024), "compute commands once this many moves are buffered (moves are acknowledged once commanded: keep it below the streamer's window)").range(1.0, 1e7),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
@@ -171,6 +173,8 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     );
     let stall_flush = Duration::from_secs_f64(params.f64("stall_flush_s"));
     let mut moves_in_file: Option<u64> = None;
+    // The streamer's last word on whether more moves wait for our acknowledgement.
+    let mut streamer_waits = false;
     // Moves the streamer has published: with all of them paired and more to come, it waits
     // for our acknowledgement (its window is full), which waits for a chunk.
     let mut moves_published = 0u64;
@@ -214,6 +218,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                         moves_in_file = Some(p.moves_published);
                     }
                     moves_published = moves_published.max(p.moves_published);
+                    streamer_waits = p.moves_waiting;
                     if let Some(ack) = intake.on_progress(&p) {
                         if let Some((resume_at, state)) = intake
                             .resume_state()
@@ -259,17 +264,21 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         if look {
             last_look = Instant::now();
             let idle = stream.buffered_moves() > 0 && last_input.elapsed() >= idle_flush;
-            // With flow compensation a cut inside a run would close the pin mid-run (and
-            // its reopening delay would starve the next moves): when input pauses, cut
-            // at a closed-pin gap and wait for more, unless the file is all here or the
-            // pause has become a stall.
+            // Input paused. The pin closes after the last move only when the file is all
+            // here: a pause is the machine's pace (its plan-ahead horizon) or a stall
+            // upstream, and the file goes on. A run cut there would be closed and reopened
+            // at one instant; if commands run out, the machine holds and closes the pin
+            // itself. With flow compensation a cut inside a run would starve the next
+            // moves' look-ahead, so it waits for a closed-pin gap, unless input stalls.
             let stalled = last_input.elapsed() >= stall_flush;
             let input_complete = moves_in_file.is_some_and(|n| stream.paired_until() >= n);
             if idle {
-                cut = if !compensating || input_complete || stalled {
+                cut = if input_complete {
                     Cut::All
-                } else {
+                } else if compensating && !stalled {
                     Cut::AtGap
+                } else {
+                    Cut::Now
                 };
             }
             if let Some(ack) = intake.ack(stream.commanded_until(), started.elapsed()) {
@@ -277,7 +286,9 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             }
         }
         // (Equal, not at least: a report older than the moves taken since says less.)
-        let window_full = stream.buffered_moves() > 0
+        // A held move means the file goes on: this is never its last chunk.
+        let window_full = streamer_waits
+            && stream.buffered_moves() > 0
             && stream.unpaired_moves() == 0
             && stream.paired_until() == moves_published
             && moves_in_file.is_none();

@@ -117,10 +117,11 @@ pub enum Cut {
     IfFull,
     /// Input paused: at the last closed-pin gap (or all of a full buffer).
     AtGap,
-    /// Everything buffered, the pin left as the plan has it: the producer waits for this
-    /// driver's acknowledgement before it sends more (its window is full).
+    /// Everything buffered, the pin left as the plan has it, for a file that goes on: the
+    /// producer waits for this driver's acknowledgement before it sends more (its window is
+    /// full), or input paused (without flow compensation) or stalled.
     Now,
-    /// Everything buffered, the pin closed after the last move (input finished or stalled).
+    /// Everything buffered, the pin closed after the last move: the input is finished.
     All,
 }
 

@@ -263,12 +263,15 @@ def test_a_print_waits_for_outside_acknowledgements_and_names_a_reader_that_give
              "--no-progress", "--bag", str(bag)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )
-        # Freeze the reader once it has the first joint states, as the print starts.
-        while True:
+        # Freeze the reader a second after its first joint states, early in the print: by
+        # then it has acknowledged some (a reader acknowledges when a writer's heartbeat asks;
+        # frozen at its first sample it may have acknowledged none).
+        first_sample = None
+        while first_sample is None or time.monotonic() - first_sample < 1.0:
             line = reader.stdout.readline()
             assert line, "the outside reader died"
-            if int(line.split()[1]) > 0:
-                break
+            if first_sample is None and int(line.split()[1]) > 0:
+                first_sample = time.monotonic()
         reader.send_signal(signal.SIGSTOP)
         _, stderr = proc.communicate(timeout=120)
         took_s = time.monotonic() - started

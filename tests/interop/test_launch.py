@@ -142,6 +142,20 @@ def stamp_ns(t):
     return t.sec * 1_000_000_000 + t.nanosec
 
 
+def assert_planned_states_once(messages):
+    """The bag's /polar/planned_joint_states hold each sample once: per set of joints (the
+    planner's stage joints, the screw driver's screw) the stamps only increase, though a
+    restarted node published again what it had published before its last acknowledgement
+    (the recorder leaves those repeats out)."""
+    lanes = {}
+    for state in messages["/polar/planned_joint_states"]:
+        lanes.setdefault(tuple(state.name), []).append(stamp_ns(state.header.stamp))
+    assert set(lanes) == {("bed_theta", "arm_r", "z"), ("screw",)}, set(lanes)
+    for lane, stamps in lanes.items():
+        backwards = sum(1 for a, b in zip(stamps, stamps[1:]) if b <= a)
+        assert backwards == 0, (lane, backwards, len(stamps))
+
+
 def test_a_screw_driver_restarted_mid_print_continues_its_commands(tmp_path):
     """A screw driver killed mid-print and started again resumes from the checkpoint it
     acknowledged (screw_driver::stream): the streamer sends its moves again, the planner's
@@ -159,6 +173,7 @@ def test_a_screw_driver_restarted_mid_print_continues_its_commands(tmp_path):
                for _, m in log), log
     commands = messages["/screw/command"]
     assert [c.sequence for c in commands] == list(range(len(commands)))
+    assert_planned_states_once(messages)
     stamps = [stamp_ns(c.header.stamp) for c in commands]
     assert all(a <= b for a, b in zip(stamps, stamps[1:]))
     final = messages["/joint_states"][-1]
@@ -213,6 +228,7 @@ def test_a_planner_restarted_mid_print_continues_the_plan(tmp_path, kill_after_s
     assert len(moves) == len(gcode_motion_lines(FIXTURES / "finger.gcode"))
     # One trajectory per move, each starting where the one before ended (1 us: ns rounding).
     assert len(trajectories) == len(moves), (len(trajectories), len(moves))
+    assert_planned_states_once(messages)
 
     def ns(t):
         return t.sec * 1_000_000_000 + t.nanosec

@@ -17,6 +17,7 @@ mod meta;
 mod qos;
 mod reader;
 mod recover;
+pub mod repeats;
 mod writer;
 
 pub use meta::{metadata_yaml, RecordedTopic, TopicStats};

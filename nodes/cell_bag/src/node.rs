@@ -16,6 +16,8 @@ use cell_runtime::flow::{AckTracker, Verdict};
 
 use crate::credit::PlanEnd;
 use crate::gaps::SequenceGaps;
+use crate::repeats::Repeats;
+use cell_runtime::replay::Admit;
 use cell_runtime::topics::{publisher_qos, DEFAULT_MOVE_WINDOW};
 use cell_runtime::{
     now_ns, reliable_qos, transient_local_qos, CellNode, LogLevel, ParamSpec, ParamValue,
@@ -100,6 +102,10 @@ trait Recordable: RosMessage {
     fn replay_key(&self) -> Option<(i64, i64)> {
         None
     }
+    /// Streams side by side on one topic, each with keys of its own.
+    fn replay_lane(&self) -> &[String] {
+        &[]
+    }
 }
 
 macro_rules! recordable_without_plan_stamp {
@@ -109,7 +115,6 @@ recordable_without_plan_stamp!(
     GcodeMove,
     GcodeProgress,
     GcodeAck,
-    JointState,
     PoseStamped,
     StringMsg,
     DiagnosticArray,
@@ -118,6 +123,25 @@ recordable_without_plan_stamp!(
     TFMessage,
     PlanCredit
 );
+
+/// Joint states by their stamps, one lane per set of joints (the planner's stage joints and
+/// the screw driver's screw share `/polar/planned_joint_states`). Only the planned states are
+/// judged so ([`judges_repeats`]): the executed ones come from the one machine.
+impl Recordable for JointState {
+    fn replay_key(&self) -> Option<(i64, i64)> {
+        Some((self.header.stamp.as_nanos(), 0))
+    }
+    fn replay_lane(&self) -> &[String] {
+        &self.name
+    }
+}
+
+/// Whether a tap on `topic` leaves a restarted producer's repeats of `T` out: plan messages
+/// anywhere, joint states only where the planner and screw driver publish them (executed and
+/// mechanism joint states may come with any stamps, and are never repeated by a restart).
+fn judges_repeats<T: Recordable>(topic: &str) -> bool {
+    T::TYPE.full_name() != JointState::TYPE.full_name() || topic == "/polar/planned_joint_states"
+}
 
 /// Screw commands are numbered by the screw driver across its restarts.
 impl Recordable for ScrewCommand {
@@ -351,13 +375,16 @@ async fn forward<T: RosMessage>(
 
 /// Whether a plan message is a restarted producer's repeat of one already recorded.
 fn is_repeat<T: Recordable>(
-    replayed: &mut cell_runtime::replay::ReplayFilter<(i64, i64), cell_runtime::Gid>,
+    repeats: &mut Option<Repeats<cell_runtime::Gid>>,
     message: &T,
     info: &ros2_client::MessageInfo,
 ) -> bool {
-    message.replay_key().is_some_and(|key| {
-        replayed.admit(key, info.publisher_gid()) == cell_runtime::replay::Admit::Repeat
-    })
+    match (repeats, message.replay_key()) {
+        (Some(repeats), Some(key)) => {
+            repeats.admit(message.replay_lane(), key, info.publisher_gid()) == Admit::Repeat
+        }
+        _ => false,
+    }
 }
 
 fn spawn_tap<T: Recordable>(
@@ -374,7 +401,7 @@ fn spawn_tap<T: Recordable>(
     Ok(tokio::spawn(async move {
         let mut gaps = SequenceGaps::default();
         let mut plan_end = PlanEnd::default();
-        let mut replayed = cell_runtime::replay::ReplayFilter::new();
+        let mut replayed = judges_repeats::<T>(&topic).then(Repeats::default);
         loop {
             tokio::select! {
                 taken = sub.async_take() => match taken {
@@ -403,11 +430,9 @@ fn spawn_tap<T: Recordable>(
                 }
             }
         }
-        if replayed.repeats() > 0 {
-            tracing::info!(
-                "recorder: {topic}: {} repeats of a restarted producer left out",
-                replayed.repeats()
-            );
+        let repeats = replayed.as_ref().map_or(0, Repeats::repeats);
+        if repeats > 0 {
+            tracing::info!("recorder: {topic}: {repeats} repeats of a restarted producer left out");
         }
         if gaps.out_of_order() > 0 {
             tracing::warn!(

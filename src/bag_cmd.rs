@@ -132,10 +132,16 @@ pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> any
             continue;
         }
         // A deep history so a fast replay is not thinned by keep-last on the writer side.
+        // A suite topic that is transient-local now is offered so whatever the bag says: a
+        // bag recorded when it was volatile (`/polar/trajectory` before the screw driver's
+        // restart) would not match today's transient-local readers.
+        let latched_now = cell_runtime::topics::suite_topic(&t.name)
+            .is_some_and(|suite| suite.qos.transient_local);
         let qos = match t.qos.map(|q| q.durability) {
             Some(Durability::TransientLocal) => {
                 transient_local_qos(t.qos.map_or(1, |q| q.depth as usize))
             }
+            _ if latched_now => transient_local_qos(10_000),
             _ => reliable_qos(10_000),
         };
         publishers.insert(

@@ -37,6 +37,44 @@ def test_screw_replay_matches_the_golden_bag(tmp_path):
     assert not mismatches, f"{len(mismatches)} commands differ, first #{mismatches[0]}"
 
 
+def with_volatile_qos(src, dst):
+    """A copy of bag `src` whose topics say they were offered volatile (durability 2), as
+    /polar/trajectory was before the screw driver's restarts made it transient-local."""
+    from mcap.writer import Writer
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        writer = Writer(out)
+        writer.start(profile=reader.get_header().profile, library="test_golden")
+        schemas = {sid: writer.register_schema(s.name, s.encoding, s.data)
+                   for sid, s in summary.schemas.items()}
+        channels = {}
+        for cid, c in summary.channels.items():
+            metadata = dict(c.metadata)
+            qos = metadata["offered_qos_profiles"]
+            assert "durability: 1" in qos, qos
+            metadata["offered_qos_profiles"] = qos.replace("durability: 1", "durability: 2")
+            channels[cid] = writer.register_channel(c.topic, c.message_encoding,
+                                                    schemas[c.schema_id], metadata)
+        for _, c, m in reader.iter_messages():
+            writer.add_message(channels[c.id], m.log_time, m.data, m.publish_time, m.sequence)
+        writer.finish()
+
+
+def test_a_bag_recorded_with_volatile_trajectories_still_plays_into_the_screw_driver(tmp_path):
+    """The screw driver's /polar/trajectory reader is transient-local, which a volatile
+    writer does not match: `bag play` offers a topic the suite keeps transient-local so,
+    whatever an older bag says, and the commands are the golden ones."""
+    volatile = tmp_path / "volatile_trajectory.mcap"
+    with_volatile_qos(TRAJECTORY_BAG, volatile)
+    out = tmp_path / "screw.mcap"
+    replay_screw(MOVES_BAG, volatile, out)
+    got = messages(out, "/screw/command")
+    golden = messages(SCREW_BAG, "/screw/command")
+    assert len(got) == len(golden) > 1000
+    assert got == golden
+
+
 def test_mechanism_replay_answers_each_pose_as_the_cli_did(polar_cell, tmp_path):
     """The bowl's tool poses played into the mechanism_kin node: its joint states are the
     CLI's bit for bit, and the CLI still writes the golden bag's messages."""

@@ -5,9 +5,9 @@
 //!
 //! The work itself is [`crate::stream`]: moves paired with their plans, commands computed per
 //! chunk and numbered. This node feeds it: a chunk is cut when the buffer is full, when input
-//! goes idle (`idle_flush_s`; the pin closed after the last move only once the file is all
-//! here; with flow compensation only at a closed-pin gap until input stalls for
-//! `stall_flush_s`), and
+//! goes idle (`idle_flush_s`; the pin closed after the last move only once the streamer says
+//! the file is all here, or, with no streamer reporting (a played bag), at the pause; with
+//! flow compensation only at a closed-pin gap until input stalls for `stall_flush_s`), and
 //! when the streamer holds moves for our acknowledgement (`GcodeProgress.moves_waiting`). A move is acknowledged once its commands
 //! are published, with the stream's checkpoint there, so a restarted driver continues the
 //! same commands with the same numbers: the streamer sends its moves again, and the planner's
@@ -61,7 +61,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("flow_tau_closed_s", ParamValue::Double(flow.tau_closed_s), "decay of the held pressure with the pin closed (back flow through the screw)").range(0.0, 1e4),
         ParamSpec::new("compensation_period_s", ParamValue::Double(d.compensation_period_s), "grid of the compensated commands when command_period_s is 0").range(1e-5, 10.0),
         ParamSpec::new("idle_flush_s", ParamValue::Double(0.1), "compute commands when no trajectory came for this long").range(0.001, 60.0),
-        ParamSpec::new("stall_flush_s", ParamValue::Double(2.0), "with flow compensation: when input pauses before the file is all read, commands are computed up to a closed-pin gap; after this long without input, for everything (the pin as planned: a machine whose commands run out holds with its pin closed)").range(0.001, 3600.0),
+        ParamSpec::new("stall_flush_s", ParamValue::Double(2.0), "with flow compensation: when input pauses before the file is all read, commands are computed up to a closed-pin gap; after this long without input, for everything (the pin as planned while a streamer reports: a machine whose commands run out holds with its pin closed; without one, the pin closes, taken for the end of the input)").range(0.001, 3600.0),
         ParamSpec::new("max_buffer_s", ParamValue::Double(60.0), "compute commands once this much plan is buffered").range(0.1, 1e6),
         ParamSpec::new("max_buffer_moves", ParamValue::Integer(1024), "compute commands once this many moves are buffered (moves are acknowledged once commanded: keep it below the streamer's window)").range(1.0, 1e7),
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves"),
@@ -175,6 +175,8 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let mut moves_in_file: Option<u64> = None;
     // The streamer's last word on whether more moves wait for our acknowledgement.
     let mut streamer_waits = false;
+    // Whether a streamer reports at all (it tells the end of the file; a played bag does not).
+    let mut streamer_heard = false;
     // Moves the streamer has published: with all of them paired and more to come, it waits
     // for our acknowledgement (its window is full), which waits for a chunk.
     let mut moves_published = 0u64;
@@ -219,6 +221,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     }
                     moves_published = moves_published.max(p.moves_published);
                     streamer_waits = p.moves_waiting;
+                    streamer_heard = true;
                     if let Some(ack) = intake.on_progress(&p) {
                         if let Some((resume_at, state)) = intake
                             .resume_state()
@@ -273,7 +276,9 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             let stalled = last_input.elapsed() >= stall_flush;
             let input_complete = moves_in_file.is_some_and(|n| stream.paired_until() >= n);
             if idle {
-                cut = if input_complete {
+                cut = if input_complete || (!streamer_heard && (!compensating || stalled)) {
+                    // (Without a streamer, as when a bag is played in, nobody tells the end
+                    // of the file: a pause, or with compensation a stall, is taken for it.)
                     Cut::All
                 } else if compensating && !stalled {
                     Cut::AtGap

@@ -17,6 +17,7 @@ mod meta;
 mod qos;
 mod reader;
 mod recover;
+#[cfg(feature = "node")]
 pub mod repeats;
 mod writer;
 

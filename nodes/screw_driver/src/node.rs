@@ -8,10 +8,10 @@
 //! goes idle (`idle_flush_s`; the pin closed after the last move only once the streamer says
 //! the file is all here, or, with no streamer reporting (a played bag), at the pause; with
 //! flow compensation only at a closed-pin gap until input stalls for `stall_flush_s`), and
-//! when the streamer holds moves for our acknowledgement (`GcodeProgress.moves_waiting`). A move is acknowledged once its commands
-//! are published, with the stream's checkpoint there, so a restarted driver continues the
-//! same commands with the same numbers: the streamer sends its moves again, and the planner's
-//! transient-local `/polar/trajectory` their plans. A restarted planner publishes again what
+//! when the streamer holds moves for our acknowledgement (`GcodeProgress.moves_waiting`). A
+//! move is acknowledged once its commands are published, with the stream's checkpoint there,
+//! so a restarted driver continues the same commands with the same numbers: the streamer
+//! sends its moves again, and the planner's transient-local `/polar/trajectory` their plans. A restarted planner publishes again what
 //! it had published after its last acknowledgement: those repeats are told by their times and
 //! dropped ([`cell_runtime::replay`]).
 
@@ -246,7 +246,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                             };
                             // Plans that came before the resume point was known (the
                             // planner's history) go to the resumed stream.
-                            stream = match std::mem::replace(&mut stream, Stream::new(stream_options.clone())).resumed(&c) {
+                            stream = match stream.resumed(&c) {
                                 Ok(resumed) => resumed,
                                 Err(e) => {
                                     node.diagnose(DiagnosticStatus::ERROR, &e.to_string(), &[]);

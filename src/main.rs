@@ -65,6 +65,10 @@ enum Command {
         /// start mcu_emulator on a pseudo-terminal at the same --speed.
         #[arg(long, conflicts_with = "dry_run")]
         device: Option<String>,
+        /// Where the machine stands: BED_RAD,ARM_M,Z_M (default home, 0,0,0). The plan's first
+        /// move starts there; a microcontroller standing elsewhere is refused.
+        #[arg(long, value_parser = parse_joints, allow_hyphen_values = true)]
+        start_joints: Option<[f64; 3]>,
     },
     /// Serve the ROS 2 action /print (polar_cell_msgs/action/Print): each goal prints its file
     /// through the node graph at machine pace, recorded to a bag.
@@ -90,6 +94,9 @@ enum Command {
         /// Parse only.
         #[arg(long)]
         parse_only: bool,
+        /// Plan from this position (BED_RAD,ARM_M,Z_M), as `print --start-joints`.
+        #[arg(long, value_parser = parse_joints, allow_hyphen_values = true)]
+        start_joints: Option<[f64; 3]>,
     },
     /// Plot r, θ, tool speed and screw rpm against time from a recorded print.
     Plot {
@@ -195,6 +202,21 @@ fn parse_speed(text: &str) -> Result<f64, String> {
     }
 }
 
+/// `BED_RAD,ARM_M,Z_M`: a joint position (its limits are the planner's to check).
+fn parse_joints(text: &str) -> Result<[f64; 3], String> {
+    let values: Vec<f64> = text
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("`{text}`: {e}"))?;
+    match values[..] {
+        [bed, arm, z] if values.iter().all(|v| v.is_finite()) => Ok([bed, arm, z]),
+        _ => Err(format!(
+            "`{text}` is not three finite numbers BED_RAD,ARM_M,Z_M"
+        )),
+    }
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     default_sigpipe();
@@ -212,8 +234,10 @@ async fn main() -> anyhow::Result<()> {
             speed,
             dry_run,
             device,
+            start_joints,
         } => {
             let options = print_cmd::PrintOptions {
+                start_joints,
                 bag,
                 bag_dir,
                 show_progress: !no_progress,
@@ -250,7 +274,11 @@ async fn main() -> anyhow::Result<()> {
             };
             serve_cmd::serve(options, &ros_args).await
         }
-        Command::Check { file, parse_only } => print_cmd::check(&file, parse_only, &ros_args),
+        Command::Check {
+            file,
+            parse_only,
+            start_joints,
+        } => print_cmd::check(&file, parse_only, start_joints, &ros_args),
         Command::Plot { bag, out } => plot_cmd::plot(&bag, &out),
         Command::Mechanism { command } => mechanism_cmd::run(command),
         Command::Screw { command } => screw_cmd::run(command),

@@ -136,6 +136,29 @@ pub struct PrintOptions {
     /// Execute on the MCU on this serial line (`emulator`: one started for the job) instead
     /// of the virtual executor.
     pub device: Option<String>,
+    /// Where the machine stands when the plan starts (bed rad, arm m, z m); `None`: the
+    /// nodes' `initial_joints` parameter (home unless given).
+    pub start_joints: Option<[f64; 3]>,
+}
+
+/// The `initial_joints` parameter of the planner and the machine for a start position.
+fn start_override(start: Option<[f64; 3]>) -> Vec<ParamOverride> {
+    start
+        .map(|[bed, arm, z]| param("initial_joints", format!("[{bed:?}, {arm:?}, {z:?}]")))
+        .into_iter()
+        .collect()
+}
+
+/// The streamer's `start_position_mm` for a start position: the G-code starts where the
+/// tool stands, as the plan does.
+fn streamer_start_override(start: Option<[f64; 3]>) -> Vec<ParamOverride> {
+    start
+        .map(|joints| {
+            let [x, y, z] = polar_planner::path::forward(joints).map(|v| v * 1e3);
+            param("start_position_mm", format!("[{x:?}, {y:?}, {z:?}]"))
+        })
+        .into_iter()
+        .collect()
 }
 
 /// `mcu_emulator` started for one job on a pseudo-terminal, stopped when the job ends.
@@ -326,7 +349,7 @@ pub async fn run_job(
     let mut machine_time_s = None;
     let mut total_moves = None;
     if options.run_preflight && file != "-" {
-        let (streamer, planner) = preflight_params(ros_args)?;
+        let (streamer, planner) = preflight_params(ros_args, options.start_joints)?;
         let started = std::time::Instant::now();
         let report = preflight(file, &streamer, &planner)?;
         eprintln!(
@@ -425,6 +448,7 @@ pub async fn run_job(
     )?;
     let mut ours = planner_overrides(&screw_node.params);
     ours.extend(planner_extra);
+    ours.extend(start_override(options.start_joints));
     if options.execution.is_some() {
         // The planner follows only the machine's credit.
         let args = args_for(ros_args, machine_name, &executor_specs, vec![]);
@@ -443,6 +467,7 @@ pub async fn run_job(
     )?;
     // The machine executes steps and screw commands only from these two nodes.
     let mut executor_overrides = executor_overrides;
+    executor_overrides.extend(start_override(options.start_joints));
     executor_overrides.extend([
         producer(),
         param(
@@ -520,7 +545,11 @@ pub async fn run_job(
         gcode_streamer::node::NODE_NAME,
         &streamer_specs,
         ros_args,
-        vec![param("consumers", consumers)],
+        [
+            vec![param("consumers", consumers)],
+            streamer_start_override(options.start_joints),
+        ]
+        .concat(),
     )?;
     // The planner and screw driver run until they fail or the job ends them; either way their
     // task hands the node back, writers alive, for the final delivery.
@@ -731,7 +760,7 @@ fn execution_overrides(
         planner,
         executor,
         ..
-    } = node_params(ros_args)?;
+    } = node_params(ros_args, None)?;
     let screw_options = screw_driver::node::options_from_params(&screw)?;
     // The screw on an amplifier's serial line takes a few commands a second: the screw
     // driver puts its commands on that grid, each the exact average over its interval.
@@ -967,7 +996,7 @@ struct NodeParams {
     executor: cell_runtime::Params,
 }
 
-fn node_params(ros_args: &RosArgs) -> anyhow::Result<NodeParams> {
+fn node_params(ros_args: &RosArgs, start: Option<[f64; 3]>) -> anyhow::Result<NodeParams> {
     let resolve = |name: &str, specs: &[ParamSpec], ours| {
         cell_runtime::resolve_node(name, specs, &args_for(ros_args, name, specs, ours))
             .map(|(_, params)| params)
@@ -981,17 +1010,17 @@ fn node_params(ros_args: &RosArgs) -> anyhow::Result<NodeParams> {
         planner: resolve(
             polar_planner::node::NODE_NAME,
             &polar_planner::node::param_specs(),
-            planner_overrides(&screw),
+            [planner_overrides(&screw), start_override(start)].concat(),
         )?,
         streamer: resolve(
             gcode_streamer::node::NODE_NAME,
             &gcode_streamer::node::param_specs(),
-            vec![],
+            streamer_start_override(start),
         )?,
         executor: resolve(
             cell_executor::node::NODE_NAME,
             &cell_executor::node::param_specs(),
-            vec![],
+            start_override(start),
         )?,
         screw,
     })
@@ -1000,10 +1029,11 @@ fn node_params(ros_args: &RosArgs) -> anyhow::Result<NodeParams> {
 /// The streamer's and the planner's parameters, for the pre-flight.
 fn preflight_params(
     ros_args: &RosArgs,
+    start: Option<[f64; 3]>,
 ) -> anyhow::Result<(cell_runtime::Params, cell_runtime::Params)> {
     let NodeParams {
         streamer, planner, ..
-    } = node_params(ros_args)?;
+    } = node_params(ros_args, start)?;
     Ok((streamer, planner))
 }
 
@@ -1050,9 +1080,14 @@ fn describe(report: &polar_planner::PreflightReport, took: Duration) -> String {
 
 /// `polar-cell check FILE`: the parser, then (unless `parse_only`) the pre-flight with the
 /// parameters the print's nodes would get from the same ROS arguments.
-pub fn check(file: &str, parse_only: bool, ros_args: &RosArgs) -> anyhow::Result<()> {
+pub fn check(
+    file: &str,
+    parse_only: bool,
+    start_joints: Option<[f64; 3]>,
+    ros_args: &RosArgs,
+) -> anyhow::Result<()> {
     let (input, _) = open_input(file)?;
-    let (streamer, planner) = preflight_params(ros_args)?;
+    let (streamer, planner) = preflight_params(ros_args, start_joints)?;
     let mut reader = GcodeReader::new(
         input,
         file,

@@ -104,6 +104,11 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
     let mut finished: Vec<Finished> = Vec::new();
     let mut result_requests: Vec<(RmwRequestId, GoalId)> = Vec::new();
     let mut jobs = 0u32;
+    // Where the machine stands after the last job, for the next plan to start there: the
+    // virtual machine and a real MCU keep their position between goals (a cancelled print
+    // leaves them mid-part); an emulator started per goal powers up at home.
+    let machine_persists = options.device.as_deref() != Some("emulator");
+    let mut machine_at: Option<[f64; 3]> = None;
     let mut poll = tokio::time::interval(Duration::from_millis(10));
     let mut last_feedback = std::time::Instant::now();
     let publish_statuses = |server: &Server, running: &Option<Running>, finished: &[Finished]| {
@@ -175,6 +180,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 run_preflight: true,
                 execution: Some(speed),
                 device: options.device.clone(),
+                start_joints: machine_at,
             };
             let file = goal.gcode_file.clone();
             let args = ros_args.clone();
@@ -259,6 +265,10 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
         // (Only a running goal's job can end, and then the goal is no longer running.)
         if let Some(((report, bag), r)) = ended.and_then(|e| running.take().map(|r| (e, r))) {
             let status = r.status.borrow().clone();
+            if machine_persists && status.state.is_some() {
+                let [bed, arm, z, _] = status.positions;
+                machine_at = Some([bed, arm, z]);
+            }
             let (goal_status, result) = outcome(report, &status, bag);
             finished.push(Finished {
                 info: r.accepted.clone(),

@@ -22,6 +22,9 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 import pytest
 
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
 from conftest import binary
 from rmw_cyclone import ServiceClient
 from test_dds import Time, ros_qos
@@ -222,6 +225,8 @@ def test_print_action_feedback_cancel_and_success_from_a_cyclone_client(tmp_path
         statuses = [s for a in status.take(N=100) if isinstance(a, GoalStatusArray) for s in a.status_list
                     if same(s.goal_info.goal_id, goal_id)]
         assert statuses and statuses[-1].status == CANCELED
+        stop = list(result.result.stop_position[:3])
+        assert stop[1] > 0.04, stop  # mid-circle, far from home
 
         # A short print to its end, 20× faster.
         goal_id, accepted = goal(short_file, 20.0)
@@ -231,16 +236,30 @@ def test_print_action_feedback_cancel_and_success_from_a_cyclone_client(tmp_path
         assert result.status == SUCCEEDED, result
         assert result.result.ended == "succeeded"
         assert result.result.moves_executed == short_moves
-        # Executed in the plan's time (the pre-flight's figure, from `polar-cell check`), and
-        # ended where the file ends: once round the bed at r = 50 mm.
-        check = subprocess.run([str(binary("polar-cell")), "check", str(short_file)],
+        # The virtual machine keeps its position between goals, so the second print starts
+        # where the cancel stopped it (its first executed joint state, no jump home); an
+        # emulator started per goal powers up at home.
+        start = stop if device is None else [0.0, 0.0, 0.0]
+        with open(result.result.bag, "rb") as f:
+            first = next(m.decoded_message for m in make_reader(f, decoder_factories=[DecoderFactory()])
+                         .iter_decoded_messages(topics=["/joint_states"]))
+        assert all(abs(a - b) < 1e-12 for a, b in zip(first.position[:3], start)), (first.position, start)
+        # Executed in the plan's time (the pre-flight's figure from `polar-cell check`, from
+        # the same start), and ended where the file ends: once round the bed at r = 50 mm
+        # (from the nearest turn of the bed to the start).
+        check = subprocess.run([str(binary("polar-cell")), "check", str(short_file),
+                                "--start-joints", ",".join(repr(q) for q in start)],
                                capture_output=True, text=True, check=True).stdout
         m, s = check.split("of machine time")[0].split()[-1].split(":")[-2:]
         # Start and end placed by the plan clock (the MCU's through clock sync), not by when
         # the server noticed them.
         assert abs(result.result.machine_time_s - (60 * int(m) + float(s))) < 0.05, check
         bed, arm, z, _ = result.result.stop_position
-        assert abs(bed - 2 * math.pi) < 1e-3 and abs(arm - 0.05) < 2e-5 and z == 0.0
+        turns = bed / (2 * math.pi)
+        assert abs(turns - round(turns)) < 1e-3 / (2 * math.pi), (bed, start)
+        # At most half a turn to the first point (a chord), then one turn round.
+        assert math.pi - 1e-3 <= bed - start[0] <= 3 * math.pi + 1e-3, (bed, start)
+        assert abs(arm - 0.05) < 2e-5 and z == 0.0
         assert os.path.exists(result.result.bag)
     finally:
         server.send_signal(signal.SIGINT)

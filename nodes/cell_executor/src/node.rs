@@ -42,6 +42,7 @@ pub fn executor_from_params(params: &MachineParams, control_period_s: f64) -> Ex
     );
     player.control_period_s = control_period_s;
     player.queue_capacity = params.queue_capacity;
+    player.initial_steps = params.initial_steps();
     ExecutorOptions::new(player, params.screw_hold)
 }
 

@@ -69,6 +69,7 @@ pub fn param_specs(tick_period_s: f64) -> Vec<ParamSpec> {
         ParamSpec::new("steps_per_unit", ParamValue::DoubleArray(s.steps_per_unit.to_vec()), "steps per rad (bed), per m (arm), per m (z): the planner's"),
         ParamSpec::new("step_timer_hz", ParamValue::Double(s.timer_hz), "step timer frequency: the planner's").range(1.0, 1e9),
         ParamSpec::new("joint_accelerations", ParamValue::DoubleArray(DEFAULT_JOINT_ACCELERATIONS.to_vec()), "bed (rad/s²), arm, z (m/s²) limits a pause or cancel keeps to: the planner's"),
+        ParamSpec::new("initial_joints", ParamValue::DoubleArray(vec![0.0; 3]), "where the machine stands when the plan starts: bed (rad), arm (m), z (m): the planner's (a microcontroller that reports another position is refused)"),
         ParamSpec::new("pin_open_delay_s", ParamValue::Double(DEFAULT_PIN_OPEN_DELAY_S), "a resume waits this long at rest with the pin open: the screw driver's").range(0.0, 60.0),
         ParamSpec::new("screw_hold", ParamValue::String("zero_order".into()), "how rpm runs between screw commands: zero_order (compensated, smoothed or resampled commands) or first_order (raw breakpoints)"),
         ParamSpec::new("queue_capacity", ParamValue::Integer(4096), "step segments and screw commands held ahead of execution at most").range(16.0, 1e7),
@@ -145,6 +146,8 @@ pub struct MachineParams {
     pub steps: StepOptions,
     /// The planner's joint acceleration limits (a hold keeps to them).
     pub joint_accelerations: [f64; 3],
+    /// The planner's start position (bed rad, arm m, z m).
+    pub initial_joints: [f64; 3],
     /// The screw driver's pin opening delay.
     pub pin_open_delay_s: f64,
     /// How rpm runs between screw commands.
@@ -187,6 +190,12 @@ impl MachineParams {
                 timer_hz: p.f64("step_timer_hz"),
             },
             joint_accelerations: three("joint_accelerations")?,
+            initial_joints: match *p.f64s("initial_joints") {
+                [bed, arm, z] if [bed, arm, z].iter().all(|x| x.is_finite()) => [bed, arm, z],
+                ref other => anyhow::bail!(
+                    "parameter initial_joints needs 3 finite values (bed rad, arm m, z m), got {other:?}"
+                ),
+            },
             pin_open_delay_s: p.f64("pin_open_delay_s"),
             screw_hold,
             queue_capacity: p.i64("queue_capacity") as usize,
@@ -194,6 +203,16 @@ impl MachineParams {
             horizon_s: p.f64("horizon_s"),
             speed: p.f64("speed"),
             urdf,
+        })
+    }
+}
+
+impl MachineParams {
+    /// The step counts of [`MachineParams::initial_joints`], rounded as the planner's step
+    /// generator rounds its start, so the machine's counts and the plan's agree.
+    pub fn initial_steps(&self) -> [i64; 3] {
+        std::array::from_fn(|j| {
+            (self.initial_joints[j] * self.steps.steps_per_unit[j]).round() as i64
         })
     }
 }

@@ -34,6 +34,10 @@ pub struct InterpreterOptions {
     pub default_feedrate_mm_per_min: f64,
     /// Where `G28` puts the homed axes, machine frame (mm).
     pub home_position_mm: [f64; 3],
+    /// Where the tool stands before the first line, machine frame (mm): a print started
+    /// where an earlier one stopped. A first move that names only some axes keeps the others
+    /// here, and relative moves count from here.
+    pub start_position_mm: [f64; 3],
     /// An arc needing more chords than this is rejected rather than flooding the pipeline.
     pub max_arc_segments: u32,
     /// Arc end radius may differ from the start radius by this much (mm) before it is an error;
@@ -47,6 +51,7 @@ impl Default for InterpreterOptions {
             arc_tolerance_mm: 0.002,
             default_feedrate_mm_per_min: 1500.0,
             home_position_mm: [0.0, 0.0, 0.0],
+            start_position_mm: [0.0, 0.0, 0.0],
             max_arc_segments: 100_000,
             arc_radius_mismatch_mm: 0.05,
         }
@@ -116,10 +121,10 @@ impl Interpreter {
     pub fn new(file: impl Into<String>, options: InterpreterOptions) -> Self {
         let feedrate_mm_per_min = options.default_feedrate_mm_per_min;
         Interpreter {
+            logical_mm: options.start_position_mm,
             options,
             lexer: Lexer::default(),
             file: file.into(),
-            logical_mm: [0.0; 3],
             offset_mm: [0.0; 3],
             e_mm: 0.0,
             feedrate_mm_per_min,

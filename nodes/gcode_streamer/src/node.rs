@@ -83,6 +83,11 @@ pub fn param_specs() -> Vec<ParamSpec> {
             ParamValue::DoubleArray(vec![0.0, 0.0, 0.0]),
             "machine position G28 homes to (x, y, z)",
         ),
+        ParamSpec::new(
+            "start_position_mm",
+            ParamValue::DoubleArray(vec![0.0, 0.0, 0.0]),
+            "where the tool stands before the first line (x, y, z): axes a first move leaves out stay there, relative moves count from there",
+        ),
     ]
 }
 
@@ -106,10 +111,17 @@ pub fn interpreter_options(params: &Params) -> anyhow::Result<InterpreterOptions
             home.len()
         );
     }
+    let start = match *params.f64s("start_position_mm") {
+        [x, y, z] if [x, y, z].iter().all(|v| v.is_finite()) => [x, y, z],
+        ref other => {
+            bail!("parameter start_position_mm needs 3 finite values (x, y, z), got {other:?}")
+        }
+    };
     Ok(InterpreterOptions {
         arc_tolerance_mm: params.f64("arc_tolerance_mm"),
         default_feedrate_mm_per_min: params.f64("default_feedrate_mm_per_min"),
         home_position_mm: [home[0], home[1], home[2]],
+        start_position_mm: start,
         ..InterpreterOptions::default()
     })
 }

@@ -72,6 +72,24 @@ fn home_dwell_and_tool() {
     assert!(close(m[5].x_m, 0.001, 1e-15));
 }
 
+/// A print started where another stopped: axes the first moves leave out stay where the
+/// tool stands, relative moves count from there, and G28 still goes home.
+#[test]
+fn a_start_position_is_where_moves_begin() {
+    let options = InterpreterOptions {
+        start_position_mm: [30.0, -20.0, 2.0],
+        ..InterpreterOptions::default()
+    };
+    let src = "G1 Z0.3 F600\nG91\nG1 X5\nG90\nG28\n";
+    let (m, _) = parse_all(src.as_bytes(), "t.gcode", options).unwrap();
+    let at = |k: usize, x: f64, y: f64, z: f64| {
+        close(m[k].x_m, x, 1e-15) && close(m[k].y_m, y, 1e-15) && close(m[k].z_m, z, 1e-15)
+    };
+    assert!(at(0, 0.03, -0.02, 0.0003), "{:?}", m[0]);
+    assert!(at(1, 0.035, -0.02, 0.0003), "{:?}", m[1]);
+    assert!(at(2, 0.0, 0.0, 0.0), "{:?}", m[2]);
+}
+
 #[test]
 fn homing_follows_polar_practice() {
     // Y alone homes X too; Z alone only Z; nothing named homes everything.

@@ -44,6 +44,17 @@ pub enum McuMachineError<E: std::fmt::Display + std::fmt::Debug> {
         "{count} screw commands arrived before any step segment: more than can be held ({capacity})"
     )]
     TooManyEarly { count: usize, capacity: usize },
+    #[error(
+        "the MCU stands at steps {mcu_steps:?} (bed, arm, z) but the plan starts at {plan_steps:?}: \
+         print from where it stands (initial_joints {mcu_joints:?}, `polar-cell print --start-joints`) \
+         or bring it to the plan's start first"
+    )]
+    NotAtStart {
+        mcu_steps: [i64; 3],
+        plan_steps: [i64; 3],
+        /// The MCU's position in joint units (rad, m, m), to start a plan from.
+        mcu_joints: [f64; 3],
+    },
 }
 
 /// Reports kept: a second of them at the default 10 ms period.
@@ -92,6 +103,9 @@ pub struct McuMachine<L: McuLink> {
     link_error: Option<String>,
     /// Bytes written to the MCU so far (frames and their retransmissions).
     bytes_sent: u64,
+    /// Where the plan's steps start; checked against the MCU's report before the first
+    /// segment goes out (steps counted from elsewhere would print the part displaced).
+    start_steps: Option<[i64; 3]>,
 }
 
 impl<L: McuLink> McuMachine<L> {
@@ -120,7 +134,15 @@ impl<L: McuLink> McuMachine<L> {
             incoming: Vec::new(),
             link_error: None,
             bytes_sent: 0,
+            start_steps: Some([0; 3]),
         }
+    }
+
+    /// The step counts the plan starts from (the planner's `initial_joints`; home by
+    /// default). The first segment is refused unless the MCU reports standing there.
+    pub fn with_start_steps(mut self, start_steps: [i64; 3]) -> Self {
+        self.start_steps = Some(start_steps);
+        self
     }
 
     /// The report [`Machine::state`] gives the positions of: the newest measured by the
@@ -321,6 +343,20 @@ impl<L: McuLink> Machine for McuMachine<L> {
     type Error = McuMachineError<L::Error>;
 
     fn on_segment(&mut self, msg: &StepSegment) -> Result<(), Self::Error> {
+        if let Some(plan_steps) = self.start_steps {
+            // free_slots offers no room before a report, so there is one.
+            let mcu_steps = self.session.state().map_or([0; 3], |s| s.position_steps);
+            let mcu_steps = mcu_steps.map(i64::from);
+            if mcu_steps != plan_steps {
+                let u = self.steps_per_unit;
+                return Err(McuMachineError::NotAtStart {
+                    mcu_steps,
+                    plan_steps,
+                    mcu_joints: std::array::from_fn(|j| mcu_steps[j] as f64 / u[j]),
+                });
+            }
+            self.start_steps = None;
+        }
         if self.epoch_ns.is_none() {
             // The first segment's stamp is its move's start, plan time 0 of this schedule.
             let epoch = msg.header.stamp.as_nanos();
@@ -354,7 +390,11 @@ impl<L: McuLink> Machine for McuMachine<L> {
     fn free_slots(&self) -> (usize, usize) {
         // Nothing until the MCU is identified, configured and its clock known: the schedule
         // needs its timer and its clock.
-        if !self.session.is_ready() || self.session_error().is_some() || self.estop_requested {
+        if !self.session.is_ready()
+            || self.session.state().is_none()
+            || self.session_error().is_some()
+            || self.estop_requested
+        {
             return (0, 0);
         }
         let (segments, screw) = self.session.waiting();

@@ -451,7 +451,8 @@ pub async fn run(
     cell_runtime::cell_log!(node, LogLevel::Info, "MCU on {name}");
     let session = McuSession::new(session_options(node, &params), session_nonce());
     let link = SerialLink::new(device, name);
-    let machine = McuMachine::new(session, link, params.queue_capacity, params.horizon_s);
+    let machine = McuMachine::new(session, link, params.queue_capacity, params.horizon_s)
+        .with_start_steps(params.initial_steps());
     let Some(port) = screw_port(node, &params)? else {
         let mut machine = machine;
         return cell_machine::node::run(node, &mut machine, &params, commands, status).await;

@@ -161,6 +161,37 @@ fn a_plan_plays_through_the_machine_interface_and_reports_what_was_executed() {
     assert!(per_step < 0.32, "{per_step} bytes per step");
 }
 
+/// A plan that starts elsewhere than the MCU stands (a print planned from home on a machine
+/// a cancelled print left mid-part) is refused before its first segment goes out: nothing
+/// moves, and the error says where the MCU is, in steps and in joint units to start from.
+#[test]
+fn a_plan_that_starts_elsewhere_than_the_mcu_stands_is_refused_before_anything_moves() {
+    let segments = finger_start(20);
+    let mut rig = Rig::new(EmulatorOptions::default());
+    rig.machine = mcu_machine(EmulatorOptions::default()).with_start_steps([0, 800, 0]);
+    let mut error = None;
+    for _ in 0..2000 {
+        if let Err(e) = rig.ms(&segments) {
+            error = Some(e);
+            break;
+        }
+    }
+    let error = error.expect("refused");
+    assert!(
+        error.contains("stands at steps [0, 0, 0]")
+            && error.contains("plan starts at [0, 800, 0]")
+            && error.contains("initial_joints [0.0, 0.0, 0.0]"),
+        "{error}"
+    );
+    assert_eq!(rig.fed, 0);
+    assert!(rig.edges().is_empty());
+    // The plan from home on the same MCU plays.
+    let mut rig = Rig::new(EmulatorOptions::default());
+    rig.machine = mcu_machine(EmulatorOptions::default()).with_start_steps([0; 3]);
+    rig.run_to_end(&segments, 30.0);
+    assert_eq!(rig.executed_steps(), end_steps(&segments));
+}
+
 /// Pause holds on the path and resume goes on to the same end; cancel comes to rest, drops
 /// the plan, and a new plan (its own epoch) starts from where the machine stands.
 #[test]

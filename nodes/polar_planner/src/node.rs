@@ -70,6 +70,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("acknowledge_moves", ParamValue::Bool(true), "be a flow-control consumer of /gcode/moves (false: accept moves in sequence order, e.g. from a bag)"),
         cell_runtime::graph::Producer::param_spec(),
         cell_runtime::graph::Producer::named_param_spec("credit_producer", "cell_executor", "the machine node whose /cell/plan_credit this planner follows (relative: in its namespace; empty: any writer's); other writers are ignored"),
+        ParamSpec::new("initial_joints", ParamValue::DoubleArray(d.initial_joints.to_vec()), "where the machine stands when the plan starts: bed (rad), arm (m), z (m); the first move goes from there"),
         ParamSpec::new("pin_open_dwell_s", ParamValue::Double(0.0), "rest before each extruding move after a non-extruding one, for the extruder pin (screw_driver's stop strategy; 0: none)").range(0.0, 60.0),
         ParamSpec::new("screw_max_rpm", ParamValue::Double(300.0), "the screw's top speed (screw_driver's max_rpm); extruding moves are slowed so they never need more (0: ignore the screw)").range(0.0, 1e5),
         ParamSpec::new("screw_e_per_rev_m", ParamValue::Double(0.002), "filament-equivalent length one screw revolution feeds (screw_driver's e_per_rev_m)").range(1e-9, 1.0),
@@ -86,6 +87,16 @@ fn three(params: &Params, name: &str) -> anyhow::Result<[f64; 3]> {
         );
     }
     Ok([v[0], v[1], v[2]])
+}
+
+/// The `initial_joints` parameter (the planner checks them against the joint limits).
+pub fn initial_joints(params: &Params) -> anyhow::Result<[f64; 3]> {
+    match params.f64s("initial_joints") {
+        &[bed, arm, z] if [bed, arm, z].iter().all(|x| x.is_finite()) => Ok([bed, arm, z]),
+        other => anyhow::bail!(
+            "parameter initial_joints needs 3 finite values (bed rad, arm m, z m), got {other:?}"
+        ),
+    }
 }
 
 /// Planner and step options from the node's parameters and the URDF.
@@ -111,7 +122,7 @@ pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, S
         lookahead_blocks: params.i64("lookahead_blocks") as usize,
         homing_speed_m_per_s: params.f64("homing_speed_m_per_s"),
         acceleration_safety: params.f64("acceleration_safety"),
-        initial_joints: [0.0; 3],
+        initial_joints: initial_joints(params)?,
         pin_open_dwell_s: params.f64("pin_open_dwell_s"),
         screw: match params.f64("screw_max_rpm") {
             max_rpm if max_rpm > 0.0 => Some(crate::ScrewLimits {
@@ -186,7 +197,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let (options, step_options) = options_from_params(&params)?;
     let digest = options_digest(&options, &step_options);
     let mut planner = Planner::new(options.clone()).map_err(|e| anyhow!("{e}"))?;
-    let mut steps = StepGenerator::new(step_options.clone(), [0.0; 3]);
+    let mut steps = StepGenerator::new(step_options.clone(), options.initial_joints);
     let publish_steps = params.bool("publish_steps");
     let js_period = params.f64("joint_state_period_s");
     let idle_flush = Duration::from_secs_f64(params.f64("idle_flush_s"));

@@ -27,6 +27,11 @@ pub const JOINT_NAMES: [&str; 3] = ["bed_theta", "arm_r", "z"];
 /// duration within about 10⁶ s, so plan time never overflows (a subnormal feed made it ∞).
 pub const MIN_FEED_M_PER_S: f64 = 1e-6;
 
+/// How far past a position limit a start position may lie (m): half a step of a fine
+/// stepper, so a machine stopped at a limit (its position read from whole steps) can start
+/// again from there.
+pub const INITIAL_SLACK: f64 = 1e-5;
+
 /// The longest dwell or extruder-only rest planned, s (about 11.6 days).
 pub const MAX_REST_S: f64 = 1e6;
 
@@ -322,6 +327,21 @@ impl Planner {
             return Err(PlanError::Options(
                 "acceleration_safety in (0, 1], lookahead_blocks >= 2".into(),
             ));
+        }
+        for (j, (&q, limits)) in o.initial_joints.iter().zip(&o.joints).enumerate() {
+            let (mut min, max) = limits
+                .position
+                .unwrap_or((f64::NEG_INFINITY, f64::INFINITY));
+            if j == 1 && o.allow_negative_r {
+                min = -max;
+            }
+            // A stop position computed from steps may sit a rounding past a limit it reached.
+            if !q.is_finite() || q < min - INITIAL_SLACK || q > max + INITIAL_SLACK {
+                return Err(PlanError::Options(format!(
+                    "initial position of {} is {q}, outside [{min}, {max}]",
+                    JOINT_NAMES[j]
+                )));
+            }
         }
         if let Some(screw) = o.screw {
             if !(screw.usable_rpm.is_finite()

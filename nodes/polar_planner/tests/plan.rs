@@ -748,3 +748,78 @@ fn a_killed_and_resumed_planner_with_its_repeats_dropped_is_the_uninterrupted_pl
     assert!(kills >= 5, "{kills} kills");
     eprintln!("polartest: {kills} kills, each resumed plan joined exactly");
 }
+
+/// A print that starts where a cancelled one stopped (the `initial_joints` a server passes
+/// on): the plan begins exactly at that position, goes straight to the first target, keeps
+/// every limit, and its steps count from the position's own step counts.
+#[test]
+fn a_plan_starts_where_the_machine_stands() {
+    let moves = moves_of(b"G1 X50 Y0 F3000\nG1 X0 Y50\nG1 X-30 Y-30 Z0.3\n");
+    let stop = [1.3 + 4.0 * std::f64::consts::PI, 0.04, 0.002];
+    let options = PlannerOptions {
+        initial_joints: stop,
+        ..PlannerOptions::default()
+    };
+    let planned = plan(&moves, options.clone());
+    assert_eq!(planned.len(), moves.len());
+    assert_eq!(planned[0].points[0].q, stop);
+    let limits = limit_usage(&moves, &planned, &options);
+    assert!(limits.worst() <= 1.0 + 1e-9, "{limits:?}");
+    assert_eq!((limits.out_of_range, limits.time_reversals), (0, 0));
+    // The path from the stop position to (50, 0) is the commanded straight line.
+    let start = polar_planner::path::forward(stop);
+    let path = path_deviation(&moves, &planned, start, 20);
+    assert!(path.max_deviation_m <= options.path_tolerance_m, "{path:?}");
+    // θ stays continuous: (50, 0) is reached at the multiple of 2π nearest the start.
+    let first_end = planned[0].points.last().unwrap().q;
+    assert!(
+        (first_end[0] - 4.0 * std::f64::consts::PI).abs() < 1e-9,
+        "{first_end:?}"
+    );
+    assert!((first_end[1] - 0.05).abs() < 1e-12);
+    // Steps: from the stop position's counts to the end's, exactly.
+    let step_options = StepOptions::default();
+    let counts = |q: [f64; 3]| -> [i64; 3] {
+        std::array::from_fn(|k| (q[k] * step_options.steps_per_unit[k]).round() as i64)
+    };
+    let mut generator = StepGenerator::new(step_options.clone(), stop);
+    let mut segments = Vec::new();
+    for p in &planned {
+        generator.segments(p, &mut segments);
+    }
+    let mut position = counts(stop);
+    for seg in &segments {
+        for (k, p) in position.iter_mut().enumerate() {
+            *p += seg.directions[k] as i64 * seg.step_counts[k] as i64;
+        }
+    }
+    assert_eq!(
+        position,
+        counts(planned.last().unwrap().points.last().unwrap().q)
+    );
+    assert_eq!(position, generator.position());
+}
+
+#[test]
+fn a_start_outside_the_joint_limits_is_refused_by_name() {
+    for (stop, joint) in [([0.0, 0.2, 0.0], "arm_r"), ([0.0, 0.0, -0.01], "z")] {
+        let options = PlannerOptions {
+            initial_joints: stop,
+            ..PlannerOptions::default()
+        };
+        let error = Planner::new(options).err().expect("refused").to_string();
+        assert!(error.contains(joint), "{error}");
+    }
+    let nan = PlannerOptions {
+        initial_joints: [f64::NAN, 0.0, 0.0],
+        ..PlannerOptions::default()
+    };
+    assert!(Planner::new(nan).is_err());
+    // A stop read from whole steps, a rounding past the reach, still starts.
+    let reach = PlannerOptions::default().joints[1].position.unwrap().1;
+    let at_limit = PlannerOptions {
+        initial_joints: [0.0, reach + 5e-6, 0.0],
+        ..PlannerOptions::default()
+    };
+    assert!(Planner::new(at_limit).is_ok());
+}

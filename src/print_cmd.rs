@@ -621,7 +621,10 @@ pub async fn run_job(
     // Ctrl-C while the machine moves: a controlled stop on the path; a second: stop at once.
     let mut ended = None;
     if executing && matches!(outcome, Err(Stop::Interrupted)) {
-        ended = Some(stop_machine(&commands, &status, &bar, &io.interrupts).await);
+        // A real MCU keeps its position after the job (the virtual machine and an
+        // emulator started for the job end with it).
+        let machine_stays = options.device.as_deref().is_some_and(|d| d != "emulator");
+        ended = Some(stop_machine(&commands, &status, &bar, &io.interrupts, machine_stays).await);
     }
     bar.finish_and_clear();
     if outcome.is_ok() {
@@ -933,6 +936,7 @@ async fn stop_machine(
     status: &tokio::sync::watch::Receiver<cell_machine::node::Status>,
     bar: &ProgressBar,
     interrupts: &tokio::sync::watch::Receiver<u32>,
+    machine_stays: bool,
 ) -> (bool, String) {
     use cell_executor::PlayerState;
     use cell_machine::node::Command;
@@ -978,10 +982,15 @@ async fn stop_machine(
     } else {
         "cancelled: stopped on the path"
     };
+    // A real machine stays where it stopped: the next print must be planned from there.
+    let again = match machine_stays {
+        true => format!("; to print from here: `--start-joints {bed:?},{arm:?},{z:?}`"),
+        false => String::new(),
+    };
     (
         emergency,
         format!(
-            "{how}{line} after {} of machine time (bed {bed:.6} rad, arm {arm:.6} m, z {z:.6} m)",
+            "{how}{line} after {} of machine time (bed {bed:.6} rad, arm {arm:.6} m, z {z:.6} m){again}",
             clock(s.machine_time_s)
         ),
     )

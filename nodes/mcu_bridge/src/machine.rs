@@ -438,7 +438,7 @@ impl<L: McuLink> Machine for McuMachine<L> {
         let stopped = self.estop_requested
             || self.session_error().is_some()
             || self.link_error.is_some()
-            || mcu.is_some_and(|s| s.mode == Mode::Fault);
+            || (mcu.is_some_and(|s| s.mode == Mode::Fault) && self.session.faults_count());
         // Waiting for the plan's first segment to start (the lead) is not running yet.
         let started = match (self.plan_clock_now(), self.session.anchor_clock()) {
             (Some(now), Some(anchor)) => now >= anchor,

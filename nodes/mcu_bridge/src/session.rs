@@ -112,8 +112,23 @@ pub enum SessionError {
     Restarted { lost: usize },
     #[error("the MCU has been silent for {silent_s:.3} s (no state since)")]
     Silent { silent_s: f64 },
+    #[error(
+        "the MCU's fault {code:?} did not clear: it still reports it {waited_s:.3} s after RESET"
+    )]
+    FaultNotCleared { code: FaultCode, waited_s: f64 },
     #[error(transparent)]
     Schedule(#[from] ScheduleError),
+}
+
+/// A session's RESET of the MCU: faults count only once the MCU has acted on it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ResetProgress {
+    /// Not sent yet (the session is starting): whatever the MCU reports is from before.
+    NotSent,
+    /// Sent at this host time.
+    Sent { at_us: u64 },
+    /// Acted on (a state without a fault came after it), or a fault outlasted it.
+    Done,
 }
 
 /// The host's session with one MCU.
@@ -155,6 +170,11 @@ pub struct McuSession {
     /// The last screw command sent (as sent): a compact one is told relative to it.
     last_screw_sent: Option<ScrewReference>,
     error: Option<SessionError>,
+    /// Where the session's RESET is: until the MCU reports a state without a fault after
+    /// it, a fault it reports may be one the RESET clears (latched before this session, told
+    /// in states that waited in the line or were on their way), and does not count unless it
+    /// outlasts [`McuSession::reset_clear_bound_s`].
+    reset: ResetProgress,
     /// An emergency stop was asked for, and when it last went out.
     emergency: bool,
     emergency_sent_us: Option<u64>,
@@ -217,9 +237,17 @@ impl McuSession {
             last_sent_start: None,
             last_screw_sent: None,
             error: None,
+            reset: ResetProgress::NotSent,
             emergency: false,
             emergency_sent_us: None,
         }
+    }
+
+    /// How long a fault may still be reported after a RESET before it is taken as one the
+    /// RESET could not clear: the silence bound, four times over (a RESET resent on a
+    /// damaged line, and the state after it).
+    fn reset_clear_bound_s(&self) -> f64 {
+        4.0 * (10.0 * self.options.state_period_s).max(self.options.silence_s)
     }
 
     pub fn options(&self) -> &SessionOptions {
@@ -253,9 +281,18 @@ impl McuSession {
         &self.endpoint
     }
 
+    /// The MCU has acted on this session's RESET: a fault it reports is a fault now (before,
+    /// it may be one the RESET clears).
+    pub fn faults_count(&self) -> bool {
+        self.reset == ResetProgress::Done
+    }
+
     /// Identified, configured and clock-synchronised: ready to take a plan.
     pub fn is_ready(&self) -> bool {
-        self.configured && self.clock.fit().is_some() && self.state.is_some()
+        self.configured
+            && self.clock.fit().is_some()
+            && self.state.is_some()
+            && self.reset == ResetProgress::Done
     }
 
     /// Segments and screw ramps converted and not yet sent.
@@ -347,7 +384,12 @@ impl McuSession {
         self.error = None;
         self.emergency = false;
         self.controls.clear(); // a hold or drop still waiting is moot after a reset
-        self.control(HostMessage::Reset)
+        self.control(HostMessage::Reset)?;
+        // The last state's arrival stands for now; the bound is generous against it.
+        self.reset = ResetProgress::Sent {
+            at_us: self.state.map_or(0, |(_, at)| at),
+        };
+        Ok(())
     }
 
     fn forget_plan(&mut self) {
@@ -517,13 +559,21 @@ impl McuSession {
                             self.screw_on_mcu.pop_front();
                         }
                     }
-                    if state.mode == Mode::Fault && self.error.is_none() {
+                    if state.mode != Mode::Fault {
+                        if let ResetProgress::Sent { .. } = self.reset {
+                            self.reset = ResetProgress::Done; // the RESET has been acted on
+                        }
+                    } else if self.error.is_none() && self.reset == ResetProgress::Done {
                         self.fail(SessionError::Fault {
                             code: state.fault,
                             clock: state.clock,
                             tag: 0,
                         });
                     }
+                }
+                // A fault told before the RESET it awaits was acted on: the RESET clears it
+                // (and a fault that outlasts it shows in the states).
+                FromMcu::Message(McuMessage::Fault { .. }) if self.reset != ResetProgress::Done => {
                 }
                 FromMcu::Message(McuMessage::Fault { code, clock, tag }) => {
                     self.fail(SessionError::Fault { code, clock, tag });
@@ -570,9 +620,22 @@ impl McuSession {
                 host_timeout_ticks: ticks(self.options.host_timeout_s, hz),
                 state_period_ticks: ticks(self.options.state_period_s, hz),
             })?;
-            // A clean slate: no fault and no schedule left from an earlier host session.
+            // A clean slate: no fault and no schedule left from an earlier host session (a
+            // host that went away leaves the MCU latched in HOST_SILENT, still reporting it).
             self.endpoint.send(&HostMessage::Reset)?;
+            self.reset = ResetProgress::Sent { at_us: now_us };
             self.configured = true;
+        }
+        if let ResetProgress::Sent { at_us } = self.reset {
+            let waited_s = now_us.saturating_sub(at_us) as f64 * 1e-6;
+            let latched = self.state.filter(|(s, _)| s.mode == Mode::Fault);
+            if let Some((state, _)) = latched.filter(|_| waited_s > self.reset_clear_bound_s()) {
+                self.reset = ResetProgress::Done;
+                self.fail(SessionError::FaultNotCleared {
+                    code: state.fault,
+                    waited_s,
+                });
+            }
         }
         if now_us >= self.next_query_us && self.endpoint.can_send() {
             let period_s = if self.clock.sample_count() >= CLOCK_SETTLE_SAMPLES {

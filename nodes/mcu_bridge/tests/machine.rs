@@ -192,6 +192,125 @@ fn a_plan_that_starts_elsewhere_than_the_mcu_stands_is_refused_before_anything_m
     assert_eq!(rig.executed_steps(), end_steps(&segments));
 }
 
+/// A second host session on an MCU a first one left mid-part (as `polar-cell print --device`
+/// run twice): the MCU latched HOST_SILENT when the first host went away and still reports
+/// it, with its position kept. The new session's RESET clears that fault — the states
+/// already on their way when it connects are not taken as a fault of its own — and a plan
+/// from where the MCU stands plays to its end.
+#[test]
+fn a_new_host_session_clears_the_fault_a_departed_host_left_and_prints_from_there() {
+    use cell_protocol::message::Mode;
+    use mcu_bridge::McuLink as _;
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../../shared/fixtures/gcode/finger.gcode"
+    );
+    let src = std::fs::read(path).unwrap();
+    let moves = gcode_streamer::parse_all(&src, "finger.gcode", Default::default())
+        .unwrap()
+        .0;
+    let first = polar_planner::plan_program(
+        &moves[..80],
+        PlannerOptions::default(),
+        StepOptions::default(),
+    )
+    .unwrap();
+    let stop = first.planned.last().unwrap().points.last().unwrap().q;
+    let mut part_one = first.segments;
+    stamp(&mut part_one, EPOCH_NS);
+    let mut rig = Rig::new(EmulatorOptions::default());
+    rig.run_to_end(&part_one, 60.0);
+    let stop_steps = end_steps(&part_one);
+    // The first host goes away; the MCU runs on alone past its host timeout (1 s).
+    let placeholder = InProcess {
+        mcu: mcu_emulator::Emulator::new(EmulatorOptions::default()),
+        edges: Vec::new(),
+    };
+    let mut link = std::mem::replace(rig.machine.link_mut(), placeholder);
+    // What the MCU says meanwhile waits in the line (a pseudo-terminal or a USB CDC port
+    // buffers it) for whoever opens it next.
+    let mut unread = Vec::new();
+    let mut now_ns = rig.now_ns;
+    for _ in 0..1500 {
+        now_ns += 1_000_000;
+        link.read(now_ns, &mut unread).unwrap();
+    }
+    let core = link.mcu.endpoint().machine();
+    assert_eq!(core.mode(), Mode::Fault);
+    assert_eq!(core.fault(), cell_protocol::message::FaultCode::HostSilent);
+    assert!(unread.len() > 1000, "{} bytes waiting", unread.len());
+    // The second host: its plan starts where the first left the machine.
+    let mut second = polar_planner::plan_program(
+        &moves[80..160],
+        PlannerOptions {
+            initial_joints: stop,
+            ..PlannerOptions::default()
+        },
+        StepOptions::default(),
+    )
+    .unwrap();
+    stamp(&mut second.segments, EPOCH_NS + 3_600_000_000_000);
+    link.edges.clear();
+    let line = Reopened { link, unread };
+    let options = common::session_options();
+    let mut machine = McuMachine::new(mcu_bridge::McuSession::new(options, 0xB0B), line, 64, 2.0)
+        .with_start_steps(stop_steps);
+    let segments = &second.segments;
+    let mut fed = 0;
+    let until = now_ns + 60_000_000_000;
+    while !(fed == segments.len() && machine.is_drained()) {
+        let (room, _) = machine.free_slots();
+        for s in segments[fed..].iter().take(room) {
+            machine.on_segment(s).unwrap();
+            fed += 1;
+        }
+        if fed == segments.len() {
+            machine.finish_input();
+        }
+        now_ns += 1_000_000;
+        machine.on_tick(now_ns).unwrap();
+        assert!(now_ns < until, "not done");
+        // The stale fault is not this session's: the machine never shows it as stopped.
+        assert_ne!(
+            machine.state().state,
+            PlayerState::Stopped,
+            "at {now_ns} ns"
+        );
+    }
+    assert!(machine.session().error().is_none());
+    let mut made = [0i64; 3];
+    for e in &machine.link().link.edges {
+        for (k, step) in made.iter_mut().enumerate() {
+            if e.axes >> k & 1 == 1 {
+                *step += if e.negative >> k & 1 == 1 { -1 } else { 1 };
+            }
+        }
+    }
+    let part_two = end_steps(segments);
+    assert_eq!(made, part_two);
+    assert_eq!(
+        second.end_steps,
+        std::array::from_fn(|k| stop_steps[k] + part_two[k])
+    );
+}
+
+/// A line opened again: first what waited in it, then the MCU.
+struct Reopened {
+    link: InProcess,
+    unread: Vec<u8>,
+}
+
+impl mcu_bridge::McuLink for Reopened {
+    type Error = std::convert::Infallible;
+    fn read(&mut self, now_ns: i64, into: &mut Vec<u8>) -> Result<(), Self::Error> {
+        into.append(&mut self.unread);
+        self.link.read(now_ns, into)
+    }
+    fn write(&mut self, now_ns: i64, bytes: &[u8]) -> Result<(), Self::Error> {
+        self.link.write(now_ns, bytes)
+    }
+}
+
 /// Pause holds on the path and resume goes on to the same end; cancel comes to rest, drops
 /// the plan, and a new plan (its own epoch) starts from where the machine stands.
 #[test]

@@ -1,0 +1,90 @@
+"""A machine that stays where a print left it: one MCU emulator, three `polar-cell print`
+runs on its pseudo-terminal, as a machine builder with a Pico on /dev/ttyACM0 would run them.
+
+1. a print cancelled with Ctrl-C stops mid-part and says how to print from there;
+2. a print planned from home is refused before its first step, naming where the MCU stands
+   (the first host left it latched in HOST_SILENT: the new session clears that, and does not
+   take the states that waited in the line for a fault of its own);
+3. the same print with `--start-joints` from the message runs to its end, starting exactly
+   where the MCU stands (its bag's first executed joint state) and ending where the file ends.
+"""
+
+import math
+import os
+import re
+import signal
+import subprocess
+import time
+
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from conftest import binary
+
+DOMAIN = 71
+
+
+def joint_states(bag):
+    with open(bag, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        return [m.decoded_message for m in reader.iter_decoded_messages(topics=["/joint_states"])]
+
+
+def test_a_print_starts_where_the_mcu_stands_and_refuses_to_start_elsewhere(tmp_path):
+    circle = tmp_path / "circle.gcode"
+    lines = ["G1 X50 Y0 F3000"] + [
+        f"G1 X{50 * math.cos(a):.3f} Y{50 * math.sin(a):.3f} F3000"
+        for a in (i * 2 * math.pi / 200 for i in range(1, 601))
+    ]
+    circle.write_text("\n".join(lines) + "\n")
+    short = tmp_path / "short.gcode"
+    short.write_text("G1 X50 Y0 F3000\nG1 X0 Y50\nG1 X-30 Y-30\n")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN))
+    emulator = subprocess.Popen([str(binary("mcu_emulator")), "--speed", "2"],
+                                stdout=subprocess.PIPE, text=True)
+    try:
+        pty = emulator.stdout.readline().split()[1]
+        assert pty.startswith("/dev/pts/"), pty
+
+        def print_on_mcu(gcode, bag, *extra):
+            return [str(binary("polar-cell")), "print", str(gcode), "--device", pty, "--speed", "2",
+                    "--no-progress", "--bag", str(tmp_path / bag), *extra]
+
+        # 1. Cancelled mid-circle.
+        first = subprocess.Popen(print_on_mcu(circle, "one.mcap"), env=env,
+                                 stderr=subprocess.PIPE, text=True)
+        time.sleep(6)
+        first.send_signal(signal.SIGINT)
+        _, err = first.communicate(timeout=60)
+        assert first.returncode == 1, err
+        hint = re.search(r"to print from here: `--start-joints ([^`]+)`", err)
+        assert hint, err
+        start = [float(v) for v in hint.group(1).split(",")]
+        stopped = joint_states(tmp_path / "one.mcap")[-1].position[:3]
+        assert list(stopped) == start, (stopped, start)
+        assert abs(start[1] - 0.05) < 2e-5 and start[0] > 0.5, start  # mid-circle
+
+        # 2. Planned from home: refused before anything moves.
+        second = subprocess.run(print_on_mcu(short, "two.mcap"), env=env,
+                                capture_output=True, text=True, timeout=60)
+        assert second.returncode == 1, second.stderr
+        assert "the MCU stands at steps" in second.stderr, second.stderr
+        assert f"initial_joints [{start[0]!r}, {start[1]!r}, {start[2]!r}]" in second.stderr, second.stderr
+        assert "HostSilent" not in second.stderr, second.stderr
+        moved = [s.position[:3] for s in joint_states(tmp_path / "two.mcap")]
+        assert all(list(p) == start for p in moved), "the MCU moved"
+
+        # 3. From where it stands: to the file's end.
+        third = subprocess.run(print_on_mcu(short, "three.mcap", "--start-joints", hint.group(1)),
+                               env=env, capture_output=True, text=True, timeout=120)
+        assert third.returncode == 0, third.stderr
+        assert "executed" in third.stderr and ", 0 underruns" in third.stderr, third.stderr
+        states = joint_states(tmp_path / "three.mcap")
+        assert list(states[0].position[:3]) == start
+        bed, arm, z = states[-1].position[:3]
+        # (-30, -30) mm: 5π/4 on the turn nearest the start, r = 42.43 mm within a step.
+        assert abs((bed - 5 * math.pi / 4) / (2 * math.pi) - round((bed - 5 * math.pi / 4) / (2 * math.pi))) < 1e-4
+        assert abs(arm - math.hypot(0.03, 0.03)) < 1.3e-5 and z == 0.0
+    finally:
+        emulator.kill()
+        emulator.wait()

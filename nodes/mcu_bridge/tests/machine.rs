@@ -192,13 +192,18 @@ fn a_plan_that_starts_elsewhere_than_the_mcu_stands_is_refused_before_anything_m
     assert_eq!(rig.executed_steps(), end_steps(&segments));
 }
 
-/// A second host session on an MCU a first one left mid-part (as `polar-cell print --device`
-/// run twice): the MCU latched HOST_SILENT when the first host went away and still reports
-/// it, with its position kept. The new session's RESET clears that fault — the states
-/// already on their way when it connects are not taken as a fault of its own — and a plan
-/// from where the MCU stands plays to its end.
-#[test]
-fn a_new_host_session_clears_the_fault_a_departed_host_left_and_prints_from_there() {
+/// An MCU a first host session left: 80 finger moves played, then the host gone for 1.5 s
+/// (past the MCU's 1 s host timeout), so the MCU is latched in HOST_SILENT. Returns the
+/// line, what the MCU said meanwhile (waiting in the line for the next host), the time,
+/// the finger moves, and where the machine stopped (joints and steps).
+fn mcu_a_host_left() -> (
+    InProcess,
+    Vec<u8>,
+    i64,
+    Vec<gcode_streamer::GcodeMove>,
+    [f64; 3],
+    [i64; 3],
+) {
     use cell_protocol::message::Mode;
     use mcu_bridge::McuLink as _;
     let path = concat!(
@@ -239,6 +244,17 @@ fn a_new_host_session_clears_the_fault_a_departed_host_left_and_prints_from_ther
     assert_eq!(core.mode(), Mode::Fault);
     assert_eq!(core.fault(), cell_protocol::message::FaultCode::HostSilent);
     assert!(unread.len() > 1000, "{} bytes waiting", unread.len());
+    (link, unread, now_ns, moves, stop, stop_steps)
+}
+
+/// A second host session on an MCU a first one left mid-part (as `polar-cell print --device`
+/// run twice): the MCU latched HOST_SILENT when the first host went away and still reports
+/// it, with its position kept. The new session's RESET clears that fault — the states
+/// already on their way when it connects are not taken as a fault of its own — and a plan
+/// from where the MCU stands plays to its end.
+#[test]
+fn a_new_host_session_clears_the_fault_a_departed_host_left_and_prints_from_there() {
+    let (mut link, unread, mut now_ns, moves, stop, stop_steps) = mcu_a_host_left();
     // The second host: its plan starts where the first left the machine.
     let mut second = polar_planner::plan_program(
         &moves[80..160],
@@ -308,6 +324,69 @@ impl mcu_bridge::McuLink for Reopened {
     }
     fn write(&mut self, now_ns: i64, bytes: &[u8]) -> Result<(), Self::Error> {
         self.link.write(now_ns, bytes)
+    }
+}
+
+/// A fault the session's RESET does not clear (here: every frame carrying RESET is lost on
+/// the way, so the MCU goes on reporting HOST_SILENT) is the session's fault after the bound
+/// (1 s), with the code: the plan never starts.
+#[test]
+fn a_fault_that_outlasts_the_sessions_reset_ends_it_with_the_reason() {
+    let (link, unread, mut now_ns, _, _, stop_steps) = mcu_a_host_left();
+    let line = LosesResets {
+        line: Reopened { link, unread },
+        lost: 0,
+    };
+    let options = common::session_options();
+    let mut machine = McuMachine::new(mcu_bridge::McuSession::new(options, 0xB0B), line, 64, 2.0)
+        .with_start_steps(stop_steps);
+    let started_ns = now_ns;
+    let error = loop {
+        assert_eq!(machine.free_slots(), (0, 0), "a plan may not start");
+        now_ns += 1_000_000;
+        if let Err(e) = machine.on_tick(now_ns) {
+            break e.to_string();
+        }
+        assert!(now_ns - started_ns < 5_000_000_000, "no error after 5 s");
+    };
+    let after_s = (now_ns - started_ns) as f64 * 1e-9;
+    assert!(
+        error.contains("fault HostSilent did not clear"),
+        "{error} after {after_s} s"
+    );
+    assert!((1.0..1.5).contains(&after_s), "{error} after {after_s} s");
+    assert!(machine.link().lost > 0);
+    assert_eq!(machine.state().state, PlayerState::Stopped);
+}
+
+/// A line that loses every host frame carrying RESET.
+struct LosesResets {
+    line: Reopened,
+    lost: usize,
+}
+
+impl mcu_bridge::McuLink for LosesResets {
+    type Error = std::convert::Infallible;
+    fn read(&mut self, now_ns: i64, into: &mut Vec<u8>) -> Result<(), Self::Error> {
+        self.line.read(now_ns, into)
+    }
+    fn write(&mut self, now_ns: i64, bytes: &[u8]) -> Result<(), Self::Error> {
+        use cell_protocol::message::{host_messages, HostMessage};
+        for frame in bytes.split_inclusive(|&b| b == 0) {
+            let mut decoder = cell_protocol::FrameDecoder::new();
+            let resets = frame.iter().find_map(|&b| match decoder.push(b) {
+                Some(Ok(f)) => {
+                    Some(host_messages(f.payload).any(|m| matches!(m, Ok(HostMessage::Reset))))
+                }
+                _ => None,
+            });
+            if resets == Some(true) {
+                self.lost += 1;
+            } else {
+                self.line.write(now_ns, frame)?;
+            }
+        }
+        Ok(())
     }
 }
 

@@ -161,6 +161,32 @@ fn streamer_start_override(start: Option<[f64; 3]>) -> Vec<ParamOverride> {
         .collect()
 }
 
+/// Where the MCU on `device` stands (bed rad, arm m, z m), asked before the print is planned,
+/// with the bridge's parameters from the same ROS arguments.
+fn mcu_position(device: &str, ros_args: &RosArgs) -> anyhow::Result<[f64; 3]> {
+    let specs = mcu_bridge::node::param_specs();
+    let name = mcu_bridge::node::NODE_NAME;
+    let (_, bridge) =
+        cell_runtime::resolve_node(name, &specs, &args_for(ros_args, name, &specs, vec![]))?;
+    let params = cell_machine::node::MachineParams::from_params(&bridge)?;
+    let options = mcu_bridge::SessionOptions::new(
+        params.steps.steps_per_unit,
+        params.joint_accelerations,
+        params.pin_open_delay_s,
+    );
+    let timeout = Duration::from_secs_f64(bridge.f64("open_timeout_s").max(5.0));
+    let steps =
+        mcu_bridge::node::probe_position(device, bridge.i64("baud") as u32, options, timeout)?;
+    let u = params.steps.steps_per_unit;
+    let joints: [f64; 3] = std::array::from_fn(|j| steps[j] as f64 / u[j]);
+    eprintln!(
+        "MCU on {device} stands at steps {steps:?} (bed {:.6} rad, arm {:.6} m, z {:.6} m): \
+         the print starts there",
+        joints[0], joints[1], joints[2]
+    );
+    Ok(joints)
+}
+
 /// `mcu_emulator` started for one job on a pseudo-terminal, stopped when the job ends.
 struct Emulator {
     child: std::process::Child,
@@ -344,12 +370,23 @@ pub async fn run_job(
             cell_bag::node::NODE_NAME,
         );
     }
+    // A real MCU is where the last print left it (a cancel leaves it mid-part): ask it,
+    // and plan from there.
+    let start_joints = match (options.device.as_deref(), options.execution) {
+        (Some(device), Some(_)) if device != "emulator" && options.start_joints.is_none() => {
+            // A second or so of serial line: off the runtime's threads (`serve` goes on).
+            let (device, args) = (device.to_string(), ros_args.clone());
+            let asked = tokio::task::spawn_blocking(move || mcu_position(&device, &args));
+            Some(asked.await.context("asking the MCU where it stands")??)
+        }
+        _ => options.start_joints,
+    };
     // Before any node starts (no DDS, no bag): the whole file with the parameters the nodes
     // will get.
     let mut machine_time_s = None;
     let mut total_moves = None;
     if options.run_preflight && file != "-" {
-        let (streamer, planner) = preflight_params(ros_args, options.start_joints)?;
+        let (streamer, planner) = preflight_params(ros_args, start_joints)?;
         let started = std::time::Instant::now();
         let report = preflight(file, &streamer, &planner)?;
         eprintln!(
@@ -448,7 +485,7 @@ pub async fn run_job(
     )?;
     let mut ours = planner_overrides(&screw_node.params);
     ours.extend(planner_extra);
-    ours.extend(start_override(options.start_joints));
+    ours.extend(start_override(start_joints));
     if options.execution.is_some() {
         // The planner follows only the machine's credit.
         let args = args_for(ros_args, machine_name, &executor_specs, vec![]);
@@ -467,7 +504,7 @@ pub async fn run_job(
     )?;
     // The machine executes steps and screw commands only from these two nodes.
     let mut executor_overrides = executor_overrides;
-    executor_overrides.extend(start_override(options.start_joints));
+    executor_overrides.extend(start_override(start_joints));
     executor_overrides.extend([
         producer(),
         param(
@@ -547,7 +584,7 @@ pub async fn run_job(
         ros_args,
         [
             vec![param("consumers", consumers)],
-            streamer_start_override(options.start_joints),
+            streamer_start_override(start_joints),
         ]
         .concat(),
     )?;
@@ -621,10 +658,7 @@ pub async fn run_job(
     // Ctrl-C while the machine moves: a controlled stop on the path; a second: stop at once.
     let mut ended = None;
     if executing && matches!(outcome, Err(Stop::Interrupted)) {
-        // A real MCU keeps its position after the job (the virtual machine and an
-        // emulator started for the job end with it).
-        let machine_stays = options.device.as_deref().is_some_and(|d| d != "emulator");
-        ended = Some(stop_machine(&commands, &status, &bar, &io.interrupts, machine_stays).await);
+        ended = Some(stop_machine(&commands, &status, &bar, &io.interrupts).await);
     }
     bar.finish_and_clear();
     if outcome.is_ok() {
@@ -936,7 +970,6 @@ async fn stop_machine(
     status: &tokio::sync::watch::Receiver<cell_machine::node::Status>,
     bar: &ProgressBar,
     interrupts: &tokio::sync::watch::Receiver<u32>,
-    machine_stays: bool,
 ) -> (bool, String) {
     use cell_executor::PlayerState;
     use cell_machine::node::Command;
@@ -982,15 +1015,10 @@ async fn stop_machine(
     } else {
         "cancelled: stopped on the path"
     };
-    // A real machine stays where it stopped: the next print must be planned from there.
-    let again = match machine_stays {
-        true => format!("; to print from here: `--start-joints {bed:?},{arm:?},{z:?}`"),
-        false => String::new(),
-    };
     (
         emergency,
         format!(
-            "{how}{line} after {} of machine time (bed {bed:.6} rad, arm {arm:.6} m, z {z:.6} m){again}",
+            "{how}{line} after {} of machine time (bed {bed:.6} rad, arm {arm:.6} m, z {z:.6} m)",
             clock(s.machine_time_s)
         ),
     )

@@ -104,10 +104,10 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
     let mut finished: Vec<Finished> = Vec::new();
     let mut result_requests: Vec<(RmwRequestId, GoalId)> = Vec::new();
     let mut jobs = 0u32;
-    // Where the machine stands after the last job, for the next plan to start there: the
-    // virtual machine and a real MCU keep their position between goals (a cancelled print
-    // leaves them mid-part); an emulator started per goal powers up at home.
-    let machine_persists = options.device.as_deref() != Some("emulator");
+    // Where the virtual machine stands after the last job, for the next plan to start there
+    // (a cancelled print leaves it mid-part). A real MCU is asked where it stands at each
+    // job's start; an emulator started per goal powers up at home.
+    let machine_persists = options.device.is_none();
     let mut machine_at: Option<[f64; 3]> = None;
     let mut poll = tokio::time::interval(Duration::from_millis(10));
     let mut last_feedback = std::time::Instant::now();

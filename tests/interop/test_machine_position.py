@@ -1,12 +1,13 @@
 """A machine that stays where a print left it: one MCU emulator, three `polar-cell print`
 runs on its pseudo-terminal, as a machine builder with a Pico on /dev/ttyACM0 would run them.
 
-1. a print cancelled with Ctrl-C stops mid-part and says how to print from there;
-2. a print planned from home is refused before its first step, naming where the MCU stands
-   (the first host left it latched in HOST_SILENT: the new session clears that, and does not
-   take the states that waited in the line for a fault of its own);
-3. the same print with `--start-joints` from the message runs to its end, starting exactly
-   where the MCU stands (its bag's first executed joint state) and ending where the file ends.
+1. a print cancelled with Ctrl-C stops mid-part;
+2. a print told to start at home (`--start-joints 0,0,0`) is refused before its first step,
+   naming where the MCU stands (the first host left it latched in HOST_SILENT: the new
+   session clears that, and does not take the states that waited in the line for a fault
+   of its own);
+3. the same print without the option asks the MCU where it stands, runs from exactly there
+   (its bag's first executed joint state) to where the file ends.
 """
 
 import math
@@ -57,15 +58,12 @@ def test_a_print_starts_where_the_mcu_stands_and_refuses_to_start_elsewhere(tmp_
         first.send_signal(signal.SIGINT)
         _, err = first.communicate(timeout=60)
         assert first.returncode == 1, err
-        hint = re.search(r"to print from here: `--start-joints ([^`]+)`", err)
-        assert hint, err
-        start = [float(v) for v in hint.group(1).split(",")]
-        stopped = joint_states(tmp_path / "one.mcap")[-1].position[:3]
-        assert list(stopped) == start, (stopped, start)
+        assert "cancelled: stopped on the path" in err, err
+        start = list(joint_states(tmp_path / "one.mcap")[-1].position[:3])
         assert abs(start[1] - 0.05) < 2e-5 and start[0] > 0.5, start  # mid-circle
 
-        # 2. Planned from home: refused before anything moves.
-        second = subprocess.run(print_on_mcu(short, "two.mcap"), env=env,
+        # 2. Told to start at home: refused before anything moves.
+        second = subprocess.run(print_on_mcu(short, "two.mcap", "--start-joints", "0,0,0"), env=env,
                                 capture_output=True, text=True, timeout=60)
         assert second.returncode == 1, second.stderr
         assert "the MCU stands at steps" in second.stderr, second.stderr
@@ -74,10 +72,12 @@ def test_a_print_starts_where_the_mcu_stands_and_refuses_to_start_elsewhere(tmp_
         moved = [s.position[:3] for s in joint_states(tmp_path / "two.mcap")]
         assert all(list(p) == start for p in moved), "the MCU moved"
 
-        # 3. From where it stands: to the file's end.
-        third = subprocess.run(print_on_mcu(short, "three.mcap", "--start-joints", hint.group(1)),
+        # 3. Asked where it stands: from there to the file's end.
+        third = subprocess.run(print_on_mcu(short, "three.mcap"),
                                env=env, capture_output=True, text=True, timeout=120)
         assert third.returncode == 0, third.stderr
+        assert re.search(r"MCU on \S+ stands at steps \[-?\d+, \d+, \d+\].*the print starts there",
+                         third.stderr), third.stderr
         assert "executed" in third.stderr and ", 0 underruns" in third.stderr, third.stderr
         states = joint_states(tmp_path / "three.mcap")
         assert list(states[0].position[:3]) == start

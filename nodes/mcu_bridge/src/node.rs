@@ -420,6 +420,54 @@ fn session_nonce() -> u32 {
     (t.subsec_nanos() ^ (t.as_secs() as u32).rotate_left(16) ^ std::process::id()) | 1
 }
 
+/// Where the MCU on `spec` stands, in steps of bed, arm and z: a short session of its own
+/// (identify, configure, reset, the clocks, a state reported after the reset) before a print
+/// is planned, so that the plan starts where the machine is. The MCU keeps its position;
+/// the bridge's session that follows resets it again (and clears the HOST_SILENT this one
+/// leaves if it takes longer than the host timeout to come).
+pub fn probe_position(
+    spec: &str,
+    baud: u32,
+    options: SessionOptions,
+    timeout: std::time::Duration,
+) -> anyhow::Result<[i64; 3]> {
+    use cell_machine::Machine as _;
+    let give_up = std::time::Instant::now() + timeout;
+    let (device, name) = loop {
+        match Device::open(spec, baud) {
+            Ok(opened) => break opened,
+            Err(e) if std::time::Instant::now() < give_up && absent(&e) => {
+                std::thread::sleep(std::time::Duration::from_millis(100));
+            }
+            Err(e) => return Err(e),
+        }
+    };
+    let session = McuSession::new(options, session_nonce());
+    let link = SerialLink::new(device, name.clone());
+    // No plan goes to it: a machine with no start to check, a place or two, any horizon.
+    let mut machine = McuMachine::new(session, link, 2, 1.0);
+    let started = std::time::Instant::now();
+    loop {
+        let now_ns = started.elapsed().as_nanos() as i64;
+        machine
+            .on_tick(now_ns)
+            .map_err(|e| anyhow::anyhow!("asking the MCU on {name} where it stands: {e}"))?;
+        // Room for a plan: identified, configured, reset acted on, clocks known, a state.
+        if machine.free_slots().0 > 0 {
+            if let Some(state) = machine.session().state() {
+                return Ok(state.position_steps.map(i64::from));
+            }
+        }
+        if std::time::Instant::now() > give_up {
+            anyhow::bail!(
+                "the MCU on {name} did not say where it stands within {:.1} s",
+                timeout.as_secs_f64()
+            );
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+}
+
 /// Run the bridge on `node` until an error: the MCU on `device` is the machine.
 pub async fn run(
     node: &mut CellNode,

@@ -212,6 +212,12 @@ pub fn recover<W: Write + Seek>(
         },
         _ => return Err(BagError::NotRos2("no MCAP header record".into())),
     };
+    // What is not a rosbag2 bag is not salvaged into one (the reader would refuse it).
+    if profile != "ros2" {
+        return Err(BagError::NotRos2(format!(
+            "header profile is `{profile}`, not `ros2`"
+        )));
+    }
     let writer = crate::writer::mcap_options(
         options,
         &profile,

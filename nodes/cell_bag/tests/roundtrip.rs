@@ -105,6 +105,32 @@ fn non_ros2_and_truncated_files_are_errors() {
     assert!(read_bag(b"not an mcap file at all").is_err());
 }
 
+/// Found by fuzzing (tests/fuzz, target bag): an MCAP file whose header's profile is not
+/// `ros2` was "recovered" into a bag with that profile, which the reader then refused. It is
+/// refused at once, with the profile.
+#[test]
+fn recovering_a_file_that_is_no_ros2_bag_is_an_error() {
+    let input = b"\x89MCAP0\r\n\x01\x26\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\xff\0\xe7\xe5\xe5P#####0\r\n\x06&#\0\0\0\0\xff\0\xe7\xe5\xe5P#####0\r\n\x06&#";
+    let mut out = std::io::Cursor::new(Vec::new());
+    let error = cell_bag::recover(input, &mut out, &cell_bag::WriterOptions::default())
+        .expect_err("no ros2 bag")
+        .to_string();
+    assert!(
+        error.contains("header profile is ``, not `ros2`"),
+        "{error}"
+    );
+    // A ros2 bag cut in half is still salvaged into one that reads.
+    let bytes = write_sample(Compression::Zstd);
+    let mut out = std::io::Cursor::new(Vec::new());
+    cell_bag::recover(
+        &bytes[..bytes.len() / 2],
+        &mut out,
+        &cell_bag::WriterOptions::default(),
+    )
+    .unwrap();
+    read_bag(&out.into_inner()).unwrap();
+}
+
 /// Found by fuzzing (tests/fuzz, target bag): an attachment record whose body holds its
 /// header but not the CRC after it makes `mcap` 0.26 panic (slice index out of range). The
 /// reader answers with an error instead.

@@ -190,12 +190,7 @@ impl MachineParams {
                 timer_hz: p.f64("step_timer_hz"),
             },
             joint_accelerations: three("joint_accelerations")?,
-            initial_joints: match *p.f64s("initial_joints") {
-                [bed, arm, z] if [bed, arm, z].iter().all(|x| x.is_finite()) => [bed, arm, z],
-                ref other => anyhow::bail!(
-                    "parameter initial_joints needs 3 finite values (bed rad, arm m, z m), got {other:?}"
-                ),
-            },
+            initial_joints: p.finite3("initial_joints", "bed rad, arm m, z m")?,
             pin_open_delay_s: p.f64("pin_open_delay_s"),
             screw_hold,
             queue_capacity: p.i64("queue_capacity") as usize,
@@ -205,9 +200,7 @@ impl MachineParams {
             urdf,
         })
     }
-}
 
-impl MachineParams {
     /// The step counts of [`MachineParams::initial_joints`], rounded as the planner's step
     /// generator rounds its start, so the machine's counts and the plan's agree.
     pub fn initial_steps(&self) -> [i64; 3] {

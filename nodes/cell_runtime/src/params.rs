@@ -241,6 +241,18 @@ impl Params {
             other => panic!("parameter {name} is not a declared double array: {other:?}"),
         }
     }
+
+    /// A double array that must hold a position: exactly three finite values, `axes` naming
+    /// them for the message (e.g. "bed rad, arm m, z m").
+    pub fn finite3(&self, name: &str, axes: &str) -> Result<[f64; 3], ParamError> {
+        match *self.f64s(name) {
+            [a, b, c] if [a, b, c].iter().all(|v| v.is_finite()) => Ok([a, b, c]),
+            ref other => Err(ParamError::Invalid {
+                name: name.to_string(),
+                problem: format!("needs 3 finite values ({axes}), got {other:?}"),
+            }),
+        }
+    }
 }
 
 fn selector_matches(selector: &str, fqn: &str) -> bool {
@@ -382,6 +394,28 @@ mod tests {
             ParamSpec::new("consumers", ParamValue::StringArray(vec![]), "who acks"),
             ParamSpec::new("limits.v", ParamValue::DoubleArray(vec![1.0]), "nested"),
         ]
+    }
+
+    #[test]
+    fn a_position_is_three_finite_values() {
+        let at = |value: &str| {
+            Params::resolve(&specs(), "/streamer", &[], &[o(None, "limits.v", value)])
+                .unwrap()
+                .finite3("limits.v", "x, y, z")
+        };
+        assert_eq!(at("[1.5, -2, 0.25]").unwrap(), [1.5, -2.0, 0.25]);
+        for bad in [
+            "[1.0, 2.0]",
+            "[1.0, 2.0, 3.0, 4.0]",
+            "[1.0, .nan, 3.0]",
+            "[.inf, 0.0, 0.0]",
+        ] {
+            let error = at(bad).expect_err(bad).to_string();
+            assert!(
+                error.contains("parameter `limits.v`: needs 3 finite values (x, y, z), got"),
+                "{bad}: {error}"
+            );
+        }
     }
 
     fn o(node: Option<&str>, name: &str, value: &str) -> ParamOverride {

@@ -111,12 +111,7 @@ pub fn interpreter_options(params: &Params) -> anyhow::Result<InterpreterOptions
             home.len()
         );
     }
-    let start = match *params.f64s("start_position_mm") {
-        [x, y, z] if [x, y, z].iter().all(|v| v.is_finite()) => [x, y, z],
-        ref other => {
-            bail!("parameter start_position_mm needs 3 finite values (x, y, z), got {other:?}")
-        }
-    };
+    let start = params.finite3("start_position_mm", "x, y, z")?;
     Ok(InterpreterOptions {
         arc_tolerance_mm: params.f64("arc_tolerance_mm"),
         default_feedrate_mm_per_min: params.f64("default_feedrate_mm_per_min"),

@@ -344,7 +344,7 @@ impl<L: McuLink> Machine for McuMachine<L> {
 
     fn on_segment(&mut self, msg: &StepSegment) -> Result<(), Self::Error> {
         if let Some(plan_steps) = self.start_steps {
-            // free_slots offers no room before a report, so there is one.
+            // free_slots offers no room before a report (`is_ready`), so there is one.
             let mcu_steps = self.session.state().map_or([0; 3], |s| s.position_steps);
             let mcu_steps = mcu_steps.map(i64::from);
             if mcu_steps != plan_steps {
@@ -390,11 +390,7 @@ impl<L: McuLink> Machine for McuMachine<L> {
     fn free_slots(&self) -> (usize, usize) {
         // Nothing until the MCU is identified, configured and its clock known: the schedule
         // needs its timer and its clock.
-        if !self.session.is_ready()
-            || self.session.state().is_none()
-            || self.session_error().is_some()
-            || self.estop_requested
-        {
+        if !self.session.is_ready() || self.session_error().is_some() || self.estop_requested {
             return (0, 0);
         }
         let (segments, screw) = self.session.waiting();

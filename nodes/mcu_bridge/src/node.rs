@@ -412,6 +412,25 @@ fn absent(e: &anyhow::Error) -> bool {
         })
 }
 
+/// Open the device, looking for it for up to `timeout`: it may appear a moment after we
+/// start (a USB MCU enumerating, an emulator binding its socket).
+fn open_waiting(
+    spec: &str,
+    baud: u32,
+    timeout: std::time::Duration,
+) -> anyhow::Result<(Device, String)> {
+    let give_up = std::time::Instant::now() + timeout;
+    loop {
+        match Device::open(spec, baud) {
+            Ok(opened) => return Ok(opened),
+            Err(e) if std::time::Instant::now() < give_up && absent(&e) => {
+                std::thread::sleep(std::time::Duration::from_millis(100));
+            }
+            Err(e) => return Err(e),
+        }
+    }
+}
+
 /// A nonce for this host session (the MCU learns from it that the host restarted).
 fn session_nonce() -> u32 {
     let t = std::time::SystemTime::now()
@@ -433,18 +452,10 @@ pub fn probe_position(
 ) -> anyhow::Result<[i64; 3]> {
     use cell_machine::Machine as _;
     let give_up = std::time::Instant::now() + timeout;
-    let (device, name) = loop {
-        match Device::open(spec, baud) {
-            Ok(opened) => break opened,
-            Err(e) if std::time::Instant::now() < give_up && absent(&e) => {
-                std::thread::sleep(std::time::Duration::from_millis(100));
-            }
-            Err(e) => return Err(e),
-        }
-    };
+    let (device, name) = open_waiting(spec, baud, timeout)?;
     let session = McuSession::new(options, session_nonce());
     let link = SerialLink::new(device, name.clone());
-    // No plan goes to it: a machine with no start to check, a place or two, any horizon.
+    // No plan goes to it (so its start is never checked): a place or two, any horizon.
     let mut machine = McuMachine::new(session, link, 2, 1.0);
     let started = std::time::Instant::now();
     loop {
@@ -483,19 +494,10 @@ pub async fn run(
         );
     }
     let baud = node.params.i64("baud") as u32;
-    // A device may appear a moment after the bridge starts (a USB MCU enumerating, an
-    // emulator binding its socket): look for it for up to `open_timeout_s`.
-    let give_up = std::time::Instant::now()
-        + std::time::Duration::from_secs_f64(node.params.f64("open_timeout_s"));
-    let (device, name) = loop {
-        match Device::open(&spec, baud) {
-            Ok(opened) => break opened,
-            Err(e) if std::time::Instant::now() < give_up && absent(&e) => {
-                tokio::time::sleep(std::time::Duration::from_millis(100)).await;
-            }
-            Err(e) => return Err(e),
-        }
-    };
+    let timeout = std::time::Duration::from_secs_f64(node.params.f64("open_timeout_s"));
+    // Waiting for the device blocks: off the runtime's threads.
+    let (device, name) =
+        tokio::task::spawn_blocking(move || open_waiting(&spec, baud, timeout)).await??;
     cell_runtime::cell_log!(node, LogLevel::Info, "MCU on {name}");
     let session = McuSession::new(session_options(node, &params), session_nonce());
     let link = SerialLink::new(device, name);

@@ -206,14 +206,7 @@ fn mcu_a_host_left() -> (
 ) {
     use cell_protocol::message::Mode;
     use mcu_bridge::McuLink as _;
-    let path = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../shared/fixtures/gcode/finger.gcode"
-    );
-    let src = std::fs::read(path).unwrap();
-    let moves = gcode_streamer::parse_all(&src, "finger.gcode", Default::default())
-        .unwrap()
-        .0;
+    let moves = common::finger_moves();
     let first = polar_planner::plan_program(
         &moves[..80],
         PlannerOptions::default(),

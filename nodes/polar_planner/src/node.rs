@@ -89,16 +89,6 @@ fn three(params: &Params, name: &str) -> anyhow::Result<[f64; 3]> {
     Ok([v[0], v[1], v[2]])
 }
 
-/// The `initial_joints` parameter (the planner checks them against the joint limits).
-pub fn initial_joints(params: &Params) -> anyhow::Result<[f64; 3]> {
-    match params.f64s("initial_joints") {
-        &[bed, arm, z] if [bed, arm, z].iter().all(|x| x.is_finite()) => Ok([bed, arm, z]),
-        other => anyhow::bail!(
-            "parameter initial_joints needs 3 finite values (bed rad, arm m, z m), got {other:?}"
-        ),
-    }
-}
-
 /// Planner and step options from the node's parameters and the URDF.
 pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, StepOptions)> {
     let urdf_text = match params.string("urdf_file") {
@@ -122,7 +112,8 @@ pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, S
         lookahead_blocks: params.i64("lookahead_blocks") as usize,
         homing_speed_m_per_s: params.f64("homing_speed_m_per_s"),
         acceleration_safety: params.f64("acceleration_safety"),
-        initial_joints: initial_joints(params)?,
+        // Checked against the joint limits by the planner.
+        initial_joints: params.finite3("initial_joints", "bed rad, arm m, z m")?,
         pin_open_dwell_s: params.f64("pin_open_dwell_s"),
         screw: match params.f64("screw_max_rpm") {
             max_rpm if max_rpm > 0.0 => Some(crate::ScrewLimits {

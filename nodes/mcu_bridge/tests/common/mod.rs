@@ -6,7 +6,7 @@
 use std::convert::Infallible;
 
 use cell_firmware_core::StepEdge;
-use gcode_streamer::{parse_all, InterpreterOptions};
+use gcode_streamer::{parse_all, GcodeMove, InterpreterOptions};
 use mcu_bridge::{McuLink, McuMachine, McuSession, SessionOptions};
 use mcu_emulator::{Crystal, Emulator, EmulatorOptions};
 use polar_cell_msgs::{StepSegment, Time};
@@ -36,15 +36,20 @@ impl McuLink for InProcess {
 
 pub const EPOCH_NS: i64 = 1_700_000_000_000_000_000;
 
-pub fn finger_start(moves: usize) -> Vec<StepSegment> {
+/// Every move of finger.gcode.
+pub fn finger_moves() -> Vec<GcodeMove> {
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/../../../shared/fixtures/gcode/finger.gcode"
     );
     let src = std::fs::read(path).unwrap();
-    let mut all = parse_all(&src, "finger.gcode", InterpreterOptions::default())
+    parse_all(&src, "finger.gcode", InterpreterOptions::default())
         .unwrap()
-        .0;
+        .0
+}
+
+pub fn finger_start(moves: usize) -> Vec<StepSegment> {
+    let mut all = finger_moves();
     all.truncate(moves);
     let mut segments = plan_program(&all, PlannerOptions::default(), StepOptions::default())
         .unwrap()

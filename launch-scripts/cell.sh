@@ -5,7 +5,8 @@
 # the script ends once it has executed all of it.
 # With POLAR_CELL_DEVICE set the machine is a microcontroller behind mcu_bridge instead of the
 # virtual executor: a serial line (/dev/ttyACM0, unix:/path), or `emulator` to start
-# mcu_emulator on a Unix socket at the same speed.
+# mcu_emulator on a Unix socket at the same speed. A real MCU is asked first where it stands
+# (`polar-cell mcu-position`; a cancelled print leaves it mid-part), and the plan starts there.
 # Binaries come from target/release (build with `cargo build --release --workspace`) or from
 # $POLAR_CELL_BIN_DIR. Extra ROS arguments for every node can go in $POLAR_CELL_ROS_ARGS.
 set -euo pipefail
@@ -22,14 +23,27 @@ speed=${POLAR_CELL_SPEED:-1.0}
 device=${POLAR_CELL_DEVICE:-}
 machine=cell_executor
 [[ -n $device ]] && machine=mcu_bridge
-for b in bag_recorder polar_planner screw_driver $machine gcode_streamer; do
+tools=(bag_recorder polar_planner screw_driver $machine gcode_streamer)
+[[ -n $device && $device != emulator ]] && tools+=(polar-cell)
+for b in "${tools[@]}"; do
   [[ -x $bin/$b ]] || { echo "$bin/$b missing: cargo build --release --workspace" >&2; exit 1; }
 done
+# Where the plan starts: home, or where a real MCU stands (the planner and the machine take
+# `initial_joints`, the streamer `start_position_mm`; POLAR_CELL_ROS_ARGS still wins).
+start_joints=()
+start_position=()
+if [[ -n $device && $device != emulator ]]; then
+  # shellcheck disable=SC2086
+  start_text=$("$bin/polar-cell" mcu-position --device "$device" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-})
+  mapfile -t start <<<"$start_text"
+  start_joints=(-p "${start[0]}")
+  start_position=(-p "${start[1]}")
+fi
 # shellcheck disable=SC2086
 "$bin/bag_recorder" --ros-args --params-file "$params" -p "output:=$bag" ${POLAR_CELL_ROS_ARGS:-} &
 recorder=$!
 # shellcheck disable=SC2086
-"$bin/polar_planner" --ros-args --params-file "$params" -p "credit_producer:=$machine" ${POLAR_CELL_ROS_ARGS:-} &
+"$bin/polar_planner" --ros-args --params-file "$params" -p "credit_producer:=$machine" "${start_joints[@]}" ${POLAR_CELL_ROS_ARGS:-} &
 planner=$!
 # shellcheck disable=SC2086
 "$bin/screw_driver" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &
@@ -42,7 +56,7 @@ if [[ $device == emulator ]]; then
   emulator=$!
   device=unix:$socket
 fi
-machine_args=(-p "speed:=$speed" -p exit_when_done:=true)
+machine_args=(-p "speed:=$speed" -p exit_when_done:=true "${start_joints[@]}")
 [[ -n $device ]] && machine_args+=(-p "device:=$device")
 # shellcheck disable=SC2086
 "$bin/$machine" --ros-args --params-file "$params" "${machine_args[@]}" ${POLAR_CELL_ROS_ARGS:-} &
@@ -60,7 +74,7 @@ stop_nodes() {
 }
 trap stop_nodes EXIT
 # shellcheck disable=SC2086
-"$bin/gcode_streamer" "$gcode" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-} &
+"$bin/gcode_streamer" "$gcode" --ros-args --params-file "$params" "${start_position[@]}" ${POLAR_CELL_ROS_ARGS:-} &
 streamer=$!
 # The print ends with the machine: at the end of the plan, or with an error at a fault (a
 # node of the graph restarted mid-print, the MCU lost) while the streamer may still wait. A

@@ -98,6 +98,19 @@ enum Command {
         #[arg(long, value_parser = parse_joints, allow_hyphen_values = true)]
         start_joints: Option<[f64; 3]>,
     },
+    /// Ask a microcontroller where it stands (a short session of its own, as `print --device`
+    /// does first) and print, one per line, the parameters that start a plan there:
+    /// `initial_joints:=[…]` (the planner and the machine) and `start_position_mm:=[…]` (the
+    /// streamer). For graphs started node by node: `launch-scripts/cell.sh` uses it, and
+    /// `ros2 launch launch-scripts/cell_mcu.launch.xml … $(polar-cell mcu-position --device
+    /// DEV)` takes them as launch arguments.
+    McuPosition {
+        /// The MCU's serial line: a tty such as /dev/ttyACM0, a pseudo-terminal's path, or
+        /// unix:/path. The bridge's parameters (`baud`, steps per unit, …) come from
+        /// `--ros-args`.
+        #[arg(long)]
+        device: String,
+    },
     /// Plot r, θ, tool speed and screw rpm against time from a recorded print.
     Plot {
         /// The bag (file or directory).
@@ -279,6 +292,20 @@ async fn main() -> anyhow::Result<()> {
             parse_only,
             start_joints,
         } => print_cmd::check(&file, parse_only, start_joints, &ros_args),
+        Command::McuPosition { device } => {
+            let joints =
+                tokio::task::spawn_blocking(move || print_cmd::mcu_position(&device, &ros_args))
+                    .await??;
+            println!(
+                "initial_joints:={}",
+                print_cmd::initial_joints_value(joints)
+            );
+            println!(
+                "start_position_mm:={}",
+                print_cmd::start_position_value(joints)
+            );
+            Ok(())
+        }
         Command::Plot { bag, out } => plot_cmd::plot(&bag, &out),
         Command::Mechanism { command } => mechanism_cmd::run(command),
         Command::Screw { command } => screw_cmd::run(command),

@@ -85,19 +85,43 @@ fn stopped(
     }
 }
 
-/// Every global `-p` must be declared by at least one node (unknown parameters are errors).
-fn check_global_params(ros_args: &RosArgs, all_specs: &[&[ParamSpec]]) -> anyhow::Result<()> {
-    for p in ros_args.params.iter().filter(|p| p.node.is_none()) {
-        if !all_specs
-            .iter()
-            .any(|specs| specs.iter().any(|s| s.name == p.name))
-        {
-            bail!(
-                "-p {}:={}: no node of this process declares `{}`",
-                p.name,
-                p.value_yaml,
-                p.name
-            );
+/// Every `-p` must reach a node of this process that declares it: a global one at least one
+/// node, a scoped one (`-p NODE:NAME:=V`) that node (unknown parameters are errors; a scoped
+/// one for a node this print does not run, `cell_executor` on a print with `--device` say,
+/// would otherwise be dropped without a word).
+fn check_params(ros_args: &RosArgs, nodes: &[(&str, &[ParamSpec])]) -> anyhow::Result<()> {
+    let declares = |specs: &[ParamSpec], name: &str| specs.iter().any(|s| s.name == name);
+    for p in &ros_args.params {
+        match &p.node {
+            None => {
+                if !nodes.iter().any(|(_, specs)| declares(specs, &p.name)) {
+                    bail!(
+                        "-p {}:={}: no node of this process declares `{}`",
+                        p.name,
+                        p.value_yaml,
+                        p.name
+                    );
+                }
+            }
+            Some(node) => match nodes.iter().find(|(name, _)| name == node) {
+                None => bail!(
+                    "-p {node}:{}:={}: this print runs no node `{node}` (its nodes: {})",
+                    p.name,
+                    p.value_yaml,
+                    nodes
+                        .iter()
+                        .map(|(name, _)| *name)
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+                Some((_, specs)) if !declares(specs, &p.name) => bail!(
+                    "-p {node}:{}:={}: node `{node}` declares no parameter `{}`",
+                    p.name,
+                    p.value_yaml,
+                    p.name
+                ),
+                Some(_) => {}
+            },
         }
     }
     Ok(())
@@ -141,29 +165,38 @@ pub struct PrintOptions {
     pub start_joints: Option<[f64; 3]>,
 }
 
+/// The planner's and the machine's `initial_joints` (bed rad, arm m, z m) for a start
+/// position, as a parameter value (without spaces: one shell word, for `ros2 launch`).
+pub fn initial_joints_value([bed, arm, z]: [f64; 3]) -> String {
+    format!("[{bed:?},{arm:?},{z:?}]")
+}
+
+/// The streamer's `start_position_mm` for a start position, as a parameter value: the
+/// G-code starts where the tool stands, as the plan does.
+pub fn start_position_value(joints: [f64; 3]) -> String {
+    let [x, y, z] = polar_planner::path::forward(joints).map(|v| v * 1e3);
+    format!("[{x:?},{y:?},{z:?}]")
+}
+
 /// The `initial_joints` parameter of the planner and the machine for a start position.
 fn start_override(start: Option<[f64; 3]>) -> Vec<ParamOverride> {
     start
-        .map(|[bed, arm, z]| param("initial_joints", format!("[{bed:?}, {arm:?}, {z:?}]")))
+        .map(|joints| param("initial_joints", initial_joints_value(joints)))
         .into_iter()
         .collect()
 }
 
-/// The streamer's `start_position_mm` for a start position: the G-code starts where the
-/// tool stands, as the plan does.
+/// The streamer's `start_position_mm` for a start position.
 fn streamer_start_override(start: Option<[f64; 3]>) -> Vec<ParamOverride> {
     start
-        .map(|joints| {
-            let [x, y, z] = polar_planner::path::forward(joints).map(|v| v * 1e3);
-            param("start_position_mm", format!("[{x:?}, {y:?}, {z:?}]"))
-        })
+        .map(|joints| param("start_position_mm", start_position_value(joints)))
         .into_iter()
         .collect()
 }
 
 /// Where the MCU on `device` stands (bed rad, arm m, z m), asked before the print is planned,
 /// with the bridge's parameters from the same ROS arguments.
-fn mcu_position(device: &str, ros_args: &RosArgs) -> anyhow::Result<[f64; 3]> {
+pub fn mcu_position(device: &str, ros_args: &RosArgs) -> anyhow::Result<[f64; 3]> {
     let specs = mcu_bridge::node::param_specs();
     let name = mcu_bridge::node::NODE_NAME;
     let (_, bridge) =
@@ -180,8 +213,7 @@ fn mcu_position(device: &str, ros_args: &RosArgs) -> anyhow::Result<[f64; 3]> {
     let u = params.steps.steps_per_unit;
     let joints: [f64; 3] = std::array::from_fn(|j| steps[j] as f64 / u[j]);
     eprintln!(
-        "MCU on {device} stands at steps {steps:?} (bed {:.6} rad, arm {:.6} m, z {:.6} m): \
-         the print starts there",
+        "MCU on {device} stands at steps {steps:?} (bed {:.6} rad, arm {:.6} m, z {:.6} m)",
         joints[0], joints[1], joints[2]
     );
     Ok(joints)
@@ -342,14 +374,14 @@ pub async fn run_job(
             cell_executor::node::param_specs(),
         ),
     };
-    check_global_params(
+    check_params(
         ros_args,
         &[
-            &recorder_specs,
-            &streamer_specs,
-            &planner_specs,
-            &screw_specs,
-            &executor_specs,
+            (cell_bag::node::NODE_NAME, &recorder_specs),
+            (gcode_streamer::node::NODE_NAME, &streamer_specs),
+            (polar_planner::node::NODE_NAME, &planner_specs),
+            (screw_driver::node::NODE_NAME, &screw_specs),
+            (machine_name, &executor_specs),
         ],
     )?;
     // The nodes of one process share its command line: an unprefixed node rename would give
@@ -377,7 +409,9 @@ pub async fn run_job(
             // A second or so of serial line: off the runtime's threads (`serve` goes on).
             let (device, args) = (device.to_string(), ros_args.clone());
             let asked = tokio::task::spawn_blocking(move || mcu_position(&device, &args));
-            Some(asked.await.context("asking the MCU where it stands")??)
+            let joints = asked.await.context("asking the MCU where it stands")??;
+            eprintln!("The print starts where the MCU stands.");
+            Some(joints)
         }
         _ => options.start_joints,
     };
@@ -1155,4 +1189,59 @@ pub fn check(
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scoped(node: Option<&str>, name: &str) -> RosArgs {
+        RosArgs {
+            params: vec![ParamOverride {
+                node: node.map(str::to_string),
+                name: name.to_string(),
+                value_yaml: "1".to_string(),
+            }],
+            ..RosArgs::default()
+        }
+    }
+
+    fn check(args: &RosArgs) -> Result<(), String> {
+        let planner = polar_planner::node::param_specs();
+        let bridge = mcu_bridge::node::param_specs();
+        check_params(
+            args,
+            &[
+                (polar_planner::node::NODE_NAME, &planner),
+                (mcu_bridge::node::NODE_NAME, &bridge),
+            ],
+        )
+        .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn parameters_reach_a_node_that_declares_them_or_are_refused() {
+        assert_eq!(check(&scoped(None, "horizon_s")), Ok(()));
+        assert_eq!(check(&scoped(Some("mcu_bridge"), "horizon_s")), Ok(()));
+        assert_eq!(
+            check(&scoped(None, "windw")),
+            Err("-p windw:=1: no node of this process declares `windw`".to_string())
+        );
+        // A print on an MCU runs no virtual executor: its parameter would be lost.
+        assert_eq!(
+            check(&scoped(Some("cell_executor"), "service_mapping")),
+            Err(
+                "-p cell_executor:service_mapping:=1: this print runs no node \
+                 `cell_executor` (its nodes: polar_planner, mcu_bridge)"
+                    .to_string()
+            )
+        );
+        assert_eq!(
+            check(&scoped(Some("polar_planner"), "baud")),
+            Err(
+                "-p polar_planner:baud:=1: node `polar_planner` declares no parameter `baud`"
+                    .to_string()
+            )
+        );
+    }
 }

@@ -7,7 +7,10 @@ runs on its pseudo-terminal, as a machine builder with a Pico on /dev/ttyACM0 wo
    session clears that, and does not take the states that waited in the line for a fault
    of its own);
 3. the same print without the option asks the MCU where it stands, runs from exactly there
-   (its bag's first executed joint state) to where the file ends.
+   (its bag's first executed joint state) to where the file ends;
+4. `polar-cell mcu-position` tells the parameters that start a plan there, and
+   `launch-scripts/cell.sh` (one process per node) uses them: its print starts at the third
+   one's end.
 """
 
 import math
@@ -20,7 +23,7 @@ import time
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from conftest import binary
+from conftest import BIN_DIR, ROOT, binary
 
 DOMAIN = 71
 
@@ -76,8 +79,8 @@ def test_a_print_starts_where_the_mcu_stands_and_refuses_to_start_elsewhere(tmp_
         third = subprocess.run(print_on_mcu(short, "three.mcap"),
                                env=env, capture_output=True, text=True, timeout=120)
         assert third.returncode == 0, third.stderr
-        assert re.search(r"MCU on \S+ stands at steps \[-?\d+, \d+, \d+\].*the print starts there",
-                         third.stderr), third.stderr
+        assert re.search(r"MCU on \S+ stands at steps \[-?\d+, \d+, \d+\]", third.stderr), third.stderr
+        assert "The print starts where the MCU stands." in third.stderr, third.stderr
         assert "executed" in third.stderr and ", 0 underruns" in third.stderr, third.stderr
         states = joint_states(tmp_path / "three.mcap")
         assert list(states[0].position[:3]) == start
@@ -85,6 +88,31 @@ def test_a_print_starts_where_the_mcu_stands_and_refuses_to_start_elsewhere(tmp_
         # (-30, -30) mm: 5π/4 on the turn nearest the start, r = 42.43 mm within a step.
         assert abs((bed - 5 * math.pi / 4) / (2 * math.pi) - round((bed - 5 * math.pi / 4) / (2 * math.pi))) < 1e-4
         assert abs(arm - math.hypot(0.03, 0.03)) < 1.3e-5 and z == 0.0
+
+        # 4. Node by node: asked by `mcu-position`, which cell.sh runs before its nodes.
+        end = [bed, arm, z]
+        asked = subprocess.run([str(binary("polar-cell")), "mcu-position", "--device", pty],
+                               env=env, capture_output=True, text=True, timeout=60)
+        assert asked.returncode == 0, asked.stderr
+        lines = asked.stdout.splitlines()
+        assert lines[0] == f"initial_joints:=[{bed!r},{arm!r},{z!r}]", asked.stdout
+        x_mm, y_mm, z_mm = (float(v) for v in lines[1].removeprefix("start_position_mm:=[")
+                            .removesuffix("]").split(","))
+        assert math.hypot(x_mm + 30, y_mm + 30) < 0.02 and z_mm == 0.0, lines[1]
+        up = tmp_path / "up.gcode"
+        up.write_text("G1 X0 Y40 F3000\n")
+        launched = subprocess.run(
+            [str(ROOT / "launch-scripts" / "cell.sh"), str(up), str(tmp_path / "four.mcap")],
+            env=dict(env, POLAR_CELL_BIN_DIR=str(BIN_DIR), POLAR_CELL_DEVICE=pty,
+                     POLAR_CELL_SPEED="2"),
+            capture_output=True, text=True, timeout=120)
+        assert launched.returncode == 0, launched.stderr
+        states = joint_states(tmp_path / "four.mcap")
+        assert list(states[0].position[:3]) == end
+        bed, arm, z = states[-1].position[:3]
+        # (0, 40) mm: π/2 on the turn nearest 5π/4, r = 40 mm within a step.
+        assert abs((bed - math.pi / 2) / (2 * math.pi) - round((bed - math.pi / 2) / (2 * math.pi))) < 1e-4
+        assert abs(bed - end[0]) < math.pi and abs(arm - 0.04) < 1.3e-5 and z == 0.0
     finally:
         emulator.kill()
         emulator.wait()

@@ -55,8 +55,8 @@ pub fn param_specs() -> Vec<ParamSpec> {
         .range(0.0, 600.0),
         ParamSpec::new(
             "baud",
-            ParamValue::Integer(115_200),
-            "line speed of a tty (ignored by USB CDC and pseudo-terminals)",
+            ParamValue::Integer(921_600),
+            "line speed of a tty: the firmware's UART0 runs at 921600 (ignored by USB CDC and pseudo-terminals)",
         )
         .range(1200.0, 4e6),
         ParamSpec::new(

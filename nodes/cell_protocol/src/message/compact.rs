@@ -323,6 +323,15 @@ impl CompactReader<'_> {
     fn varint(&mut self, field: &'static str) -> Result<u32, MessageError> {
         use unsigned_varint::decode::Error;
         match unsigned_varint::decode::u32(self.rest) {
+            // unsigned-varint takes a fifth byte's bits above bit 31 and drops them: such a
+            // varint exceeds 32 bits, and reading it as a smaller value would give the
+            // message a second encoding (found by a property test).
+            Ok((_, tail)) if self.rest.len() - tail.len() == 5 && self.rest[4] > 0x0F => {
+                Err(MessageError::BadVarint {
+                    kind: self.kind,
+                    field,
+                })
+            }
             Ok((value, tail)) => {
                 self.rest = tail;
                 Ok(value)

@@ -376,6 +376,38 @@ proptest! {
         }
     }
 
+    /// Random bytes seldom form a whole message, so the one-encoding rule is also checked
+    /// on valid messages with one byte changed: whatever still decodes re-encodes to exactly
+    /// those bytes (a one-phase segment sent as NEXT_SEGMENT, a non-minimal varint or word,
+    /// a tag step given that has a code: each must be refused, not taken in a second form).
+    #[test]
+    fn a_changed_byte_decodes_to_its_one_encoding_or_errors(
+        m in any_host_message(),
+        at in any::<prop::sample::Index>(),
+        change in 1u8..=255,
+    ) {
+        let mut bytes = encode_host(&m);
+        let i = at.index(bytes.len());
+        bytes[i] ^= change;
+        if let Ok(decoded) = HostMessage::decode(&bytes) {
+            prop_assert_eq!(encode_host(&decoded), bytes);
+        }
+    }
+
+    #[test]
+    fn a_changed_byte_of_an_mcu_message_decodes_to_its_one_encoding_or_errors(
+        m in any_mcu_message(),
+        at in any::<prop::sample::Index>(),
+        change in 1u8..=255,
+    ) {
+        let mut bytes = encode_mcu(&m);
+        let i = at.index(bytes.len());
+        bytes[i] ^= change;
+        if let Ok(decoded) = McuMessage::decode(&bytes) {
+            prop_assert_eq!(encode_mcu(&decoded), bytes);
+        }
+    }
+
     #[test]
     fn truncated_messages_are_length_errors(m in any_host_message(), fraction in 0.0f64..1.0) {
         let bytes = encode_host(&m);
@@ -504,15 +536,62 @@ fn next_segment_layout_is_the_documented_one() {
         })
     ));
     general[10] = 0x01; // 172 accelerating, 128 cruising: a general segment
-    assert!(HostMessage::decode(&general).is_ok());
+    let general_segment = Segment {
+        accelerate_steps: 172,
+        cruise_steps: 128,
+        decelerate_steps: 0,
+        ..segment
+    };
+    assert_eq!(
+        HostMessage::decode(&general),
+        Ok(HostMessage::NextSegment(
+            NextSegment::new(40_000, 1, 0, general_segment).unwrap()
+        ))
+    );
     // Refused: tag code 3, a given tag step of 1 (it has a code), a phase kind without steps.
     let mut bad = bytes.clone();
     bad[1] |= 0b1100_0000;
-    assert!(HostMessage::decode(&bad).is_err());
-    assert!(HostMessage::decode(&[0x12, 0b1000_0000, 1, 1, 0, 0, 0]).is_err());
-    assert!(HostMessage::decode(&[0x12, 0b1000_0000, 1, 2, 0, 0, 0]).is_ok());
-    assert!(HostMessage::decode(&[0x15, 0, 1, 0, 0, 0]).is_err());
-    assert!(HostMessage::decode(&[0x12, 0, 1, 0, 0, 0]).is_ok());
+    let refused = |kind: u8, field: &'static str, value: u32| {
+        Err(MessageError::BadValue {
+            kind,
+            field,
+            value: value.into(),
+        })
+    };
+    assert_eq!(
+        HostMessage::decode(&bad),
+        refused(0x14, "head", 0b1101_0010)
+    );
+    assert_eq!(
+        HostMessage::decode(&[0x12, 0b1000_0000, 1, 1, 0, 0, 0]),
+        refused(0x12, "tag_step", 1)
+    );
+    assert_eq!(
+        HostMessage::decode(&[0x15, 0, 1, 0, 0, 0]),
+        refused(0x15, "dominant steps", 0)
+    );
+    // Accepted: the same with a tag step of 2, and with tag code 0 (the next move): timed
+    // rests of one tick.
+    let rest = |tag_step| {
+        let none = Segment {
+            step_counts: [0; 3],
+            negative_mask: 0,
+            dominant_axis: 0,
+            accelerate_steps: 0,
+            cruise_steps: 0,
+            decelerate_steps: 0,
+            first_period_q32: 0,
+            first_ramp_q62: 0,
+        };
+        Ok(HostMessage::NextSegment(
+            NextSegment::new(1, tag_step, 0, none).unwrap(),
+        ))
+    };
+    assert_eq!(
+        HostMessage::decode(&[0x12, 0b1000_0000, 1, 2, 0, 0, 0]),
+        rest(2)
+    );
+    assert_eq!(HostMessage::decode(&[0x12, 0, 1, 0, 0, 0]), rest(1));
 }
 
 #[test]
@@ -539,4 +618,29 @@ fn screw_next_layout_is_the_documented_one() {
     assert_eq!(sixty_faster(ScrewStart::Chained), [0x13, 0x07, 0x78]);
     // Chained and same step at once is refused.
     assert!(HostMessage::decode(&[0x13, 0x0B, 0x78]).is_err());
+}
+
+/// A varint of five bytes holds 32 bits: four in its last byte. One whose last byte has more
+/// is refused (the crate underneath dropped them, and `81 80 80 80 11` read as 1 + 2²⁸).
+#[test]
+fn a_varint_beyond_32_bits_is_refused() {
+    // SCREW_NEXT, pin open, same step and ramp, target change as zvar.
+    let largest = [0x13, 0x0D, 0xFF, 0xFF, 0xFF, 0xFF, 0x0F];
+    let Ok(HostMessage::ScrewNext(_)) = HostMessage::decode(&largest) else {
+        panic!("{:?}", HostMessage::decode(&largest));
+    };
+    assert_eq!(
+        encode_host(&HostMessage::decode(&largest).unwrap()),
+        largest
+    );
+    for last in [0x10, 0x11, 0x7F] {
+        assert_eq!(
+            HostMessage::decode(&[0x13, 0x0D, 0x81, 0x80, 0x80, 0x80, last]),
+            Err(MessageError::BadVarint {
+                kind: 0x13,
+                field: "target_change_millirpm"
+            }),
+            "last byte {last:#04x}"
+        );
+    }
 }

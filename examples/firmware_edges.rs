@@ -126,7 +126,8 @@ fn check_emergency_stop(edges: &[(u64, u8, bool)], estop_ns: f64, bench_rig: boo
         .filter(|e| e.2 && steps.contains(&e.1))
         .filter(|e| (estop_ns - 10e6..=estop_ns).contains(&(e.0 as f64)))
         .count();
-    let good = last_start <= CONTROL_PERIOD_NS && off;
+    // A stop that came while nothing moved would prove nothing of stopping within a period.
+    let good = last_start <= CONTROL_PERIOD_NS && off && steps_before > 0;
     println!(
         "emergency stop: {steps_before} steps in the 10 ms before it; outputs off {:.1} µs after \
          its frame reached the MCU (bound {:.0} µs), nothing started after {:.1} µs{}",
@@ -559,6 +560,8 @@ fn main() -> Result<()> {
         return check_seed_program(edges, lines);
     }
     let bench_rig = args.iter().any(|a| a == "--bench-rig");
+    // The run was stopped by a cancel and an emergency stop: its frame must be found.
+    let expect_emergency_stop = args.iter().any(|a| a == "--expect-emergency-stop");
     let tolerance_us: f64 = args
         .iter()
         .position(|a| a == "--tolerance-us")
@@ -593,7 +596,8 @@ fn main() -> Result<()> {
     let [bag, edges, ..] = files[..] else {
         bail!(
             "usage: firmware_edges BAG EDGES.csv [--bench-rig] [--tolerance-us US] \
-             [--screw-hold zero_order|first_order] [--uart-in UART.csv]"
+             [--screw-hold zero_order|first_order] [--uart-in UART.csv] \
+             [--expect-emergency-stop]"
         );
     };
     let bytes = std::fs::read(bag).with_context(|| format!("reading {bag}"))?;
@@ -769,8 +773,13 @@ fn main() -> Result<()> {
         stop_ns.map(|t| t - offset_ns),
         tolerance_us * 1e3,
     );
-    if let Some(estop_ns) = estop_ns {
-        ok &= check_emergency_stop(&edges, estop_ns, bench_rig);
+    match estop_ns {
+        Some(estop_ns) => ok &= check_emergency_stop(&edges, estop_ns, bench_rig),
+        None if expect_emergency_stop => {
+            println!("emergency stop: no EMERGENCY_STOP frame reached the MCU  <-- FAILED");
+            ok = false;
+        }
+        None => {}
     }
     println!(
         "{} segments; pins {:.3} ms after the plan's clock; worst edge {:.3} µs (tolerance {tolerance_us} µs)",

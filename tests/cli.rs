@@ -173,3 +173,44 @@ fn check_plans_with_the_prints_parameters() {
     assert!(check(&["-p", "screw_driver:max_rpm:=100"])
         .contains("1778 moves, 0:05:25.201 of machine time"));
 }
+
+/// A parameter for a node the print does not run is refused before anything starts: the
+/// virtual executor's on a print on the MCU (it was dropped without a word), a name the
+/// node does not declare, and a node that does not exist.
+#[test]
+fn print_refuses_a_parameter_no_node_of_it_takes() {
+    let refused = |extra: &[&str], ros_args: &[&str]| -> String {
+        let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+            .args(["print", "--no-progress", "--bag", "/dev/null"])
+            .args(extra)
+            .arg("--ros-args")
+            .args(ros_args)
+            .env("RUST_BACKTRACE", "0")
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let nodes = "(its nodes: bag_recorder, gcode_streamer, polar_planner, screw_driver, ";
+    let stderr = refused(
+        &["--device", "emulator"],
+        &["-p", "cell_executor:horizon_s:=1.0"],
+    );
+    assert!(
+        stderr.contains(&format!(
+            "-p cell_executor:horizon_s:=1.0: this print runs no node `cell_executor` \
+             {nodes}mcu_bridge)"
+        )),
+        "{stderr}"
+    );
+    let stderr = refused(&[], &["-p", "mcu_bridge:horizon_s:=1.0"]);
+    assert!(
+        stderr.contains(&format!("runs no node `mcu_bridge` {nodes}cell_executor)")),
+        "{stderr}"
+    );
+    let stderr = refused(&[], &["-p", "polar_planner:baud:=9600"]);
+    assert!(
+        stderr.contains("node `polar_planner` declares no parameter `baud`"),
+        "{stderr}"
+    );
+}

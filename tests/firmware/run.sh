@@ -137,6 +137,14 @@ run_print() {
     echo "the print failed (exit $print_status)"
     return 1
   fi
+  if [[ $stop_after != 0 ]]; then
+    # Stopped by Ctrl-C twice: it must end as an emergency stop, and the check must find one.
+    if [[ $print_status != 1 ]] || ! grep -q "^Error: emergency stop" "$work/print.out"; then
+      echo "the print did not end in an emergency stop (exit $print_status)"
+      return 1
+    fi
+    rig_check+=(--expect-emergency-stop)
+  fi
   target/release/examples/firmware_edges "$work/print.mcap" "$work/edges.csv" \
     --uart-in "$work/uart_in.csv" "${rig_check[@]}"
   end_case

@@ -73,6 +73,7 @@ def test_a_print_starts_where_the_mcu_stands_and_refuses_to_start_elsewhere(tmp_
         assert f"initial_joints [{start[0]!r}, {start[1]!r}, {start[2]!r}]" in second.stderr, second.stderr
         assert "HostSilent" not in second.stderr, second.stderr
         moved = [s.position[:3] for s in joint_states(tmp_path / "two.mcap")]
+        assert moved, "the refused print recorded no joint states"
         assert all(list(p) == start for p in moved), "the MCU moved"
 
         # 3. Asked where it stands: from there to the file's end.

@@ -394,8 +394,16 @@ fn pause_resume_and_cancel_work_through_the_machine_interface() {
     assert_eq!(rig.machine.state().hold, Some(HoldReason::Pause));
     rig.run_for(&segments, 1.5);
     let held = rig.steps_now();
+    let edges_held = rig.edges().len();
     assert_eq!(rig.machine.state().state, PlayerState::Held);
+    assert_eq!(held, rig.executed_steps(), "the report is the MCU's steps");
     rig.run_for(&segments, 1.0);
+    // The MCU's own step edges, not only its reports: no edge while held.
+    assert_eq!(
+        rig.edges().len(),
+        edges_held,
+        "a paused machine does not step"
+    );
     assert_eq!(rig.steps_now(), held, "a paused machine does not move");
     rig.machine.resume();
     assert_eq!(rig.machine.state().hold, None);
@@ -720,13 +728,20 @@ fn clock_sync_with_a_crystal_100_ppm_fast_after_10_s_and_10_min() {
         figures.push((rate_error_ppm, offset_us));
     }
     let (after_10_s, after_10_min) = (figures[0], figures[1]);
-    // The line's jitter over a 6 s window, then over the fit's full 31 s window.
-    assert!(after_10_s.0.abs() < 25.0, "{after_10_s:?}");
-    assert!(after_10_min.0.abs() < 6.0, "{after_10_min:?}");
-    // Within the line's latency, and no worse after ten minutes than after ten seconds.
-    for (_, offset_us) in figures {
-        assert!(offset_us.abs() <= 1000, "{offset_us} µs");
+    // The line's jitter over a 6 s window, then over the fit's full window (13.4 and 0.21
+    // ppm on this seeded line; 3.2 ppm after ten minutes before the queries slowed to every
+    // 0.5 s once the fit settled, which this bound would catch).
+    assert!(after_10_s.0.abs() < 20.0, "{after_10_s:?}");
+    assert!(after_10_min.0.abs() < 0.5, "{after_10_min:?}");
+    // Within the line's latency (−450 and −480 µs here), and no worse after ten minutes than
+    // after ten seconds.
+    for (_, offset_us) in &figures {
+        assert!(offset_us.abs() <= 600, "{offset_us} µs");
     }
+    assert!(
+        after_10_min.1.abs() <= after_10_s.1.abs() + 100,
+        "{after_10_s:?} then {after_10_min:?}"
+    );
 }
 
 /// The damaged line: 0.5 % of bytes corrupted and 0.5 % dropped each way (about one

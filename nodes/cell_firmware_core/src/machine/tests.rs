@@ -476,25 +476,39 @@ fn identify_and_clock_answer() {
     );
 }
 
-/// Trapezoids as the planner makes them: a ramp term r·p² up to 0.05 at the first step, and
-/// no more decelerating than accelerating steps (so the ramp comes back at most to where it
-/// began, inside the recurrence's range).
+/// Segments as the planner makes them: trapezoids with a ramp term r·p² up to 0.05 at the
+/// first step and no more decelerating than accelerating steps (so the ramp comes back at most
+/// to where it began, inside the recurrence's range), and the one-phase segments nearly every
+/// print is made of — all cruising (no ramp term), all decelerating (stopping short of rest:
+/// x·n ≤ 0.2, the period grows by at most a third) or all accelerating.
 fn any_fields() -> impl Strategy<Value = SegmentFields> {
+    let trapezoid = (1u32..400, 0u32..400, 0u32..400)
+        .prop_map(|(acc, cruise, dec)| (acc, cruise, dec.min(acc)));
+    let accelerating = (1u32..400).prop_map(|acc| (acc, 0, 0));
+    let cruising = (1u32..400).prop_map(|cruise| (0, cruise, 0));
+    let decelerating = (1u32..400).prop_map(|dec| (0, 0, dec));
     (
-        1u32..400,
-        0u32..400,
-        0u32..400,
+        prop_oneof![trapezoid, accelerating, cruising, decelerating],
         20.0f64..2000.0,
         1e-6f64..0.05,
     )
-        .prop_map(|(acc, cruise, dec, period, x)| {
-            let dec = dec.min(acc);
+        .prop_map(|((acc, cruise, dec), period, x)| {
+            let dec = if acc == 0 {
+                dec.min(((0.2 / x) as u32).max(1))
+            } else {
+                dec
+            };
+            let ramp_r = if acc + dec == 0 {
+                0.0
+            } else {
+                x / (period * period)
+            };
             SegmentFields {
                 step_counts: [acc + cruise + dec, (acc + cruise + dec) / 3, 1],
                 directions: [1, 1, -1],
                 dominant_axis: 0,
                 first_period_ticks: period,
-                ramp_r: x / (period * period),
+                ramp_r,
                 cruise_period_ticks: period,
                 accelerate_steps: acc,
                 cruise_steps: cruise,

@@ -549,6 +549,8 @@ pub async fn run_job(
             "screw_producer",
             format!("{:?}", screw_node.fully_qualified_name()),
         ),
+        // The bag has the machine's states from the first.
+        param("await_subscribers", format!("[{recorder_name:?}]")),
     ]);
     let (commands, command_rx) = tokio::sync::mpsc::unbounded_channel();
     let status_tx = io.status;

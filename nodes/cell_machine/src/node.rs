@@ -77,6 +77,8 @@ pub fn param_specs(tick_period_s: f64) -> Vec<ParamSpec> {
         ParamSpec::new("screw_resume_timeout_s", ParamValue::Double(10.0), "a screw driver restarted mid-print must continue its commands within this long of the machine holding for them (wall s; it holds on the path before the commands it has run out) or the print stops and fails (0: never resume, stop at once)").range(0.0, 3600.0),
         ParamSpec::new("exit_when_done", ParamValue::Bool(false), "end the node once a complete plan (its stream finished) has been executed (for scripts)"),
         ParamSpec::new("service_mapping", ParamValue::String("cyclone".into()), "request/reply wire format of the services: cyclone (rmw_cyclonedds clients), enhanced (rmw_fastrtps) or basic"),
+        ParamSpec::new("await_subscribers", ParamValue::StringArray(vec![]), "nodes (relative: in this node's namespace) that must subscribe to /joint_states and /tf before the first state is published: a volatile sample reaches only readers matched by then, and a recorder matched late misses the first ones"),
+        ParamSpec::new("await_subscribers_s", ParamValue::Double(5.0), "wait at most this long (wall s) for await_subscribers, then start without them, with a warning").range(0.0, 600.0),
     ]
 }
 
@@ -355,6 +357,27 @@ pub async fn run<M: Machine>(
         servers.push((server, command));
     }
 
+    let awaited = node
+        .params
+        .strings("await_subscribers")
+        .iter()
+        .map(|name| node.names.resolve(name))
+        .collect::<Result<Vec<_>, _>>()?;
+    if !awaited.is_empty() {
+        let max_wait = Duration::from_secs_f64(node.params.f64("await_subscribers_s"));
+        let lacking = node
+            .wait_subscribed(&["/joint_states", "/tf"], &awaited, max_wait)
+            .await;
+        if !lacking.is_empty() {
+            cell_runtime::cell_log!(
+                node,
+                LogLevel::Warn,
+                "after {} s still no subscription on {}: starting without it (what it records misses the first states)",
+                max_wait.as_secs_f64(),
+                lacking.join(", ")
+            );
+        }
+    }
     let wall_start_ns = now_ns() as i64;
     let started = Instant::now();
     let speed = options.speed;

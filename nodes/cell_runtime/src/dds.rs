@@ -317,6 +317,35 @@ impl CellNode {
             .any(|guid| readers.contains(&ros2_client::Gid::from(guid)))
     }
 
+    /// Waits, at most `max_wait`, until each of `nodes` (fully qualified) subscribes to each
+    /// of `topics` this node publishes; returns what is still lacking then, as `topic (node)`.
+    /// A volatile writer offers a sample only to the readers it has matched when it writes,
+    /// so a node whose first samples must reach a recorder waits for it first.
+    pub async fn wait_subscribed(
+        // `&mut`: a future holding `&CellNode` across its sleeps would need the node `Sync`.
+        &mut self,
+        topics: &[&str],
+        nodes: &[String],
+        max_wait: std::time::Duration,
+    ) -> Vec<String> {
+        let deadline = std::time::Instant::now() + max_wait;
+        loop {
+            let lacking: Vec<String> = topics
+                .iter()
+                .flat_map(|topic| {
+                    nodes
+                        .iter()
+                        .filter(|n| !self.subscribed_by(topic, n))
+                        .map(move |n| format!("{topic} ({n})"))
+                })
+                .collect();
+            if lacking.is_empty() || std::time::Instant::now() >= deadline {
+                return lacking;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+    }
+
     /// Waits, at most `max_wait`, until the matched reliable subscribers of every topic this
     /// node publishes have acknowledged everything it published so far; returns the readers
     /// that had not, named (see [`crate::delivery`]). Call it before the node goes away.

@@ -23,8 +23,11 @@ speed=${POLAR_CELL_SPEED:-1.0}
 device=${POLAR_CELL_DEVICE:-}
 machine=cell_executor
 [[ -n $device ]] && machine=mcu_bridge
+# A real MCU (not one started here) stands where the last print left it: it is asked.
+real_mcu=
+[[ -n $device && $device != emulator ]] && real_mcu=1
 tools=(bag_recorder polar_planner screw_driver $machine gcode_streamer)
-[[ -n $device && $device != emulator ]] && tools+=(polar-cell)
+[[ -n $real_mcu ]] && tools+=(polar-cell)
 for b in "${tools[@]}"; do
   [[ -x $bin/$b ]] || { echo "$bin/$b missing: cargo build --release --workspace" >&2; exit 1; }
 done
@@ -32,7 +35,7 @@ done
 # `initial_joints`, the streamer `start_position_mm`; POLAR_CELL_ROS_ARGS still wins).
 start_joints=()
 start_position=()
-if [[ -n $device && $device != emulator ]]; then
+if [[ -n $real_mcu ]]; then
   # shellcheck disable=SC2086
   start_text=$("$bin/polar-cell" mcu-position --device "$device" --ros-args --params-file "$params" ${POLAR_CELL_ROS_ARGS:-})
   mapfile -t start <<<"$start_text"

@@ -954,7 +954,9 @@ fn execution_message(s: &cell_machine::node::Status, machine_time_s: Option<f64>
     )
 }
 
-/// Resolves when the executor stops the machine: a fault, or an emergency stop from outside.
+/// Resolves when the machine stops short of the plan's end: a fault, or from outside an
+/// emergency stop or a cancel (`/cell/cancel`, once at rest on the path: the plan is dropped,
+/// and nothing more of it will run).
 async fn machine_failed(
     mut status: tokio::sync::watch::Receiver<cell_machine::node::Status>,
 ) -> anyhow::Error {
@@ -966,6 +968,12 @@ async fn machine_failed(
             }
             if s.state == Some(cell_executor::PlayerState::Stopped) {
                 return anyhow::anyhow!("emergency stop (/cell/estop) during the print");
+            }
+            if s.cancelled && s.state != Some(cell_executor::PlayerState::Running) {
+                return anyhow::anyhow!(stop_text(
+                    "cancelled (/cell/cancel): stopped on the path",
+                    &s
+                ));
             }
         }
         if status.changed().await.is_err() {
@@ -1041,22 +1049,25 @@ async fn stop_machine(
             (s, true)
         }
     };
-    let line = s
-        .current
-        .map(|(_, line)| format!(" at line {line}"))
-        .unwrap_or_default();
-    let [bed, arm, z, _] = s.positions;
     let how = if emergency {
         "emergency stop"
     } else {
         "cancelled: stopped on the path"
     };
-    (
-        emergency,
-        format!(
-            "{how}{line} after {} of machine time (bed {bed:.6} rad, arm {arm:.6} m, z {z:.6} m)",
-            clock(s.machine_time_s)
-        ),
+    (emergency, stop_text(how, &s))
+}
+
+/// How a print stopped short, where and when: "`how` at line L after T of machine time (bed,
+/// arm, z)".
+fn stop_text(how: &str, s: &cell_machine::node::Status) -> String {
+    let line = s
+        .current
+        .map(|(_, line)| format!(" at line {line}"))
+        .unwrap_or_default();
+    let [bed, arm, z, _] = s.positions;
+    format!(
+        "{how}{line} after {} of machine time (bed {bed:.6} rad, arm {arm:.6} m, z {z:.6} m)",
+        clock(s.machine_time_s)
     )
 }
 

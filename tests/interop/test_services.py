@@ -9,6 +9,7 @@ watch its `/joint_states` (the executed joints) to see each service take effect.
 
 import math
 import os
+import signal
 import subprocess
 import time
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 import pytest
 
-from conftest import binary
+from conftest import BIN_DIR, ROOT, binary
 from rmw_cyclone import ServiceClient
 from test_dds import ros_qos
 from test_mechanism import JointState
@@ -122,3 +123,89 @@ def test_pause_resume_estop_from_a_cyclone_client(tmp_path, device):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+@pytest.mark.parametrize("device", [None, "emulator"], ids=["executor", "mcu"])
+def test_a_cancel_from_a_cyclone_client_ends_the_print_at_rest(tmp_path, device):
+    """`ros2 service call /cell/cancel` during `print`: the machine stops on the path, and the
+    print ends there, non-zero, saying so (it used to wait for ever for moves the stopped
+    planner never sent, or, in the last two seconds, to report the print as succeeded)."""
+    gcode = tmp_path / "circle.gcode"
+    circle_gcode(gcode)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN))
+    on_device = ["--device", device] if device else []
+    proc = subprocess.Popen(
+        [str(binary("polar-cell")), "print", str(gcode), "--bag", str(tmp_path / "c.mcap"),
+         "--no-progress", *on_device],
+        env=env, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        participant = DomainParticipant(DOMAIN)
+        states = DataReader(
+            participant, Topic(participant, "rt/joint_states", JointState), qos=ros_qos(1000)
+        )
+        pause, cancel = (
+            ServiceClient(participant, f"/cell/{name}", TriggerRequest, TriggerResponse)
+            for name in ("pause", "cancel")
+        )
+        moving = recent_states(states, 4.0)
+        assert any(abs(v) > 0 for s in moving[-10:] for v in s.velocity[:3]), "moving"
+        reply = trigger(cancel)
+        assert reply.success and reply.message.startswith("cancelling"), reply.message
+        # A pause while the cancel slows down would make it a pause: refused.
+        reply = trigger(pause)
+        assert not reply.success and reply.message.startswith("cancelling"), reply.message
+        _, stderr = proc.communicate(timeout=20)
+        assert proc.returncode == 1, stderr
+        assert "cancelled (/cell/cancel): stopped on the path at line" in stderr, stderr
+        last = recent_states(states, 0.5)[-5:] or moving[-1:]
+        assert last and all(v == 0.0 for s in last for v in s.velocity), "at rest"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_a_reset_after_an_estop_does_not_bring_the_stopped_plan_back(tmp_path):
+    """A graph whose machine outlives an e-stop (`exit_when_done` off, as under `ros2
+    launch`): after `/cell/reset` the producers still hold the stopped plan, and taken then
+    it would play from where the e-stop left the machine, displaced by all that was dropped.
+    The machine stays where it stopped, and says the plan stays dropped."""
+    gcode = tmp_path / "circle.gcode"
+    circle_gcode(gcode)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN), POLAR_CELL_BIN_DIR=str(BIN_DIR),
+               POLAR_CELL_ROS_ARGS="-p cell_executor:exit_when_done:=false")
+    proc = subprocess.Popen(
+        [str(ROOT / "launch-scripts" / "cell.sh"), str(gcode), str(tmp_path / "r.mcap")],
+        env=env, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    try:
+        participant = DomainParticipant(DOMAIN)
+        states = DataReader(
+            participant, Topic(participant, "rt/joint_states", JointState), qos=ros_qos(1000)
+        )
+        pause, estop, reset = (
+            ServiceClient(participant, f"/cell/{name}", TriggerRequest, TriggerResponse)
+            for name in ("pause", "estop", "reset")
+        )
+        moving = recent_states(states, 5.0)
+        assert any(abs(v) > 0 for s in moving[-10:] for v in s.velocity[:3]), "moving"
+        assert trigger(estop).success
+        stopped = recent_states(states, 1.0)
+        reply = trigger(reset)
+        assert reply.success and "stays dropped" in reply.message, reply.message
+        after = recent_states(states, 4.0)
+        assert len(after) > 100, "the machine publishes its state after the reset"
+        assert all(v == 0.0 for s in after for v in s.velocity), "nothing moves"
+        assert {tuple(s.position[:3]) for s in after} == {tuple(stopped[-1].position[:3])}
+        reply = trigger(pause)
+        assert (reply.success, reply.message) == (False, "no plan: it was dropped")
+        assert proc.poll() is None, "the machine outlives the e-stop"
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGINT)
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()

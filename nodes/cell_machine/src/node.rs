@@ -220,55 +220,91 @@ const SERVICES: [(&str, Command); 5] = [
     ("/cell/reset", Command::Reset),
 ];
 
-/// Whether the plan is cancelled after `command` (applied or refused): a cancel may come to
-/// rest within the same tick (from a rest in the plan), so it is known from the command, not
-/// from watching the hold.
-fn next_cancelled(cancelled: bool, command: Command, accepted: bool) -> bool {
-    match (command, accepted) {
-        (Command::Cancel, true) => true,
-        (Command::Reset, true) => false,
-        _ => cancelled,
-    }
+/// What the operator's commands have made of the plan: every decision of the node loop that
+/// depends on them, apart from DDS (so it is tested without it).
+///
+/// A plan that was cancelled or emergency-stopped is *dropped*, for good: a reset makes the
+/// machine ready again, but the rest of that plan is not executed. Its producers still send
+/// what they planned before they saw the credit close, and taken after a reset it would play
+/// from wherever the stop left the machine, displaced by all that was dropped. A new plan
+/// comes with a new print (a new graph).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+struct Control {
+    /// A cancel was accepted (it may come to rest within the same tick, from a rest in the
+    /// plan, so it is known from the command, not from watching the hold).
+    cancelled: bool,
+    /// The plan in hand is dropped: cancelled, or the machine was stopped (e-stop or fault).
+    plan_dropped: bool,
+    /// Paused by the operator (not by the node holding for screw commands).
+    operator_paused: bool,
 }
 
-/// Apply `command` to the machine; the reply a service caller gets.
-fn apply<M: Machine>(executor: &mut M, command: Command) -> (bool, String) {
-    let state = executor.state().state;
-    match command {
-        Command::Pause if state == PlayerState::Stopped => {
-            (false, "emergency stop in force: /cell/reset first".into())
-        }
-        Command::Pause => {
-            executor.pause();
-            (true, "pausing: decelerating along the path to rest".into())
-        }
-        Command::Resume if executor.state().hold == Some(HoldReason::Pause) => {
-            executor.resume();
-            (true, "resuming after the pin's opening delay".into())
-        }
-        Command::Resume => (false, "not paused".into()),
-        Command::Cancel if state == PlayerState::Stopped => {
-            (false, "emergency stop in force: /cell/reset first".into())
-        }
-        Command::Cancel => {
-            executor.cancel();
-            (
-                true,
-                "cancelling: stopping along the path, then dropping the plan".into(),
-            )
-        }
-        Command::EmergencyStop => {
-            executor.emergency_stop();
-            (
-                true,
-                "emergency stop: stepping stopped, pin closed, screw stopped".into(),
-            )
-        }
-        Command::Reset if state == PlayerState::Stopped => {
-            executor.reset();
-            (true, "reset: ready for a new plan".into())
-        }
-        Command::Reset => (false, "not stopped".into()),
+impl Control {
+    /// Apply `command` to the machine; the reply a service caller gets.
+    fn apply<M: Machine>(&mut self, executor: &mut M, command: Command) -> (bool, String) {
+        const STOPPED: &str = "emergency stop in force: /cell/reset first";
+        let now = executor.state();
+        let stopped = now.state == PlayerState::Stopped;
+        let reply = match command {
+            Command::Pause | Command::Resume | Command::Cancel if stopped => {
+                (false, STOPPED.into())
+            }
+            Command::Pause if now.hold == Some(HoldReason::Cancel) => (
+                false,
+                "cancelling: already stopping on the path, then dropping the plan".into(),
+            ),
+            Command::Pause if self.plan_dropped => (false, "no plan: it was dropped".into()),
+            Command::Pause => {
+                executor.pause();
+                self.operator_paused = true;
+                (true, "pausing: decelerating along the path to rest".into())
+            }
+            Command::Resume if now.hold == Some(HoldReason::Pause) => {
+                executor.resume();
+                self.operator_paused = false;
+                (true, "resuming after the pin's opening delay".into())
+            }
+            Command::Resume => (false, "not paused".into()),
+            Command::Cancel => {
+                executor.cancel();
+                self.cancelled = true;
+                self.plan_dropped = true;
+                self.operator_paused = false;
+                (
+                    true,
+                    "cancelling: stopping along the path, then dropping the plan".into(),
+                )
+            }
+            Command::EmergencyStop => {
+                executor.emergency_stop();
+                self.plan_dropped = true;
+                (
+                    true,
+                    "emergency stop: stepping stopped, pin closed, screw stopped".into(),
+                )
+            }
+            Command::Reset if stopped => {
+                executor.reset();
+                self.operator_paused = false;
+                (
+                    true,
+                    "reset: the machine is ready; the stopped plan stays dropped (a new print starts a new one)".into(),
+                )
+            }
+            Command::Reset => (false, "not stopped".into()),
+        };
+        self.observe(executor.state().state);
+        reply
+    }
+
+    /// A machine seen stopped (an e-stop or a fault) has dropped its plan.
+    fn observe(&mut self, state: PlayerState) {
+        self.plan_dropped |= state == PlayerState::Stopped;
+    }
+
+    /// A cancel has come to rest: the machine no longer moves for it.
+    fn cancelled_at_rest(&self, state: PlayerState) -> bool {
+        self.cancelled && state != PlayerState::Running
     }
 }
 
@@ -314,7 +350,6 @@ pub async fn run<M: Machine>(
     let mut screw_covered_ns: Option<i64> = None;
     let mut held_for_screw = false;
     let mut screw_starved_since: Option<Instant> = None;
-    let mut operator_paused = false;
     let mut screw_holds = 0u64;
     // Enough plan to stop in (a hold from full speed takes well under 0.1 s of plan) and to
     // notice in time at a high --speed; never more than the quarter of the horizon the
@@ -325,6 +360,10 @@ pub async fn run<M: Machine>(
     // margin a lost screw driver leaves).
     let mut screw_ahead_min_ns = i64::MAX;
     let mut stop_issued = false;
+    // Segments and screw commands that came for a dropped plan (in flight at the stop, or
+    // sent by its producers since).
+    let mut dropped_after_stop = 0u64;
+    let mut operator_stop_at_ns: Option<i64> = None;
     let mut last_graph_look = Instant::now();
     let mut fault_at_ns: Option<i64> = None;
     let mut finished_at_ns: Option<i64> = None;
@@ -413,7 +452,7 @@ pub async fn run<M: Machine>(
     let mut pending_screw: VecDeque<ScrewCommand> = VecDeque::new();
     let mut received = 0u64;
     let mut input_finished = false;
-    let mut cancelled = false;
+    let mut control = Control::default();
     let mut fault: Option<String> = None;
     let mut last_credit = (Instant::now() - Duration::from_secs(1), f64::NAN);
     let mut last_diagnostics = Instant::now();
@@ -439,6 +478,8 @@ pub async fn run<M: Machine>(
                 let from_restarted = admitted && steps_from.restarted(&info);
                 if !admitted {
                     ignored.note(node, "/polar/steps", "ignored_foreign_steps", steps_from.name());
+                } else if control.plan_dropped {
+                    dropped_after_stop += 1;
                 } else if from_restarted && !over && resume_timeout.is_zero() {
                     stopping_for.get_or_insert_with(|| restarted(steps_from.name(), "/polar/steps"));
                 } else {
@@ -486,6 +527,8 @@ pub async fn run<M: Machine>(
                         "ignored_foreign_screw_commands",
                         screw_from.name(),
                     );
+                } else if control.plan_dropped {
+                    dropped_after_stop += 1;
                 } else {
                     let from_restarted = screw_from.restarted(&info);
                     let over = input_finished && executor.is_drained();
@@ -553,13 +596,16 @@ pub async fn run<M: Machine>(
             _ = tokio::time::sleep_until(wake.into()) => {}
         }
         if let Some((command, caller)) = requested {
-            let (success, message) = apply(executor, command);
-            operator_paused = match (command, success) {
-                (Command::Pause, true) => true,
-                (Command::Resume | Command::Cancel | Command::Reset, true) => false,
-                _ => operator_paused,
-            };
-            cancelled = next_cancelled(cancelled, command, success);
+            let (success, message) = control.apply(executor, command);
+            if command == Command::Reset && success {
+                // What stopped the machine is over with the plan it stopped: a fault kept
+                // would stop it again at once.
+                fault = None;
+                fault_at_ns = None;
+                stopping_for = None;
+                stop_issued = false;
+                held_for_screw = false;
+            }
             match caller {
                 None => cell_runtime::cell_log!(node, LogLevel::Info, "{}", message),
                 Some((index, id)) => {
@@ -578,7 +624,8 @@ pub async fn run<M: Machine>(
         }
         // Once cancelled or stopped, what is still in flight for the dropped plan is dropped
         // too: a stopped machine would refuse it, and that refusal is no fault of the print.
-        if cancelled || stopping_for.is_some() || executor.state().state == PlayerState::Stopped {
+        control.observe(executor.state().state);
+        if control.plan_dropped || stopping_for.is_some() {
             pending_steps.clear();
             pending_screw.clear();
         }
@@ -588,7 +635,11 @@ pub async fn run<M: Machine>(
         let graph_look_due = last_graph_look.elapsed() >= Duration::from_millis(500)
             || steps_from.needs_look()
             || screw_from.needs_look();
-        if stopping_for.is_none() && graph_look_due && !(input_finished && executor.is_drained()) {
+        if stopping_for.is_none()
+            && !control.plan_dropped
+            && graph_look_due
+            && !(input_finished && executor.is_drained())
+        {
             last_graph_look = Instant::now();
             if screw_from.announced_elsewhere() {
                 if screw_resume_timeout.is_zero() {
@@ -637,7 +688,10 @@ pub async fn run<M: Machine>(
             };
         }
         if let Some(at) = planner_starved_since {
-            if at.elapsed() >= resume_timeout && !(input_finished && executor.is_drained()) {
+            if at.elapsed() >= resume_timeout
+                && !(input_finished && executor.is_drained())
+                && !control.plan_dropped
+            {
                 stopping_for.get_or_insert_with(|| {
                     format!(
                         "{} restarted mid-print and did not continue the plan within {} s of the machine running out of it",
@@ -666,6 +720,7 @@ pub async fn run<M: Machine>(
         }
         let must_hold = !input_finished
             && stopping_for.is_none()
+            && !control.plan_dropped
             && screw_ahead_ns.is_some_and(|ahead| ahead < screw_margin_ns);
         if must_hold && state_now.state == PlayerState::Running && state_now.hold.is_none() {
             // (Again after an operator's resume meanwhile: the commands still end.)
@@ -684,18 +739,19 @@ pub async fn run<M: Machine>(
         } else if held_for_screw
             && (input_finished
                 || stopping_for.is_some()
+                || control.plan_dropped
                 || screw_ahead_ns
                     .is_some_and(|ahead| !awaiting_screw && ahead >= 2 * screw_margin_ns))
         {
             held_for_screw = false;
             screw_starved_since = None;
-            if !operator_paused && !cancelled && stopping_for.is_none() {
+            if !control.operator_paused && !control.plan_dropped && stopping_for.is_none() {
                 executor.resume();
                 cell_runtime::cell_log!(node, LogLevel::Info, "screw commands continue: resuming");
             }
         }
         // Only the screw driver's own wait: without plans it has nothing to command.
-        if held_for_screw && !awaiting_planner {
+        if held_for_screw && !awaiting_planner && !control.plan_dropped {
             let since = *screw_starved_since.get_or_insert_with(Instant::now);
             if since.elapsed() >= screw_resume_timeout && !screw_resume_timeout.is_zero() {
                 stopping_for.get_or_insert_with(|| {
@@ -837,7 +893,7 @@ pub async fn run<M: Machine>(
                 executed_until,
                 accept_until,
                 horizon_s: options.horizon_s,
-                closed: cancelled || state.state == PlayerState::Stopped,
+                closed: control.plan_dropped,
             });
         }
         let (completed, last_completed) = executor.completed();
@@ -846,7 +902,8 @@ pub async fn run<M: Machine>(
             && pending_steps.is_empty()
             && executor.is_drained()
             && fault.is_none()
-            && stopping_for.is_none();
+            && stopping_for.is_none()
+            && !control.plan_dropped;
         if done && done_at_s.is_none() {
             let end_s = state.plan_time_s;
             done_at_s = Some(match advancing {
@@ -869,7 +926,7 @@ pub async fn run<M: Machine>(
             segments_completed: completed,
             underruns,
             done,
-            cancelled,
+            cancelled: control.cancelled,
             positions: state.positions,
             fault: fault.clone(),
             first_motion_s,
@@ -905,6 +962,22 @@ pub async fn run<M: Machine>(
             if state.state == PlayerState::Stopped && next_sample_ns > since_ns + sample_ns {
                 cell_runtime::cell_log!(node, LogLevel::Error, "the machine stopped: {f}");
                 anyhow::bail!("the machine stopped: {f}");
+            }
+        }
+        // A script's machine ends when the operator stopped its plan as well (nothing more of
+        // it will run), once at rest and the grid has passed the stop.
+        let operator_stop = if state.state == PlayerState::Stopped {
+            Some("emergency stop (/cell/estop)")
+        } else if control.cancelled_at_rest(state.state) {
+            Some("cancelled (/cell/cancel): stopped on the path")
+        } else {
+            None
+        };
+        if let (Some(how), true, None) = (operator_stop, exit_when_done, &fault) {
+            let since_ns = *operator_stop_at_ns.get_or_insert(machine_now);
+            if next_sample_ns > since_ns + sample_ns {
+                cell_runtime::cell_log!(node, LogLevel::Warn, "the plan was dropped: {how}");
+                anyhow::bail!("the plan was dropped: {how}");
             }
         }
         // And at the end once the grid has passed it too: the last sample shows the machine
@@ -945,6 +1018,7 @@ pub async fn run<M: Machine>(
                 ("segments_repeated", steps_join.repeats().to_string()),
                 ("screw_commands_repeated", screw_join.repeats().to_string()),
                 ("screw_holds", screw_holds.to_string()),
+                ("dropped_after_stop", dropped_after_stop.to_string()),
                 (
                     "screw_ahead_min_s",
                     match screw_ahead_min_ns {
@@ -1065,22 +1139,92 @@ mod tests {
     /// forever for a Ctrl-C during a dwell before).
     #[test]
     fn a_cancel_is_known_from_the_command() {
-        assert!(next_cancelled(false, Command::Cancel, true));
-        assert!(
-            !next_cancelled(false, Command::Cancel, false),
-            "refused (e-stop in force)"
-        );
-        assert!(next_cancelled(true, Command::Pause, true));
-        assert!(!next_cancelled(true, Command::Reset, true));
+        let mut control = Control::default();
         let mut executor = Fake::default();
-        let (accepted, _) = apply(&mut executor, Command::Cancel);
-        assert!(accepted);
-        let (accepted, message) = apply(&mut executor, Command::Resume);
+        let (accepted, _) = control.apply(&mut executor, Command::Cancel);
+        assert!(accepted && control.cancelled && control.plan_dropped);
+        assert!(control.cancelled_at_rest(PlayerState::Idle));
+        assert!(!control.cancelled_at_rest(PlayerState::Running));
+        let (accepted, message) = control.apply(&mut executor, Command::Resume);
         assert_eq!((accepted, message.as_str()), (false, "not paused"));
-        apply(&mut executor, Command::EmergencyStop);
-        assert!(!apply(&mut executor, Command::Cancel).0);
-        assert!(apply(&mut executor, Command::Reset).0);
+        control.apply(&mut executor, Command::EmergencyStop);
+        let (accepted, message) = control.apply(&mut executor, Command::Cancel);
+        assert_eq!(
+            (accepted, message.as_str()),
+            (false, "emergency stop in force: /cell/reset first")
+        );
+        assert!(control.apply(&mut executor, Command::Reset).0);
         assert_eq!(executor.calls, ["cancel", "emergency_stop", "reset"]);
+    }
+
+    /// After an e-stop and a reset, the stopped plan does not come back: the node drops what
+    /// its producers still send, keeps the credit closed and refuses a pause (the old plan,
+    /// taken after the reset, would have played from the stop, displaced).
+    #[test]
+    fn a_reset_leaves_the_stopped_plan_dropped() {
+        let mut control = Control::default();
+        let mut executor = Fake::default();
+        assert!(control.apply(&mut executor, Command::Pause).0);
+        assert!(control.operator_paused && !control.plan_dropped);
+        assert!(control.apply(&mut executor, Command::EmergencyStop).0);
+        assert!(control.plan_dropped);
+        let (accepted, message) = control.apply(&mut executor, Command::Reset);
+        assert!(accepted, "{message}");
+        assert!(message.contains("stays dropped"), "{message}");
+        assert!(control.plan_dropped && !control.operator_paused && !control.cancelled);
+        let (accepted, message) = control.apply(&mut executor, Command::Pause);
+        assert_eq!(
+            (accepted, message.as_str()),
+            (false, "no plan: it was dropped")
+        );
+        assert_eq!(executor.calls, ["pause", "emergency_stop", "reset"]);
+    }
+
+    /// A fault stops the machine by itself: seen stopped, the plan is dropped as by an e-stop.
+    #[test]
+    fn a_machine_seen_stopped_has_dropped_its_plan() {
+        let mut control = Control::default();
+        control.observe(PlayerState::Running);
+        control.observe(PlayerState::Idle);
+        assert!(!control.plan_dropped);
+        control.observe(PlayerState::Stopped);
+        assert!(control.plan_dropped && !control.cancelled);
+    }
+
+    /// A pause while a cancel decelerates would turn the cancel into a pause on a machine
+    /// that keeps one hold (the MCU bridge did): it is refused, and the cancel goes on.
+    #[test]
+    fn a_pause_during_a_cancel_is_refused() {
+        let mut control = Control::default();
+        let mut executor = Fake {
+            cancel_decelerates: true,
+            ..Fake::default()
+        };
+        assert!(control.apply(&mut executor, Command::Cancel).0);
+        let (accepted, message) = control.apply(&mut executor, Command::Pause);
+        assert!(!accepted && message.starts_with("cancelling"), "{message}");
+        assert!(!control.operator_paused);
+        assert_eq!(executor.hold, Some(HoldReason::Cancel));
+        assert_eq!(executor.calls, ["cancel"]);
+    }
+
+    /// A machine stopped while paused (a fault of the MCU keeps its pause) is not resumed:
+    /// the reply says the stop is in force, and the machine is not asked.
+    #[test]
+    fn a_resume_while_stopped_is_refused() {
+        let mut control = Control::default();
+        let mut executor = Fake {
+            stopped: true,
+            hold: Some(HoldReason::Pause),
+            ..Fake::default()
+        };
+        let (accepted, message) = control.apply(&mut executor, Command::Resume);
+        assert_eq!(
+            (accepted, message.as_str()),
+            (false, "emergency stop in force: /cell/reset first")
+        );
+        assert!(executor.calls.is_empty());
+        assert!(control.plan_dropped);
     }
 
     /// A machine that only remembers what it was asked (its state follows the asks).
@@ -1088,6 +1232,8 @@ mod tests {
     struct Fake {
         stopped: bool,
         hold: Option<HoldReason>,
+        /// A cancel holds (decelerates) rather than coming to rest at once.
+        cancel_decelerates: bool,
         calls: Vec<&'static str>,
     }
 
@@ -1150,7 +1296,8 @@ mod tests {
         }
         fn cancel(&mut self) {
             self.calls.push("cancel");
-            self.hold = None; // came to rest at once: the plan was resting
+            // Decelerating, or come to rest at once (the plan was resting).
+            self.hold = self.cancel_decelerates.then_some(HoldReason::Cancel);
         }
         fn emergency_stop(&mut self) {
             self.calls.push("emergency_stop");

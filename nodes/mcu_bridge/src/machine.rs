@@ -504,7 +504,9 @@ impl<L: McuLink> Machine for McuMachine<L> {
     }
 
     fn pause(&mut self) {
-        if self.session.pause().is_ok() {
+        // A cancel's hold stays one: as a pause, its plan would never be dropped and a
+        // resume would play it.
+        if self.hold != Some(HoldReason::Cancel) && self.session.pause().is_ok() {
             self.hold = Some(HoldReason::Pause);
         }
     }

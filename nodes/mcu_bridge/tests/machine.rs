@@ -443,6 +443,42 @@ fn pause_resume_and_cancel_work_through_the_machine_interface() {
     assert!(rig.machine.session().error().is_none());
 }
 
+/// A pause while a cancel decelerates leaves it a cancel: at rest the plan is dropped, and a
+/// resume then plays nothing (the pause used to replace the cancel's hold, so the plan was
+/// kept, and a resume played the "cancelled" plan).
+#[test]
+fn a_pause_during_a_cancel_leaves_it_a_cancel() {
+    let segments = finger_start(300);
+    let mut rig = Rig::new(EmulatorOptions::default());
+    rig.run_for(&segments, 5.0);
+    rig.machine.cancel();
+    let tick = |rig: &mut Rig| {
+        rig.now_ns += 1_000_000;
+        rig.machine.on_tick(rig.now_ns).unwrap();
+    };
+    tick(&mut rig);
+    rig.machine.pause();
+    assert_eq!(rig.machine.state().hold, Some(HoldReason::Cancel));
+    let mut waited_ms = 0;
+    while !rig.machine.is_drained() {
+        tick(&mut rig);
+        waited_ms += 1;
+        assert!(waited_ms < 3000, "the cancel never came to rest");
+    }
+    assert_eq!(rig.machine.epoch_ns(), None, "the plan is dropped");
+    let stopped = rig.executed_steps();
+    rig.machine.resume();
+    for _ in 0..1000 {
+        tick(&mut rig);
+    }
+    assert_eq!(
+        rig.executed_steps(),
+        stopped,
+        "nothing plays after the cancel"
+    );
+    assert!(rig.machine.session().error().is_none());
+}
+
 /// An emergency stop stops the steps within a millisecond, is not reported back as a
 /// fault, holds until reset, and after the reset a new plan plays.
 #[test]

@@ -219,6 +219,11 @@ impl Player {
     pub fn pause(&mut self) {
         if self.hold != Some(HoldReason::Cancel) {
             self.hold = Some(HoldReason::Pause);
+            if self.state == PlayerState::Idle {
+                // At rest already: held there, so a plan that arrives does not start (it
+                // would start at full feed and brake, stepping after the pause was granted).
+                self.feed = 0.0;
+            }
         }
     }
 
@@ -249,7 +254,13 @@ impl Player {
 
     /// Decelerate along the path to rest, then drop everything queued.
     pub fn cancel(&mut self) {
-        self.hold = Some(HoldReason::Cancel);
+        if self.state == PlayerState::Idle {
+            // At rest: drop now what is queued, rather than leave a cancel pending that
+            // would drop the next plan to arrive.
+            self.drop_plan();
+        } else if self.state != PlayerState::Stopped {
+            self.hold = Some(HoldReason::Cancel);
+        }
     }
 
     /// The hold in force, if any (a hold may still be decelerating).

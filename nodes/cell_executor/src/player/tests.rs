@@ -230,6 +230,81 @@ fn a_pause_stops_on_the_path_within_v_over_a_and_resume_replays_the_same_steps()
     assert_eq!(player.position_steps(), [-20_000, 0, 0]);
 }
 
+/// A resume while a pause still slows down speeds straight back up: no rest, so no pin
+/// delay, the same steps in the same order, and the acceleration within its limit through
+/// the turn.
+#[test]
+fn a_resume_during_the_slowdown_turns_back_without_stopping() {
+    let mut player = Player::new(options());
+    player.push(cruise(0, 20_000, 50, false, 1)).unwrap();
+    player.finish_input();
+    collect(&mut player, 0);
+    let mut slowest = f64::INFINITY;
+    let (edges, velocities) = play(&mut player, 0, 1_300_000, |p, t| {
+        if t == 300_000 {
+            p.pause();
+        }
+        if t == 350_000 {
+            assert_eq!(p.state(), PlayerState::Running, "still slowing");
+            assert!(p.pin_allowed(), "material flows while slowing");
+            p.resume();
+            assert_eq!(p.hold(), None);
+        }
+        if (300_000..600_000).contains(&t) {
+            slowest = slowest.min(p.velocity()[0]);
+        }
+    });
+    assert!(slowest > 0.0, "it never came to rest");
+    // (The synthetic plan ends at speed, just after 1 s.)
+    assert!(worst_acceleration(&velocities[..1000]) <= 1.0 + 1e-9);
+    assert_eq!(edges.len(), 20_000);
+    assert!(edges.iter().all(|e| (e.axes, e.negative) == (1, 0)));
+    assert_eq!(player.position_steps(), [20_000, 0, 0]);
+}
+
+/// A pause granted at rest, before the plan arrives, holds there: the plan does not start
+/// (it started at full feed and braked, a few steps after the pause), and a resume waits the
+/// pin's delay, then speeds up within the limits.
+#[test]
+fn a_pause_at_rest_holds_a_plan_that_arrives_until_resumed() {
+    let mut player = Player::new(options());
+    collect(&mut player, 0);
+    player.pause();
+    player.push(cruise(0, 2_000, 50, false, 1)).unwrap();
+    player.finish_input();
+    let (held, _) = play(&mut player, 0, 500_000, |_, _| {});
+    assert!(held.is_empty(), "{} steps while paused", held.len());
+    assert_eq!(player.state(), PlayerState::Held);
+    assert!(!player.pin_allowed());
+    player.resume();
+    assert!(player.pin_allowed(), "the pin opens for its delay");
+    let (edges, velocities) = play(&mut player, 500_000, 2_000_000, |_, _| {});
+    assert!(
+        edges[0].time_q32 >= 750_000 * Q32,
+        "moved within the pin's delay"
+    );
+    assert_eq!(edges.len(), 2_000);
+    // Up to the last step (the synthetic plan ends at speed).
+    let last_ms = (edges[edges.len() - 1].time_q32 / Q32 / 1000) as usize - 500;
+    assert!(worst_acceleration(&velocities[..last_ms]) <= 1.0 + 1e-9);
+    assert_eq!(player.position_steps(), [2_000, 0, 0]);
+}
+
+/// A cancel at rest drops what is queued at once and leaves nothing pending: the next plan
+/// plays in full (a pending cancel dropped it).
+#[test]
+fn a_cancel_at_rest_drops_the_queue_and_leaves_nothing_pending() {
+    let mut player = Player::new(options());
+    collect(&mut player, 0);
+    player.push(cruise(0, 100, 50, false, 1)).unwrap();
+    player.cancel();
+    assert_eq!((player.ahead_q32(), player.hold()), (0, None));
+    player.push(cruise(0, 100, 50, false, 2)).unwrap();
+    player.finish_input();
+    play(&mut player, 0, 100_000, |_, _| {});
+    assert_eq!(player.position_steps(), [100, 0, 0]);
+}
+
 #[test]
 fn a_cancel_stops_on_the_path_then_drops_the_rest() {
     let mut player = Player::new(options());

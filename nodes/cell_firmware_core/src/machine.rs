@@ -116,8 +116,6 @@ pub struct Machine<const Q: usize, const S: usize> {
     positions: [i32; MAX_AXES],
     done_tag: u32,
     screw: Screw<S>,
-    /// A hold keeps the pin closed whatever the schedule says.
-    pin_held_closed: bool,
     fault: FaultCode,
     /// A latched fault not yet reported to the host.
     unreported_fault: Option<McuMessage>,
@@ -143,7 +141,6 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             positions: config.initial_steps,
             done_tag: 0,
             screw: Screw::new(),
-            pin_held_closed: false,
             fault: FaultCode::None,
             unreported_fault: None,
             host_timeout_ticks: 0,
@@ -215,9 +212,17 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         ((self.screw.millirpm() as i64 * self.sigma_q32 as i64) >> 32) as i32
     }
 
-    /// Pin output now.
+    /// Pin output now: the schedule's, but closed while held at rest. While a hold slows
+    /// the machine the screw turns at σ·rpm through the open pin, so every length of path
+    /// gets its material, as in the virtual executor; a resume from rest opens it at once,
+    /// for its delay before motion.
     pub fn pin_open(&self) -> bool {
-        self.screw.pin_open() && !self.pin_held_closed && self.fault == FaultCode::None
+        self.screw.pin_open() && !self.held_at_rest() && self.fault == FaultCode::None
+    }
+
+    /// σ = 0 by a hold (and not waiting out a resume's pin delay): only a hold brings σ to 0.
+    fn held_at_rest(&self) -> bool {
+        self.sigma_q32 == 0 && !matches!(self.ramp, Ramp::ResumeWait { .. })
     }
 
     /// The state message, taken at the clock the machine has advanced to: positions, plan
@@ -292,7 +297,6 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             },
             HostMessage::FeedHold { rate_q32 } => {
                 if self.fault == FaultCode::None {
-                    self.pin_held_closed = true;
                     self.ramp = if self.sigma_q32 > 0 {
                         Ramp::Hold {
                             rate: (rate_q32 as u64).max(1),
@@ -308,7 +312,6 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             } => {
                 let holding = self.ramp != Ramp::Steady || self.sigma_q32 < ONE;
                 if self.fault == FaultCode::None && holding {
-                    self.pin_held_closed = false;
                     let rate = (rate_q32 as u64).max(1);
                     self.ramp = if self.sigma_q32 == 0 {
                         Ramp::ResumeWait {
@@ -415,7 +418,6 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
     fn clear_schedule(&mut self) {
         self.drop_schedule();
         self.sigma_q32 = ONE;
-        self.pin_held_closed = false;
     }
 
     fn latch(&mut self, code: FaultCode, tag: u32) {

@@ -335,15 +335,18 @@ fn a_feed_hold_stops_on_the_path_and_resume_plays_the_same_steps() {
     // σ from 1 to 0 in 2000 ticks (2001 with the rate rounded down).
     let rate = (ONE / 2000) as u32;
     m.handle(&HostMessage::FeedHold { rate_q32: rate }, 3025);
-    assert!(!m.pin_open(), "a hold closes the pin at once");
+    assert!(m.pin_open(), "slowing along the path, material still flows");
     edges.extend(run(&mut m, 4000));
     assert_eq!(m.mode(), Mode::Ramping);
     assert!(m.screw_millirpm() < 10_000 && m.screw_millirpm() > 0);
+    assert!(m.pin_open(), "the screw at σ·rpm through the open pin");
     edges.extend(run(&mut m, 5025));
     assert_eq!(m.mode(), Mode::Ramping);
+    assert!(m.pin_open());
     edges.extend(run(&mut m, 5026));
     assert_eq!(m.mode(), Mode::Held);
     assert_eq!(m.screw_millirpm(), 0);
+    assert!(!m.pin_open(), "at rest the pin closes");
     let held_at = m.positions();
     // Held: nothing moves, the plan clock stands.
     let plan = m.plan_clock();

@@ -86,6 +86,10 @@ enum Command {
         /// Print on a microcontroller (as for print).
         #[arg(long)]
         device: Option<String>,
+        /// Seconds a finished goal stays in the status list and its result can be asked for
+        /// (rcl's result_timeout; Humble's default, 15 min).
+        #[arg(long, default_value_t = 900.0, value_parser = parse_nonnegative_s)]
+        result_timeout_s: f64,
     },
     /// Check a G-code file without DDS: parse it (counts, warnings, the first error), then
     /// plan it whole as a print would (pre-flight: reach, limits, steps).
@@ -215,6 +219,14 @@ fn parse_speed(text: &str) -> Result<f64, String> {
     }
 }
 
+/// A duration in seconds, 0 or more (at most a year: `Duration` takes it).
+fn parse_nonnegative_s(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(s) if (0.0..=3.2e7).contains(&s) => Ok(s),
+        _ => Err(format!("`{text}` is not a number of seconds in [0, 3.2e7]")),
+    }
+}
+
 /// `BED_RAD,ARM_M,Z_M`: a joint position (its limits are the planner's to check).
 fn parse_joints(text: &str) -> Result<[f64; 3], String> {
     let values: Vec<f64> = text
@@ -278,9 +290,11 @@ async fn main() -> anyhow::Result<()> {
             bag_dir,
             service_mapping,
             device,
+            result_timeout_s,
         } => {
             let options = serve_cmd::ServeOptions {
                 device,
+                result_timeout: std::time::Duration::from_secs_f64(result_timeout_s),
                 speed,
                 bag_dir,
                 mapping: cell_runtime::parse_service_mapping(&service_mapping)?,

@@ -39,17 +39,15 @@ pub struct ServeOptions {
     pub mapping: cell_runtime::ServiceMapping,
     /// The MCU to print on (None: the virtual executor).
     pub device: Option<String>,
+    /// How long a finished goal's status and result are kept (rcl's `result_timeout`).
+    pub result_timeout: Duration,
 }
 
-/// A cancel request's goal, read from its wire form (ros2-client keeps the field private).
+/// A cancel request's goal and stamp, read from its wire form (ros2-client keeps the field
+/// private).
 #[derive(serde::Deserialize)]
 struct CancelWire {
-    goal_info: GoalInfoWire,
-}
-
-#[derive(serde::Deserialize)]
-struct GoalInfoWire {
-    goal_id: GoalId,
+    goal_info: GoalInfo,
 }
 
 struct Running {
@@ -60,6 +58,8 @@ struct Running {
     /// The pre-flight's machine time, once the job has run it.
     planned: tokio::sync::watch::Receiver<Option<f64>>,
     cancelling: bool,
+    /// Cancelled because the server is shutting down.
+    shutdown: bool,
     job: Job,
 }
 
@@ -72,6 +72,7 @@ struct Finished {
     info: GoalInfo,
     status: GoalStatusEnum,
     result: PrintResult,
+    ended_at: std::time::Instant,
 }
 
 pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<()> {
@@ -109,6 +110,14 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
     // job's start; an emulator started per goal powers up at home.
     let machine_persists = options.device.is_none();
     let mut machine_at: Option<[f64; 3]> = None;
+    // One listener for the whole life of the server: a listener made afresh at each turn of
+    // the loop would miss a signal that comes between two (tokio delivers a signal only to
+    // the listeners that exist when it comes).
+    let mut signals = cell_runtime::ShutdownSignals::new().context("signal handlers")?;
+    let mut signals_seen = 0u32;
+    // Shutting down: the running goal is cancelled (a second signal: emergency stop), its
+    // result published and given to whoever asks for a while, then the server ends.
+    let mut leave_at: Option<std::time::Instant> = None;
     let mut poll = tokio::time::interval(Duration::from_millis(10));
     let mut last_feedback = std::time::Instant::now();
     let publish_statuses = |server: &Server, running: &Option<Running>, finished: &[Finished]| {
@@ -140,18 +149,65 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                     None => std::future::pending().await,
                 }
             } => Some(ended),
-            _ = cell_runtime::shutdown_signal() => {
-                if let Some(r) = running.take() {
-                    let _ = r.interrupts.send(1);
-                    let _ = r.job.await;
+            _ = signals.next() => {
+                signals_seen += 1;
+                if let Some(r) = running.as_mut() {
+                    // The first: a cancel (stop on the path); a second: emergency stop.
+                    let _ = r.interrupts.send(signals_seen.min(2));
+                    r.cancelling = true;
+                    r.shutdown = true;
+                    eprintln!("serve: shutting down: stopping the running print first (again: emergency stop)");
+                    publish_statuses(&server, &running, &finished);
+                } else if signals_seen > 1 {
+                    return Ok(());
                 }
-                return Ok(());
+                None
             }
         };
-        // New goals: accept one when idle, reject while busy.
+        // The job's end first: a goal that comes in the same pass finds the server free.
+        // (Only a running goal's job can end, and then the goal is no longer running.)
+        if let Some(((report, bag), r)) = ended.and_then(|e| running.take().map(|r| (e, r))) {
+            let status = r.status.borrow().clone();
+            if machine_persists && status.state.is_some() {
+                let [bed, arm, z, _] = status.positions;
+                machine_at = Some([bed, arm, z]);
+            }
+            let (goal_status, mut result) = outcome(report, &status, bag);
+            if status.state.is_none() {
+                // The machine never ran for this goal: it stands where it stood.
+                result.stop_position = match (&options.device, machine_at) {
+                    (None, Some([bed, arm, z])) => vec![bed, arm, z, 0.0],
+                    (None, None) => vec![0.0; 4],
+                    (Some(device), _) if device == "emulator" => vec![0.0; 4],
+                    (Some(_), _) => vec![], // a real MCU that was not reached: unknown
+                };
+            }
+            if r.shutdown {
+                result.message = format!("the server shut down: {}", result.message);
+            }
+            finished.push(Finished {
+                info: r.accepted.clone(),
+                status: goal_status,
+                result,
+                ended_at: std::time::Instant::now(),
+            });
+            if finished.len() > MAX_RESULTS_KEPT {
+                finished.remove(0);
+            }
+            publish_statuses(&server, &running, &finished);
+        }
+        if signals_seen > 0 && running.is_none() && leave_at.is_none() {
+            leave_at = Some(std::time::Instant::now() + SHUTDOWN_LINGER);
+        }
+        // New goals: accept one when idle, reject while busy, shutting down, or when its id
+        // is already known (rcl refuses a goal id that exists).
         while let Ok(Some((request_id, request))) = server.receive_goal() {
             let stamp = ros2_client::builtin_interfaces::Time::now();
-            if running.is_some() {
+            let known = running
+                .as_ref()
+                .is_some_and(|r| r.goal_id == request.goal_id)
+                || finished.iter().any(|f| f.info.goal_id == request.goal_id);
+            if running.is_some() || signals_seen > 0 || known {
                 let _ = server.send_goal_response(
                     request_id,
                     SendGoalResponse {
@@ -204,9 +260,9 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 status,
                 planned,
                 cancelling: false,
+                shutdown: false,
                 job,
             });
-            // rcl's order: the status (accepted, then executing at once), then the reply.
             publish_statuses(&server, &running, &finished);
             let _ = server.send_goal_response(
                 request_id,
@@ -216,32 +272,31 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 },
             );
         }
-        // Cancel requests: the running goal (by its id, or all goals), else refused.
+        // Cancel requests, as rcl judges them (the goal by its id, and/or every goal accepted
+        // at or before the stamp; both zero: every goal).
         while let Ok(Some((request_id, request))) = server.receive_cancel_request() {
             let target = serde_json::to_value(&request)
                 .ok()
                 .and_then(|v| serde_json::from_value::<CancelWire>(v).ok())
-                .map(|c| c.goal_info.goal_id);
-            let response = match (&mut running, target) {
-                (Some(r), Some(id)) if id == r.goal_id || id == GoalId::ZERO => {
-                    let _ = r.interrupts.send(1);
-                    r.cancelling = true;
-                    CancelGoalResponse {
-                        return_code: CancelGoalResponseEnum::None,
-                        goals_canceling: vec![r.accepted.clone()],
+                .map(|c| c.goal_info);
+            let response = match target {
+                Some(target) => {
+                    let running_goal = running.as_ref().map(|r| (r.accepted.clone(), r.cancelling));
+                    let verdict = judge_cancel(
+                        &target,
+                        running_goal
+                            .as_ref()
+                            .map(|(info, cancelling)| (info, *cancelling)),
+                        finished.iter().map(|f| &f.info.goal_id),
+                    );
+                    if let (Some(r), true) = (running.as_mut(), !verdict.goals_canceling.is_empty())
+                    {
+                        let _ = r.interrupts.send(1);
+                        r.cancelling = true;
                     }
+                    verdict
                 }
-                (_, Some(id)) if finished.iter().any(|f| f.info.goal_id == id) => {
-                    CancelGoalResponse {
-                        return_code: CancelGoalResponseEnum::GoalTerminated,
-                        goals_canceling: vec![],
-                    }
-                }
-                (_, Some(id)) if id != GoalId::ZERO => CancelGoalResponse {
-                    return_code: CancelGoalResponseEnum::UnknownGoal,
-                    goals_canceling: vec![],
-                },
-                _ => CancelGoalResponse {
+                None => CancelGoalResponse {
                     return_code: CancelGoalResponseEnum::Rejected,
                     goals_canceling: vec![],
                 },
@@ -261,23 +316,11 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 let _ = server.send_feedback(r.goal_id, Wire(feedback(&s, planned_s)));
             }
         }
-        // The job's end: its result, and the answer to every result request for it.
-        // (Only a running goal's job can end, and then the goal is no longer running.)
-        if let Some(((report, bag), r)) = ended.and_then(|e| running.take().map(|r| (e, r))) {
-            let status = r.status.borrow().clone();
-            if machine_persists && status.state.is_some() {
-                let [bed, arm, z, _] = status.positions;
-                machine_at = Some([bed, arm, z]);
-            }
-            let (goal_status, result) = outcome(report, &status, bag);
-            finished.push(Finished {
-                info: r.accepted.clone(),
-                status: goal_status,
-                result,
-            });
-            if finished.len() > 8 {
-                finished.remove(0);
-            }
+        // A finished goal is kept (in the status list, its result for get_result) for the
+        // result timeout after it ended, as rcl keeps it; then it is unknown.
+        let before = finished.len();
+        finished.retain(|f| f.ended_at.elapsed() < options.result_timeout);
+        if finished.len() != before {
             publish_statuses(&server, &running, &finished);
         }
         result_requests.retain(|(request_id, goal_id)| {
@@ -304,6 +347,55 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
             );
             false
         });
+        if leave_at.is_some_and(|at| std::time::Instant::now() >= at) {
+            return Ok(());
+        }
+    }
+}
+
+/// Finished goals kept at most, whatever the result timeout (a client sending goals that
+/// fail at once must not grow the server without bound).
+const MAX_RESULTS_KEPT: usize = 64;
+
+/// How long a server that was told to stop still answers result requests once its last goal
+/// ended (a client asks for the result when it sees the terminal status).
+const SHUTDOWN_LINGER: Duration = Duration::from_secs(2);
+
+/// rcl's answer to a cancel request, given the running goal (with whether it is already
+/// being cancelled) and the ids of the finished goals still kept. The goal named by a
+/// non-zero id, and every goal accepted at or before a non-zero stamp, are cancelled; both
+/// zero, every goal. A goal already CANCELING cannot be cancelled again (rcl's state machine
+/// has no such transition), nor can a finished one.
+fn judge_cancel<'a>(
+    target: &GoalInfo,
+    running: Option<(&GoalInfo, bool)>,
+    mut finished: impl Iterator<Item = &'a GoalId>,
+) -> CancelGoalResponse {
+    let by_id = target.goal_id != GoalId::ZERO;
+    let stamp_ns = target.stamp.to_nanos();
+    let mut goals_canceling = Vec::new();
+    let mut named_terminal = false;
+    if let Some((info, cancelling)) = running {
+        let named = by_id && info.goal_id == target.goal_id;
+        let wanted = named
+            || (!by_id && stamp_ns == 0)
+            || (stamp_ns != 0 && info.stamp.to_nanos() <= stamp_ns);
+        if wanted && !cancelling {
+            goals_canceling.push(info.clone());
+        }
+        named_terminal = named && cancelling;
+    }
+    // Something cancelled, or nothing to cancel by stamp: no error.
+    let return_code = if !goals_canceling.is_empty() || !by_id {
+        CancelGoalResponseEnum::None
+    } else if named_terminal || finished.any(|id| *id == target.goal_id) {
+        CancelGoalResponseEnum::GoalTerminated
+    } else {
+        CancelGoalResponseEnum::UnknownGoal
+    };
+    CancelGoalResponse {
+        return_code,
+        goals_canceling,
     }
 }
 
@@ -362,11 +454,72 @@ fn outcome(
         Err(e) => {
             let stopped =
                 status.state == Some(cell_executor::PlayerState::Stopped) && status.fault.is_none();
-            result.ended = if stopped { "emergency_stop" } else { "aborted" }.into();
+            // Stopped from outside the action (`/cell/estop`, `/cell/cancel`): aborted, as
+            // the goal was not cancelled through it, but said how.
+            result.ended = if stopped {
+                "emergency_stop"
+            } else if status.cancelled {
+                "cancelled"
+            } else {
+                "aborted"
+            }
+            .into();
             result.message = format!("{e:#}");
             result.moves_executed = status.current.map_or(0, |(sequence, _)| sequence);
             GoalStatusEnum::Aborted
         }
     };
     (goal_status, result)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ros2_client::builtin_interfaces::Time;
+
+    fn info(goal_id: GoalId, stamp_ns: i64) -> GoalInfo {
+        GoalInfo {
+            goal_id,
+            stamp: Time::from_nanos(stamp_ns),
+        }
+    }
+
+    fn verdict(
+        target: GoalInfo,
+        running: Option<(&GoalInfo, bool)>,
+        finished: &[GoalId],
+    ) -> (CancelGoalResponseEnum, usize) {
+        let r = judge_cancel(&target, running, finished.iter());
+        (r.return_code, r.goals_canceling.len())
+    }
+
+    /// rcl's rules (action_server.c, rcl_action_process_cancel_request, and the goal state
+    /// machine: no cancel from CANCELING or a terminal state).
+    #[test]
+    fn cancel_requests_are_judged_as_rcl_judges_them() {
+        use CancelGoalResponseEnum::{GoalTerminated, None as Ok, UnknownGoal};
+        let zero = GoalId::ZERO;
+        let (a, done, other) = (
+            GoalId::new_random(),
+            GoalId::new_random(),
+            GoalId::new_random(),
+        );
+        let running = info(a, 100);
+        // Idle: cancelling every goal is no error; an unknown goal is.
+        assert_eq!(verdict(info(zero, 0), None, &[]), (Ok, 0));
+        assert_eq!(verdict(info(other, 0), None, &[]), (UnknownGoal, 0));
+        assert_eq!(verdict(info(done, 0), None, &[done]), (GoalTerminated, 0));
+        // Running, accepted at 100 ns.
+        let live = Some((&running, false));
+        assert_eq!(verdict(info(zero, 0), live, &[]), (Ok, 1), "all goals");
+        assert_eq!(verdict(info(a, 0), live, &[]), (Ok, 1), "by id");
+        assert_eq!(verdict(info(zero, 99), live, &[]), (Ok, 0), "accepted after");
+        assert_eq!(verdict(info(zero, 100), live, &[]), (Ok, 1), "at the stamp");
+        assert_eq!(verdict(info(other, 100), live, &[]), (Ok, 1), "by stamp");
+        assert_eq!(verdict(info(other, 99), live, &[]), (UnknownGoal, 0));
+        // Already cancelling: no second transition.
+        let cancelling = Some((&running, true));
+        assert_eq!(verdict(info(a, 0), cancelling, &[]), (GoalTerminated, 0));
+        assert_eq!(verdict(info(zero, 0), cancelling, &[]), (Ok, 0));
+    }
 }

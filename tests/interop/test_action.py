@@ -267,3 +267,111 @@ def test_print_action_feedback_cancel_and_success_from_a_cyclone_client(tmp_path
             server.communicate(timeout=20)
         except subprocess.TimeoutExpired:
             server.kill()
+
+
+EXECUTING, ABORTED, UNKNOWN = 2, 6, 0
+ERROR_NONE, ERROR_UNKNOWN_GOAL_ID, ERROR_GOAL_TERMINATED = 0, 2, 3
+
+
+def test_cancel_rules_goal_ids_result_timeout_and_shutdown_as_rcl_has_them(tmp_path):
+    """What an rcl action server does beyond the happy path (rcl's action_server.c and
+    goal_state_machine.c): cancel by stamp, cancel return codes, a goal id used twice, results
+    kept for `result_timeout` after the goal ended, the stop position of a goal that never
+    moved the machine, and a server stopped with a goal running still ending that goal."""
+    long_file = tmp_path / "long.gcode"
+    circle(long_file, 3)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN + 2))
+    server = subprocess.Popen(
+        [str(binary("polar-cell")), "serve", "--bag-dir", str(tmp_path / "bags"),
+         "--result-timeout-s", "4"],
+        env=env, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        p = DomainParticipant(DOMAIN + 2)
+        send_goal = ServiceClient(p, "/print/_action/send_goal", SendGoalRequest, SendGoalResponse)
+        get_result = ServiceClient(p, "/print/_action/get_result", GetResultRequest, GetResultResponse)
+        cancel = ServiceClient(p, "/print/_action/cancel_goal", CancelRequest, CancelResponse)
+        status = DataReader(p, Topic(p, "rt/print/_action/status", GoalStatusArray),
+                            qos=ros_qos(1, transient_local=True))
+        deadline = time.monotonic() + 20
+        for client in (send_goal, get_result, cancel):
+            client.wait_for_server(deadline)
+        zero = UUID([0] * 16)
+
+        def new_id():
+            return UUID([random.randrange(256) for _ in range(16)])
+
+        def goal(goal_id, path):
+            seq = send_goal.send(lambda g, s: SendGoalRequest(g, s, goal_id, PrintGoal(str(path), 1.0)))
+            return send_goal.reply(seq, 10)
+
+        def cancel_goal(goal_id, stamp):
+            seq = cancel.send(lambda g, s: CancelRequest(g, s, GoalInfo(goal_id, stamp)))
+            return cancel.reply(seq, 10)
+
+        def result_of(goal_id, timeout):
+            seq = get_result.send(lambda g, s: GetResultRequest(g, s, goal_id))
+            return get_result.reply(seq, timeout)
+
+        def latest_statuses():
+            arrays = [a for a in status.read(N=10) if isinstance(a, GoalStatusArray)]
+            return {bytes(s.goal_info.goal_id.uuid): s.status for s in arrays[-1].status_list} if arrays else {}
+
+        # Idle: cancelling every goal is no error, naming an unknown one is.
+        reply = cancel_goal(zero, Time(0, 0))
+        assert (reply.return_code, len(reply.goals_canceling)) == (ERROR_NONE, 0)
+        assert cancel_goal(new_id(), Time(0, 0)).return_code == ERROR_UNKNOWN_GOAL_ID
+
+        first = new_id()
+        accepted = goal(first, long_file)
+        assert accepted.accepted
+        time.sleep(2.0)
+        # "Every goal accepted at or before 1970-01-01T00:00:01": not this one.
+        reply = cancel_goal(zero, Time(1, 0))
+        assert (reply.return_code, len(reply.goals_canceling)) == (ERROR_NONE, 0)
+        time.sleep(0.5)
+        assert latest_statuses().get(bytes(first.uuid)) == EXECUTING
+        # "At or before its acceptance": this one; again while it stops: already terminating.
+        reply = cancel_goal(zero, accepted.stamp)
+        assert reply.return_code == ERROR_NONE and len(reply.goals_canceling) == 1
+        assert same(reply.goals_canceling[0].goal_id, first)
+        assert cancel_goal(first, Time(0, 0)).return_code == ERROR_GOAL_TERMINATED
+        result = result_of(first, 30)
+        assert result.status == CANCELED, result
+        stop = list(result.result.stop_position[:3])
+        assert stop[1] > 0.04, stop
+        assert cancel_goal(first, Time(0, 0)).return_code == ERROR_GOAL_TERMINATED
+
+        # A goal id that exists is refused, as rcl refuses it.
+        assert not goal(first, long_file).accepted
+
+        # A goal that fails before the machine runs: where the machine stands is where the
+        # cancel left it, not home.
+        missing = new_id()
+        assert goal(missing, tmp_path / "no-such.gcode").accepted
+        result = result_of(missing, 30)
+        assert result.status == ABORTED, result
+        assert list(result.result.stop_position[:3]) == stop, (result.result.stop_position, stop)
+
+        # Kept for the result timeout after they ended (4 s here), then unknown.
+        assert bytes(first.uuid) in latest_statuses()
+        time.sleep(5.0)
+        assert result_of(first, 10).status == UNKNOWN
+        assert bytes(first.uuid) not in latest_statuses()
+
+        # Stopped with a goal running: the goal is cancelled on the path and its result
+        # given to the client waiting for it before the server ends.
+        last = new_id()
+        assert goal(last, long_file).accepted
+        waiting = get_result.send(lambda g, s: GetResultRequest(g, s, last))
+        time.sleep(3.0)
+        server.send_signal(signal.SIGINT)
+        result = get_result.reply(waiting, 30)
+        assert result.status == CANCELED, result
+        assert result.result.message.startswith("the server shut down: cancelled"), result.result.message
+        _, stderr = server.communicate(timeout=20)
+        assert server.returncode == 0, stderr
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait()

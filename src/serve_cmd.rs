@@ -154,8 +154,9 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 if let Some(r) = running.as_mut() {
                     // The first: a cancel (stop on the path); a second: emergency stop.
                     let _ = r.interrupts.send(signals_seen.min(2));
+                    // (A goal its client cancelled already ends as that cancel.)
+                    r.shutdown |= !r.cancelling;
                     r.cancelling = true;
-                    r.shutdown = true;
                     eprintln!("serve: shutting down: stopping the running print first (again: emergency stop)");
                     publish_statuses(&server, &running, &finished);
                 } else if signals_seen > 1 {
@@ -316,13 +317,6 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 let _ = server.send_feedback(r.goal_id, Wire(feedback(&s, planned_s)));
             }
         }
-        // A finished goal is kept (in the status list, its result for get_result) for the
-        // result timeout after it ended, as rcl keeps it; then it is unknown.
-        let before = finished.len();
-        finished.retain(|f| f.ended_at.elapsed() < options.result_timeout);
-        if finished.len() != before {
-            publish_statuses(&server, &running, &finished);
-        }
         result_requests.retain(|(request_id, goal_id)| {
             let Some(f) = finished.iter().find(|f| f.info.goal_id == *goal_id) else {
                 // Unknown and not running: answer at once (rcl answers UNKNOWN).
@@ -347,6 +341,15 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
             );
             false
         });
+        // A finished goal is kept (in the status list, its result for get_result) for the
+        // result timeout after it ended, as rcl keeps it; then it is unknown. (After the
+        // answers above: a request waiting when the goal ended gets its result whatever the
+        // timeout.)
+        let before = finished.len();
+        finished.retain(|f| f.ended_at.elapsed() < options.result_timeout);
+        if finished.len() != before {
+            publish_statuses(&server, &running, &finished);
+        }
         if leave_at.is_some_and(|at| std::time::Instant::now() >= at) {
             return Ok(());
         }
@@ -365,7 +368,8 @@ const SHUTDOWN_LINGER: Duration = Duration::from_secs(2);
 /// being cancelled) and the ids of the finished goals still kept. The goal named by a
 /// non-zero id, and every goal accepted at or before a non-zero stamp, are cancelled; both
 /// zero, every goal. A goal already CANCELING cannot be cancelled again (rcl's state machine
-/// has no such transition), nor can a finished one.
+/// has no such transition), nor can a finished one. Only a request by id alone (stamp 0) is
+/// answered with an error when it cancels nothing: rcl judges one with a stamp by the stamp.
 fn judge_cancel<'a>(
     target: &GoalInfo,
     running: Option<(&GoalInfo, bool)>,
@@ -385,8 +389,8 @@ fn judge_cancel<'a>(
         }
         named_terminal = named && cancelling;
     }
-    // Something cancelled, or nothing to cancel by stamp: no error.
-    let return_code = if !goals_canceling.is_empty() || !by_id {
+    // Something cancelled, or a request by stamp (or for all goals): no error.
+    let return_code = if !goals_canceling.is_empty() || !by_id || stamp_ns != 0 {
         CancelGoalResponseEnum::None
     } else if named_terminal || finished.any(|id| *id == target.goal_id) {
         CancelGoalResponseEnum::GoalTerminated
@@ -513,13 +517,27 @@ mod tests {
         let live = Some((&running, false));
         assert_eq!(verdict(info(zero, 0), live, &[]), (Ok, 1), "all goals");
         assert_eq!(verdict(info(a, 0), live, &[]), (Ok, 1), "by id");
-        assert_eq!(verdict(info(zero, 99), live, &[]), (Ok, 0), "accepted after");
+        assert_eq!(
+            verdict(info(zero, 99), live, &[]),
+            (Ok, 0),
+            "accepted after"
+        );
         assert_eq!(verdict(info(zero, 100), live, &[]), (Ok, 1), "at the stamp");
         assert_eq!(verdict(info(other, 100), live, &[]), (Ok, 1), "by stamp");
-        assert_eq!(verdict(info(other, 99), live, &[]), (UnknownGoal, 0));
+        assert_eq!(
+            verdict(info(other, 99), live, &[]),
+            (Ok, 0),
+            "judged by the stamp"
+        );
+        assert_eq!(verdict(info(other, 0), live, &[]), (UnknownGoal, 0));
         // Already cancelling: no second transition.
         let cancelling = Some((&running, true));
         assert_eq!(verdict(info(a, 0), cancelling, &[]), (GoalTerminated, 0));
         assert_eq!(verdict(info(zero, 0), cancelling, &[]), (Ok, 0));
+        assert_eq!(
+            verdict(info(a, 100), cancelling, &[]),
+            (Ok, 0),
+            "judged by the stamp"
+        );
     }
 }

@@ -220,9 +220,10 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         self.screw.pin_open() && !self.held_at_rest() && self.fault == FaultCode::None
     }
 
-    /// σ = 0 by a hold (and not waiting out a resume's pin delay): only a hold brings σ to 0.
+    /// σ = 0 by a hold, and staying there (not waiting out a resume's pin delay, nor just
+    /// past it with σ about to rise): only a hold brings σ to 0.
     fn held_at_rest(&self) -> bool {
-        self.sigma_q32 == 0 && !matches!(self.ramp, Ramp::ResumeWait { .. })
+        self.sigma_q32 == 0 && self.ramp == Ramp::Steady
     }
 
     /// The state message, taken at the clock the machine has advanced to: positions, plan

@@ -903,7 +903,8 @@ pub async fn run<M: Machine>(
             && executor.is_drained()
             && fault.is_none()
             && stopping_for.is_none()
-            && !control.plan_dropped;
+            // (A plan executed to its end stays done whatever comes after.)
+            && (!control.plan_dropped || done_at_s.is_some());
         if done && done_at_s.is_none() {
             let end_s = state.plan_time_s;
             done_at_s = Some(match advancing {
@@ -973,7 +974,7 @@ pub async fn run<M: Machine>(
         } else {
             None
         };
-        if let (Some(how), true, None) = (operator_stop, exit_when_done, &fault) {
+        if let (Some(how), true, None, None) = (operator_stop, exit_when_done, &fault, done_at_s) {
             let since_ns = *operator_stop_at_ns.get_or_insert(machine_now);
             if next_sample_ns > since_ns + sample_ns {
                 cell_runtime::cell_log!(node, LogLevel::Warn, "the plan was dropped: {how}");

@@ -370,6 +370,8 @@ fn a_feed_hold_stops_on_the_path_and_resume_plays_the_same_steps() {
         run(&mut m, 50_500).is_empty(),
         "at rest during the pin's delay"
     );
+    // A pass that ends just as the delay does (σ still 0, about to rise) keeps it open.
+    assert!(m.pin_open(), "the pin stays open as motion restarts");
     edges.extend(run(&mut m, 200_000));
     assert_eq!(m.mode(), Mode::Idle);
     // The same steps in the same order, only later; never faster than planned.

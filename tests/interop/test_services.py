@@ -71,24 +71,30 @@ def recent_states(reader, seconds):
     return out
 
 
-@pytest.mark.parametrize("device", [None, "emulator"], ids=["executor", "mcu"])
-def test_pause_resume_estop_from_a_cyclone_client(tmp_path, device):
-    """The same services whatever the machine: the virtual executor, or the MCU emulator
-    behind the bridge (`--device emulator`)."""
+def start_circle_print(tmp_path, device):
+    """`polar-cell print` of a circling file at machine pace (on `device`, if any), and a
+    Cyclone participant reading its executed `/joint_states`."""
     gcode = tmp_path / "circle.gcode"
     circle_gcode(gcode)
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN))
     on_device = ["--device", device] if device else []
     proc = subprocess.Popen(
-        [str(binary("polar-cell")), "print", str(gcode), "--bag", str(tmp_path / "s.mcap"),
-         "--no-progress", *on_device],
+        [str(binary("polar-cell")), "print", str(gcode), "--bag", str(tmp_path / "s.mcap"), "--no-progress", *on_device],
         env=env, stderr=subprocess.PIPE, text=True,
     )
+    participant = DomainParticipant(DOMAIN)
+    states = DataReader(
+        participant, Topic(participant, "rt/joint_states", JointState), qos=ros_qos(1000)
+    )
+    return proc, participant, states
+
+
+@pytest.mark.parametrize("device", [None, "emulator"], ids=["executor", "mcu"])
+def test_pause_resume_estop_from_a_cyclone_client(tmp_path, device):
+    """The same services whatever the machine: the virtual executor, or the MCU emulator
+    behind the bridge (`--device emulator`)."""
+    proc, participant, states = start_circle_print(tmp_path, device)
     try:
-        participant = DomainParticipant(DOMAIN)
-        states = DataReader(
-            participant, Topic(participant, "rt/joint_states", JointState), qos=ros_qos(1000)
-        )
         pause, resume, estop, reset = (
             ServiceClient(participant, f"/cell/{name}", TriggerRequest, TriggerResponse)
             for name in ("pause", "resume", "estop", "reset")
@@ -130,20 +136,8 @@ def test_a_cancel_from_a_cyclone_client_ends_the_print_at_rest(tmp_path, device)
     """`ros2 service call /cell/cancel` during `print`: the machine stops on the path, and the
     print ends there, non-zero, saying so (it used to wait for ever for moves the stopped
     planner never sent, or, in the last two seconds, to report the print as succeeded)."""
-    gcode = tmp_path / "circle.gcode"
-    circle_gcode(gcode)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN))
-    on_device = ["--device", device] if device else []
-    proc = subprocess.Popen(
-        [str(binary("polar-cell")), "print", str(gcode), "--bag", str(tmp_path / "c.mcap"),
-         "--no-progress", *on_device],
-        env=env, stderr=subprocess.PIPE, text=True,
-    )
+    proc, participant, states = start_circle_print(tmp_path, device)
     try:
-        participant = DomainParticipant(DOMAIN)
-        states = DataReader(
-            participant, Topic(participant, "rt/joint_states", JointState), qos=ros_qos(1000)
-        )
         pause, cancel = (
             ServiceClient(participant, f"/cell/{name}", TriggerRequest, TriggerResponse)
             for name in ("pause", "cancel")

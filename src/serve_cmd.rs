@@ -282,18 +282,16 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 .map(|c| c.goal_info);
             let response = match target {
                 Some(target) => {
-                    let running_goal = running.as_ref().map(|r| (r.accepted.clone(), r.cancelling));
                     let verdict = judge_cancel(
                         &target,
-                        running_goal
-                            .as_ref()
-                            .map(|(info, cancelling)| (info, *cancelling)),
+                        running.as_ref().map(|r| (&r.accepted, r.cancelling)),
                         finished.iter().map(|f| &f.info.goal_id),
                     );
-                    if let (Some(r), true) = (running.as_mut(), !verdict.goals_canceling.is_empty())
-                    {
-                        let _ = r.interrupts.send(1);
-                        r.cancelling = true;
+                    if !verdict.goals_canceling.is_empty() {
+                        if let Some(r) = running.as_mut() {
+                            let _ = r.interrupts.send(1);
+                            r.cancelling = true;
+                        }
                     }
                     verdict
                 }

@@ -21,7 +21,9 @@ mod recover;
 pub mod repeats;
 mod writer;
 
-pub use meta::{metadata_yaml, RecordedTopic, TopicStats};
+pub use meta::{
+    bag_information, metadata_yaml, RecordedTopic, TopicStats, METADATA_VERSION, ROS_DISTRO,
+};
 pub use qos::{Durability, QosRecord, Reliability};
 pub use reader::{read_bag, BagContents, BagInfo, BagMessage, TopicInfo};
 pub use recover::{is_finished, recover, Recovery, RecoveryEnd};

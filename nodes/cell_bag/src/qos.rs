@@ -40,21 +40,30 @@ impl QosRecord {
         )
     }
 
-    /// Read back the first profile of an `offered_qos_profiles` YAML list.
+    /// Read back the first profile of an `offered_qos_profiles` YAML list: with integer
+    /// policies (rosbag2 before metadata version 9, and ours) or named ones ("reliable",
+    /// "transient_local": what Jazzy's `ros2 bag record` writes in an MCAP file's channels).
     pub fn from_yaml(text: &str) -> Option<QosRecord> {
         let list: Vec<yaml_serde::Value> = yaml_serde::from_str(text).ok()?;
         let first = list.first()?;
-        let int = |key: &str| first.get(key).and_then(|v| v.as_u64());
+        // The policy's integer, or the integer its name stands for.
+        let policy = |key: &str, names: [&str; 2]| -> Option<u64> {
+            let value = first.get(key)?;
+            value.as_u64().or_else(|| {
+                let name = value.as_str()?;
+                names.iter().position(|n| *n == name).map(|i| i as u64 + 1)
+            })
+        };
         Some(QosRecord {
-            reliability: match int("reliability")? {
+            reliability: match policy("reliability", ["reliable", "best_effort"])? {
                 2 => Reliability::BestEffort,
                 _ => Reliability::Reliable,
             },
-            durability: match int("durability")? {
+            durability: match policy("durability", ["transient_local", "volatile"])? {
                 1 => Durability::TransientLocal,
                 _ => Durability::Volatile,
             },
-            depth: int("depth").unwrap_or(10) as u32,
+            depth: first.get("depth").and_then(|v| v.as_u64()).unwrap_or(10) as u32,
         })
     }
 }
@@ -80,6 +89,35 @@ mod tests {
         assert_eq!(
             QosRecord::from_yaml(&QosRecord::ROS_DEFAULT.to_yaml()),
             Some(QosRecord::ROS_DEFAULT)
+        );
+    }
+
+    #[test]
+    fn named_policies_as_jazzy_writes_them_read_back() {
+        let jazzy = "- history: keep_last\n  depth: 1\n  reliability: best_effort\n  durability: transient_local\n  deadline:\n    sec: 9223372036\n    nsec: 854775807\n  lifespan:\n    sec: 9223372036\n    nsec: 854775807\n  liveliness: automatic\n  liveliness_lease_duration:\n    sec: 9223372036\n    nsec: 854775807\n  avoid_ros_namespace_conventions: false";
+        assert_eq!(
+            QosRecord::from_yaml(jazzy),
+            Some(QosRecord {
+                reliability: Reliability::BestEffort,
+                durability: Durability::TransientLocal,
+                depth: 1,
+            })
+        );
+        let reliable_volatile = jazzy
+            .replace("best_effort", "reliable")
+            .replace("transient_local", "volatile");
+        assert_eq!(
+            QosRecord::from_yaml(&reliable_volatile),
+            Some(QosRecord {
+                reliability: Reliability::Reliable,
+                durability: Durability::Volatile,
+                depth: 1,
+            })
+        );
+        // A policy it cannot read is no profile, not a guessed one.
+        assert_eq!(
+            QosRecord::from_yaml(&jazzy.replace("transient_local", "sometimes")),
+            None
         );
     }
 }

@@ -6,7 +6,7 @@ use std::io::{Seek, Write};
 use mcap::records::MessageHeader;
 use polar_cell_msgs::{MsgType, RosMessage};
 
-use crate::meta::{RecordedTopic, TopicStats};
+use crate::meta::{bag_information, RecordedTopic, TopicStats, ROS_DISTRO};
 use crate::qos::QosRecord;
 use crate::BagError;
 
@@ -203,8 +203,11 @@ impl<W: Write + Seek> BagWriter<W> {
     }
 
     /// Write the summary and return the sink with per-topic statistics (for `metadata.yaml`).
+    ///
+    /// Like rosbag2, it first writes the `rosbag2` metadata record: rosbag2's MCAP reader takes
+    /// the metadata version from it (without it, Jazzy assumes version 9 and reads the
+    /// integer QoS policies of `offered_qos_profiles` as unknown ones).
     pub fn finish(mut self) -> Result<(W, Vec<RecordedTopic>), BagError> {
-        self.inner.finish()?;
         let mut topics: Vec<_> = self
             .channels
             .into_values()
@@ -216,6 +219,12 @@ impl<W: Write + Seek> BagWriter<W> {
             })
             .collect();
         topics.sort_by(|a, b| a.topic.cmp(&b.topic));
+        let information = bag_information(None, &topics, ROS_DISTRO);
+        self.inner.write_metadata(&mcap::records::Metadata {
+            name: "rosbag2".into(),
+            metadata: [("serialized_metadata".to_string(), information)].into(),
+        })?;
+        self.inner.finish()?;
         Ok((self.inner.into_inner(), topics))
     }
 }

@@ -147,3 +147,43 @@ fn a_record_the_mcap_crate_panics_on_is_an_error() {
         "{err}"
     );
 }
+
+/// rosbag2's MCAP reader takes the metadata version from the file's `rosbag2` metadata record
+/// and decodes every channel's `offered_qos_profiles` by it; read here with the mcap crate's
+/// own summary, not our reader.
+#[test]
+fn the_file_carries_rosbag2_metadata_of_the_version_its_qos_is_written_in() {
+    let bytes = write_sample(Compression::Zstd);
+    let summary = mcap::read::Summary::read(&bytes).unwrap().unwrap();
+    let records: Vec<_> = summary
+        .metadata_indexes
+        .iter()
+        .map(|index| mcap::read::metadata(&bytes, index).unwrap())
+        .filter(|m| m.name == "rosbag2")
+        .collect();
+    assert_eq!(records.len(), 1);
+    let info: yaml_serde::Value =
+        yaml_serde::from_str(&records[0].metadata["serialized_metadata"]).unwrap();
+    assert_eq!(info["version"].as_u64(), Some(8));
+    assert_eq!(info["message_count"].as_u64(), Some(1001));
+    let topics = info["topics_with_message_count"].as_sequence().unwrap();
+    assert_eq!(topics.len(), 2);
+    for channel in summary.channels.values() {
+        // Version 8's form: a YAML string whose policies are integers (1 reliable, 1
+        // transient local, 2 volatile).
+        let qos: yaml_serde::Value =
+            yaml_serde::from_str(&channel.metadata["offered_qos_profiles"]).unwrap();
+        let durability = if channel.topic == "/robot_description" {
+            1
+        } else {
+            2
+        };
+        assert_eq!(qos[0]["reliability"].as_u64(), Some(1), "{}", channel.topic);
+        assert_eq!(
+            qos[0]["durability"].as_u64(),
+            Some(durability),
+            "{}",
+            channel.topic
+        );
+    }
+}

@@ -286,6 +286,8 @@ impl Drop for Emulator {
 enum Stop {
     Interrupted,
     Failed(anyhow::Error),
+    /// The bag could not be written (why): the machine stops on the path, as for Ctrl-C.
+    BagFailed(String),
 }
 
 /// What a print job is told and tells while it runs: interrupts (the first is a cancel, the
@@ -673,6 +675,7 @@ pub async fn run_job(
         e = machine_failed(status.clone()), if executing => Err(Stop::Failed(e)),
         _ = show_execution(&bar, status.clone(), machine_time_s), if executing => unreachable!("the progress display never ends"),
         _ = interrupted(&io.interrupts, 1) => Err(Stop::Interrupted),
+        reason = recorder.failed() => Err(Stop::BagFailed(reason)),
     };
     // Executing: the stream is over once every move is planned; the machine runs on until it
     // has executed the plan (or is stopped).
@@ -687,13 +690,16 @@ pub async fn run_job(
                 finished = &mut screw => Err(Stop::Failed(stopped(screw_driver::node::NODE_NAME, finished))),
                 _ = show_execution(&bar, status.clone(), machine_time_s) => unreachable!("the progress display never ends"),
                 _ = interrupted(&io.interrupts, 1) => Err(Stop::Interrupted),
+                reason = recorder.failed() => Err(Stop::BagFailed(reason)),
             }
         }
         (other, _) => other,
     };
     // Ctrl-C while the machine moves: a controlled stop on the path; a second: stop at once.
+    // The same when the bag cannot be written (nothing more of the print could be recorded,
+    // and the recorder's acknowledgements that pace the stream are gone with it).
     let mut ended = None;
-    if executing && matches!(outcome, Err(Stop::Interrupted)) {
+    if executing && matches!(outcome, Err(Stop::Interrupted | Stop::BagFailed(_))) {
         ended = Some(stop_machine(&commands, &status, &bar, &io.interrupts).await);
     }
     bar.finish_and_clear();
@@ -751,8 +757,17 @@ pub async fn run_job(
             DELIVER_TIMEOUT.as_secs_f64()
         );
     }
-    let recorded = recorder.stop().await.context("finishing the bag")?;
+    let recorded = recorder.stop().await;
+    let recorded = match &outcome {
+        // (The recorder's own error is the writer's again: the reason says it.)
+        Err(Stop::BagFailed(reason)) => match ended {
+            Some((_, how)) => bail!("{reason}; {how}"),
+            None => bail!("{reason}"),
+        },
+        _ => recorded.context("finishing the bag")?,
+    };
     match outcome {
+        Err(Stop::BagFailed(_)) => unreachable!("ended above"),
         Err(Stop::Interrupted) => {
             print_summary(&recorded);
             Ok(JobReport {

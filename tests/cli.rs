@@ -101,6 +101,82 @@ fn an_interrupted_print_finishes_its_bag_and_exits_non_zero() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// A bag that cannot be written stops the print with the reason, naming the bag. On a full
+/// device (`/dev/full`) that is at once, before anything moves. When the disk fills mid-print
+/// (here: a file-size limit, `RLIMIT_FSIZE`, with `SIGXFSZ` ignored so a write past it fails
+/// with EFBIG), the machine stops on the path — it used to hang: the recorder's taps died with
+/// its writer, the streamer waited for their acknowledgements, and nothing said why.
+#[test]
+fn a_bag_that_cannot_be_written_stops_the_print_with_the_reason() {
+    let gcode =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/polartest.gcode");
+    let dir = std::env::temp_dir().join(format!("polar-cell-full-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let limited = dir.join("limited.mcap");
+    let cases: [(&str, &Path, &[&str], Option<u64>); 3] = [
+        ("full device", Path::new("/dev/full"), &["--speed", "20"], None),
+        ("executing", &limited, &["--speed", "20"], Some(16 * 1024)),
+        ("dry run", &limited, &["--dry-run"], Some(16 * 1024)),
+    ];
+    for (case, bag, extra, file_size_limit) in cases {
+        let started = Instant::now();
+        let mut command = Command::new(env!("CARGO_BIN_EXE_polar-cell"));
+        command
+            .env("ROS_DOMAIN_ID", "47")
+            .arg("print")
+            .arg(&gcode)
+            .arg("--bag")
+            .arg(bag)
+            .arg("--no-progress")
+            .args(extra)
+            .stderr(Stdio::piped());
+        if let Some(bytes) = file_size_limit {
+            use std::os::unix::process::CommandExt as _;
+            // SAFETY: between fork and exec, only async-signal-safe calls on this process.
+            unsafe {
+                command.pre_exec(move || {
+                    libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+                    let limit = libc::rlimit {
+                        rlim_cur: bytes,
+                        rlim_max: bytes,
+                    };
+                    if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
+                        return Err(std::io::Error::last_os_error());
+                    }
+                    Ok(())
+                });
+            }
+        }
+        let mut child = command.spawn().unwrap();
+        // Not for ever: a hang is the failure this test is about.
+        while child.try_wait().unwrap().is_none() {
+            if started.elapsed() > Duration::from_secs(60) {
+                child.kill().unwrap();
+                panic!("{case}: still running after 60 s");
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let out = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{case}: {stderr}");
+        assert!(
+            stderr.contains(&format!("the bag {} could not be written", bag.display())),
+            "{case}: {stderr}"
+        );
+        match case {
+            "full device" => assert!(stderr.contains("No space left on device"), "{stderr}"),
+            _ => assert!(stderr.contains("File too large"), "{case}: {stderr}"),
+        }
+        if case == "executing" {
+            assert!(
+                stderr.contains("cancelled: stopped on the path at line"),
+                "{stderr}"
+            );
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `polar-cell mechanism` with inputs that are wrong: the message names what is wrong (today's
 /// had a leg length for a tip a million km away, "tip z" for a NaN angle, and no file or line
 /// for a binary CL file).

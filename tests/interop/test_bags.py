@@ -1,6 +1,7 @@
 """Bags written by `polar-cell print`, read by mcap-ros2-support and rosbags."""
 
 from collections import Counter
+import time
 
 import pytest
 from mcap.reader import make_reader
@@ -184,3 +185,40 @@ def test_the_bag_says_the_qos_its_publishers_offer(printed_bags):
             durability,
             1,
         ), topic
+
+
+def test_a_recorder_the_streamer_does_not_wait_for_says_its_bag_lacks_the_moves(tmp_path):
+    """A standalone recorder that is not among the streamer's `consumers` is never told where
+    the moves start, so it takes none of them. It used to exit 0 with an empty /gcode/moves;
+    it must say what its bag lacks and why, and exit non-zero. The recorder that is named
+    records every move."""
+    import signal
+    import subprocess
+    from conftest import BIN_DIR
+
+    gcode = FIXTURES / "polartest.gcode"
+    named, unnamed = tmp_path / "named.mcap", tmp_path / "unnamed.mcap"
+
+    def recorder(out, *rename):
+        return subprocess.Popen(
+            [str(BIN_DIR / "bag_recorder"), "--ros-args", *rename, "-p", f"output:={out}",
+             "-p", "topics:=[/gcode/moves]"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    recorders = [recorder(named, "-r", "__node:=first"), recorder(unnamed)]
+    try:
+        time.sleep(1.0)  # both subscribed before the stream starts
+        run([BIN_DIR / "gcode_streamer", gcode, "--ros-args", "-p", "consumers:=[/first]"])
+        time.sleep(1.0)
+    finally:
+        for proc in recorders:
+            proc.send_signal(signal.SIGINT)
+        errors = [proc.communicate(timeout=30)[1] for proc in recorders]
+    assert recorders[0].returncode == 0, errors[0]
+    with open(named, "rb") as f:
+        summary = make_reader(f).get_summary()
+    counts = {summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()}
+    assert counts["/gcode/moves"] == len(gcode_motion_lines(gcode))
+    assert recorders[1].returncode != 0, errors[1]
+    assert "the bag lacks" in errors[1] and "/gcode/moves" in errors[1], errors[1]
+    assert "does not count this recorder among its consumers" in errors[1], errors[1]

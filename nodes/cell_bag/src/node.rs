@@ -258,9 +258,12 @@ pub struct RecordSummary {
     pub missed: Vec<(String, u64)>,
 }
 
+/// The flow-controlled topic: a loss there has its own cause.
+const MOVES_TOPIC: &str = "/gcode/moves";
+
 /// What a tap tells when it ends: its topic and the samples it never took (see
-/// [`crate::gaps`]); `None` for taps that account for loss themselves (the flow-controlled
-/// moves) or record nothing.
+/// [`crate::gaps`]); `None` for taps that record nothing or lost nothing (the flow-controlled
+/// moves: only those it was never told where to start taking).
 type TapReport = Option<(String, u64)>;
 
 /// What the bag writer thread is handed.
@@ -278,6 +281,8 @@ const WRITER_QUEUE: usize = 4096;
 pub struct Recorder {
     stop: watch::Sender<bool>,
     stream_finished: watch::Receiver<bool>,
+    /// Why the bag could not be written, once it could not (the writer thread has ended).
+    failed: watch::Receiver<Option<String>>,
     taps: Vec<tokio::task::JoinHandle<TapReport>>,
     writer: std::thread::JoinHandle<anyhow::Result<RecordSummary>>,
     /// Messages written so far (by the writer thread), `/gcode/ack` and `/cell/plan_credit` not
@@ -520,6 +525,7 @@ fn spawn_moves_consumer(
             (cell_runtime::flow::UNCHANGED_ACK_REPEAT.as_millis() / TICK.as_millis()) as u32;
         let mut tick = tokio::time::interval(TICK);
         let mut idle_ticks = 0u32;
+        let mut unrecorded = 0u64;
         loop {
             tokio::select! {
                 taken = moves.async_take() => match taken {
@@ -528,6 +534,9 @@ fn spawn_moves_consumer(
                         if !producer.admits(&info) {
                             continue;
                         }
+                        // Moves before the resume point is known are not taken (the streamer
+                        // sends them again once it is): counted, in case it never will be.
+                        unrecorded += u64::from(tracker.needs_hello());
                         if tracker.accept(m.sequence) == Verdict::Process
                             && !forward(&tx, moves_channel, &m, &info).await
                         {
@@ -574,7 +583,11 @@ fn spawn_moves_consumer(
                             forward(&tx, channel, &p, &info).await;
                         }
                     }
-                    return None;
+                    // Moves came but the streamer never named this recorder among its
+                    // consumers (so never told it where to start, nor waited for it): the
+                    // bag lacks them. Said, not an empty topic and a success.
+                    return (tracker.needs_hello() && unrecorded > 0)
+                        .then(|| (MOVES_TOPIC.to_string(), unrecorded));
                 }
             }
         }
@@ -612,7 +625,14 @@ impl Recorder {
             compression,
             chunk_size_bytes: params.i64("chunk_size_bytes") as u64,
         };
-        let mut bag = BagWriter::new(BufWriter::with_capacity(1 << 20, file), &options)?;
+        // What the bag is called in errors: the directory for a bag directory.
+        let bag_path = if directory {
+            output.clone()
+        } else {
+            file_path.clone()
+        };
+        let mut bag = BagWriter::new(BufWriter::with_capacity(1 << 20, file), &options)
+            .map_err(|e| cannot_write(&bag_path, e.into()))?;
         let topics: Vec<(String, String)> = params
             .strings("topics")
             .iter()
@@ -620,7 +640,7 @@ impl Recorder {
             .collect::<anyhow::Result<_>>()?;
         let acknowledge_moves = params.bool("acknowledge_moves");
         let reader_depth = params.i64("reader_depth") as usize;
-        let (tx, mut rx) = mpsc::channel::<Item>(WRITER_QUEUE);
+        let (tx, rx) = mpsc::channel::<Item>(WRITER_QUEUE);
         let (stop, stop_rx) = watch::channel(false);
         let (finished_tx, stream_finished) = watch::channel(false);
         let mut taps = Vec::new();
@@ -636,7 +656,9 @@ impl Recorder {
             let msg_type = polar_cell_msgs::find(type_name)
                 .ok_or_else(|| anyhow!("topic {topic}: unknown message type {type_name}"))?;
             let (qos, record) = qos_for(topic, reader_depth);
-            let channel = bag.add_topic(topic, msg_type, record)?;
+            let channel = bag
+                .add_topic(topic, msg_type, record)
+                .map_err(|e| cannot_write(&bag_path, e.into()))?;
             if topic == "/gcode/ack" {
                 ack_channel = Some(channel);
             }
@@ -720,49 +742,34 @@ impl Recorder {
         let directory_path = directory.then(|| output.clone());
         let written = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
         let written_by_writer = written.clone();
+        let (failed_tx, failed) = watch::channel(None);
         let writer = std::thread::Builder::new()
             .name("bag writer".into())
             .spawn(move || -> anyhow::Result<RecordSummary> {
-                while let Some(item) = rx.blocking_recv() {
-                    let Item::Message(channel, log_time, publish_time, bytes) = item else {
-                        bag.flush()?;
-                        continue;
-                    };
-                    bag.write(channel, log_time, publish_time, &bytes)?;
-                    if Some(channel) != ack_channel && Some(channel) != credit_channel {
-                        written_by_writer.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    }
-                }
-                let messages = bag.message_count();
-                let (sink, topics) = bag.finish()?;
-                let file = sink
-                    .into_inner()
-                    .map_err(|e| anyhow!("flushing the bag: {e}"))?;
-                file.sync_all().context("syncing the bag")?;
-                if let Some(dir) = &directory_path {
-                    let name = file_path
-                        .file_name()
-                        .map(|n| n.to_string_lossy().into_owned())
-                        .unwrap_or_default();
-                    std::fs::write(
-                        dir.join("metadata.yaml"),
-                        metadata_yaml(&name, &topics, "jazzy"),
-                    )
-                    .context("writing metadata.yaml")?;
-                }
-                Ok(RecordSummary {
-                    path: directory_path.unwrap_or(file_path),
-                    topics: topics
-                        .into_iter()
-                        .map(|t| (t.topic, t.type_name, t.stats.message_count))
-                        .collect(),
-                    messages,
-                    missed: Vec::new(),
+                let result = write_bag(
+                    rx,
+                    bag,
+                    ack_channel,
+                    credit_channel,
+                    &written_by_writer,
+                    directory_path,
+                    file_path,
+                );
+                result.map_err(|e| {
+                    let e = cannot_write(&bag_path, e);
+                    // Said at once: whoever waits on the recording stops the print now,
+                    // not when the taps behind the dead writer have starved it.
+                    let _ = failed_tx.send(Some(format!(
+                        "{e} (what was written before is readable with `polar-cell bag \
+                         recover`)"
+                    )));
+                    e
                 })
             })?;
         Ok(Recorder {
             stop,
             stream_finished,
+            failed,
             taps,
             writer,
             written,
@@ -782,6 +789,21 @@ impl Recorder {
         tokio::time::timeout(timeout, rx.wait_for(|&done| done))
             .await
             .is_ok_and(|r| r.is_ok())
+    }
+
+    /// Resolves (with the reason) once the bag cannot be written any more — a full disk, an
+    /// I/O error — so a print stops at once with that reason instead of waiting on taps
+    /// whose writer is gone; never resolves while the bag is fine.
+    pub async fn failed(&self) -> String {
+        let mut rx = self.failed.clone();
+        let reason = match rx.wait_for(Option::is_some).await {
+            Ok(reason) => reason.clone(),
+            Err(_) => None,
+        };
+        match reason {
+            Some(reason) => reason,
+            None => std::future::pending().await,
+        }
     }
 
     /// Resolves once no message (but the consumers' repeated acknowledgements) has been
@@ -825,6 +847,61 @@ impl Recorder {
     }
 }
 
+/// The error of a bag that cannot be written, with the bag's path and the cause's chain in
+/// one line ("the bag out.mcap could not be written: …: No space left on device").
+fn cannot_write(bag: &Path, e: anyhow::Error) -> anyhow::Error {
+    anyhow!("the bag {} could not be written: {e:#}", bag.display())
+}
+
+/// The writer thread's work: every item into the bag until the taps are done, then the
+/// summary, `sync_all` and (for a bag directory) `metadata.yaml`.
+fn write_bag(
+    mut rx: mpsc::Receiver<Item>,
+    mut bag: BagWriter<BufWriter<File>>,
+    ack_channel: Option<ChannelId>,
+    credit_channel: Option<ChannelId>,
+    written: &std::sync::atomic::AtomicU64,
+    directory_path: Option<PathBuf>,
+    file_path: PathBuf,
+) -> anyhow::Result<RecordSummary> {
+    while let Some(item) = rx.blocking_recv() {
+        let Item::Message(channel, log_time, publish_time, bytes) = item else {
+            bag.flush()?;
+            continue;
+        };
+        bag.write(channel, log_time, publish_time, &bytes)?;
+        if Some(channel) != ack_channel && Some(channel) != credit_channel {
+            written.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+    }
+    let messages = bag.message_count();
+    let (sink, topics) = bag.finish()?;
+    let file = sink
+        .into_inner()
+        .map_err(|e| anyhow!("flushing the bag: {e}"))?;
+    file.sync_all().context("syncing the bag")?;
+    if let Some(dir) = &directory_path {
+        let name = file_path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        std::fs::write(
+            dir.join("metadata.yaml"),
+            metadata_yaml(&name, &topics, crate::meta::ROS_DISTRO),
+        )
+        .context("writing metadata.yaml")?;
+    }
+    Ok(RecordSummary {
+        path: directory_path.unwrap_or(file_path),
+        topics: topics
+            .into_iter()
+            .map(|t| (t.topic, t.type_name, t.stats.message_count))
+            .collect(),
+        messages,
+        missed: Vec::new(),
+    })
+}
+
 /// Run the recorder from its own command line until SIGINT/SIGTERM.
 pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
     let (ros_args, rest) = cell_runtime::RosArgs::parse(&argv)?;
@@ -833,7 +910,10 @@ pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
     }
     let node = CellNode::start(NODE_NAME, &param_specs(), &ros_args)?;
     let recorder = Recorder::start(node)?;
-    cell_runtime::shutdown_signal().await;
+    tokio::select! {
+        _ = cell_runtime::shutdown_signal() => {}
+        reason = recorder.failed() => bail!(reason),
+    }
     let summary = recorder.stop().await?;
     print_summary(&summary);
     if let Some(loss) = summary.loss() {
@@ -867,10 +947,20 @@ impl RecordSummary {
         let topics: Vec<String> = (self.missed.iter())
             .map(|(topic, n)| format!("{topic} {n}"))
             .collect();
+        let mut causes = Vec::new();
+        if self.missed.iter().any(|(topic, _)| topic == MOVES_TOPIC) {
+            causes.push(
+                "the streamer does not count this recorder among its consumers (its \
+                 `consumers` parameter), so it never said where the moves start",
+            );
+        }
+        if self.missed.iter().any(|(topic, _)| topic != MOVES_TOPIC) {
+            causes.push("the recorder fell behind their keep-last history");
+        }
         Some(format!(
-            "the bag lacks {total} samples its writers published ({}): the recorder fell \
-             behind their keep-last history",
-            topics.join(", ")
+            "the bag lacks {total} samples its writers published ({}): {}",
+            topics.join(", "),
+            causes.join("; ")
         ))
     }
 }

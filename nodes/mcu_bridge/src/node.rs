@@ -166,6 +166,13 @@ pub struct Framing {
     pub stop_bits: u8,
 }
 
+impl Framing {
+    /// Bits on the wire for one character: a start bit, the data, parity, the stop bits.
+    pub fn bits_per_character(&self) -> u32 {
+        1 + self.data_bits as u32 + u32::from(self.parity != Parity::None) + self.stop_bits as u32
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Parity {
     None,
@@ -508,6 +515,9 @@ pub async fn run(
         return cell_machine::node::run(node, &mut machine, &params, commands, status).await;
     };
     let mut machine = WithScrewLine::new(machine, port.1, port.0, params.queue_capacity);
+    machine
+        .start_stopped()
+        .context("parameter screw_port: the first line (rpm 0, pin closed)")?;
     cell_machine::node::run(node, &mut machine, &params, commands, status).await
 }
 
@@ -527,9 +537,22 @@ fn screw_port(
         .string("screw_port_framing")
         .parse()
         .context("parameter screw_port_framing")?;
-    let (device, name) = Device::open_framed(spec, p.i64("screw_port_baud") as u32, framing)
-        .context("parameter screw_port (the screw amplifier's line)")?;
+    let baud = p.i64("screw_port_baud") as u32;
     let rate_hz = p.f64("screw_max_rate_hz");
+    // Half the line at most: a line written while the last is still going out waits in the
+    // port, and so would a stop behind it.
+    let needed = template.bits_per_s(rate_hz, framing.bits_per_character());
+    if needed > 0.5 * baud as f64 {
+        anyhow::bail!(
+            "parameters screw_max_rate_hz ({rate_hz}) and screw_port_baud ({baud}): lines at \
+             1,000 rpm, {rate_hz} a second, need {needed:.0} bit/s, more than half of the \
+             line's {baud} baud ({}): lines would queue and a stop would reach the amplifier \
+             late; lower the rate, shorten the template or raise the baud rate",
+            p.string("screw_port_framing")
+        );
+    }
+    let (device, name) = Device::open_framed(spec, baud, framing)
+        .context("parameter screw_port (the screw amplifier's line)")?;
     cell_runtime::cell_log!(
         node,
         LogLevel::Info,

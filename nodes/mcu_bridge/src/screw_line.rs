@@ -22,10 +22,12 @@
 //!
 //! # Holds and stops
 //!
-//! The MCU scales the screw with the feed scale σ of a hold and keeps the pin closed while it
-//! holds; lines here follow it (at the same rate limit), so the screw stops with the steppers.
-//! An emergency stop, a fault or a dropped plan send "rpm 0, pin closed" at once, whatever
-//! the rate limit.
+//! The MCU scales the screw with the feed scale σ of a hold, keeps the pin open while it
+//! slows and closes it once held at rest; lines here follow it (at the rate limit), so the
+//! screw stops with the steppers. A line never says rpm > 0 with the pin closed. "rpm 0, pin
+//! closed" goes out at once whatever the rate limit: at the end of a hold, and for an
+//! emergency stop, a fault or a dropped plan. A line whose write failed leaves the
+//! amplifier's state unknown ([`ScrewLine::forget_sent`]), so the next stop is sent again.
 
 use std::collections::VecDeque;
 
@@ -47,6 +49,13 @@ pub enum TemplateError {
     BadEscape { escape: String, at: usize },
     #[error("command template: a lone `}}` at byte {at} (write `}}}}` for a brace)")]
     LoneBrace { at: usize },
+    #[error(
+        "command template: `{{{name}}}` at byte {at} needs two different, non-empty words for \
+         the open and the closed pin (a stop line must say the pin closed)"
+    )]
+    PinWords { name: String, at: usize },
+    #[error("command template: {character:?} at byte {at} is not ASCII (an ASCII line)")]
+    NotAscii { character: char, at: usize },
     #[error("command template {template:?} has no {missing}: the amplifier must be told it")]
     Missing {
         template: String,
@@ -115,6 +124,12 @@ impl CommandTemplate {
                     text.push(byte as char);
                     i += len;
                 }
+                c if !c.is_ascii() => {
+                    return Err(TemplateError::NotAscii {
+                        character: c,
+                        at: i,
+                    })
+                }
                 c => {
                     text.push(c);
                     i += c.len_utf8();
@@ -150,6 +165,17 @@ impl CommandTemplate {
     /// The smallest rpm step a line can express.
     pub fn quantum_rpm(&self) -> f64 {
         self.quantum_rpm
+    }
+
+    /// Bits a second the line needs at `rate_hz` lines of `bits_per_character` (start, data,
+    /// parity and stop bits) when it says 1,000 rpm: what the baud rate must carry with room
+    /// to spare, or lines queue in the port and a stop reaches the amplifier late.
+    pub fn bits_per_s(&self, rate_hz: f64, bits_per_character: u32) -> f64 {
+        let longest = self
+            .render(1000.0, true)
+            .len()
+            .max(self.render(1000.0, false).len());
+        rate_hz * (longest as u32 * bits_per_character) as f64
     }
 
     /// `rpm` as the line will say it.
@@ -193,6 +219,12 @@ fn placeholder(name: &str, at: usize) -> Result<Piece, TemplateError> {
                 }
             } else if let Some(words) = name.strip_prefix("pin:") {
                 let (open, closed) = words.split_once('/').ok_or_else(unknown)?;
+                if open.is_empty() || closed.is_empty() || open == closed {
+                    return Err(TemplateError::PinWords {
+                        name: name.to_string(),
+                        at,
+                    });
+                }
                 Piece::Pin {
                     open: open.to_string(),
                     closed: closed.to_string(),
@@ -416,10 +448,17 @@ impl ScrewLine {
     pub fn poll(&mut self, clock: LineClock) -> Option<(String, f64)> {
         self.advance(clock.plan_s);
         let line = self.current?;
-        let rpm = self
-            .template
-            .quantize(line.rpm * clock.feed.clamp(0.0, 1.0));
         let pin_open = line.pin_open && clock.pin_allowed;
+        // Never a turning screw behind a closed pin (it would build pressure in the barrel).
+        let rpm = if pin_open {
+            self.template
+                .quantize(line.rpm * clock.feed.clamp(0.0, 1.0))
+        } else {
+            0.0
+        };
+        // Stopping the screw and closing the pin is always safe to say at once (as an
+        // emergency stop is); anything else waits for the rate.
+        let stopping = (rpm, pin_open) == (0.0, false);
         if let Some(sent) = &self.sent {
             if (sent.rpm, sent.pin_open) == (rpm, pin_open) {
                 if sent.line_id != line.id {
@@ -428,7 +467,7 @@ impl ScrewLine {
                 }
                 return None;
             }
-            if clock.machine_s < sent.due_s + self.min_period_s - 1e-9 {
+            if !stopping && clock.machine_s < sent.due_s + self.min_period_s - 1e-9 {
                 return None;
             }
         }
@@ -449,16 +488,25 @@ impl ScrewLine {
         self.counters.lines_sent += 1;
         self.sent = Some(Sent {
             machine_s: clock.machine_s,
-            // A line held back by the rate is due when the rate allowed it, not earlier.
-            due_s: self.sent.as_ref().map_or(clock.machine_s - late_s, |s| {
-                (clock.machine_s - late_s).max(s.due_s + self.min_period_s)
-            }),
+            // A line held back by the rate is due when the rate allowed it, not earlier; a
+            // stop, which did not wait, when it went.
+            due_s: match &self.sent {
+                Some(s) if !stopping => (clock.machine_s - late_s).max(s.due_s + self.min_period_s),
+                Some(_) => clock.machine_s,
+                None => clock.machine_s - late_s,
+            },
             text: text.clone(),
             rpm,
             pin_open,
             line_id: line.id,
         });
         Some((text, late_s))
+    }
+
+    /// The last line may not have reached the amplifier (its write failed, perhaps half
+    /// way): what it holds is unknown, so the next stop is sent whatever was sent before.
+    pub fn forget_sent(&mut self) {
+        self.sent = None;
     }
 
     /// Stop the screw now: rpm 0, pin closed, whatever the rate limit (unless it is so

@@ -3,7 +3,7 @@
 //!
 //! [`WithScrewLine`] takes the screw commands away from the machine it wraps (the MCU then
 //! drives steppers only) and sends them as lines at the machine's plan time, scaled with its
-//! feed scale and with the pin closed while it holds or stops. What it publishes for the
+//! feed scale and with the pin closed while held at rest or stopped. What it publishes for the
 //! screw joint is what the amplifier was told, integrated over time. Faults, emergency stops,
 //! a dropped plan and the end of the node all send "rpm 0, pin closed" at once.
 
@@ -94,6 +94,9 @@ impl<M: Machine, P: LinePort> WithScrewLine<M, P> {
         };
         let sent = self.port.send(now_ns, &text).map_err(|e| e.to_string());
         if let Err(e) = &sent {
+            // Whatever part of the line went out, the amplifier's state is unknown now: the
+            // next stop is sent again (every tick while it fails, and at a reset).
+            self.line.forget_sent();
             // The screw is out of reach: the steppers stop too, at once.
             if self.port_error.is_none() {
                 self.port_error = Some(e.clone());
@@ -114,6 +117,15 @@ impl<M: Machine, P: LinePort> WithScrewLine<M, P> {
 
     fn now_ns(&self) -> i64 {
         self.last_tick_ns.unwrap_or(0)
+    }
+
+    /// Tell the amplifier "rpm 0, pin closed" before anything else: one left turning by an
+    /// earlier session that ended badly stops now, and a line that cannot be written is
+    /// found before the print starts.
+    pub fn start_stopped(&mut self) -> Result<(), WithScrewLineError<M::Error>> {
+        self.line.forget_sent();
+        self.stop_screw(self.now_ns())
+            .map_err(WithScrewLineError::Port)
     }
 }
 
@@ -173,8 +185,14 @@ impl<M: Machine, P: LinePort> Machine for WithScrewLine<M, P> {
         // A stopped machine, or a plan dropped (a cancel done): the screw stops with it.
         let dropped = self.epoch_ns.is_some() && self.inner.epoch_ns().is_none();
         if result.is_err() || state.state == PlayerState::Stopped || dropped {
-            self.stop_screw(now_ns).map_err(WithScrewLineError::Port)?;
-            return result.map_err(WithScrewLineError::Machine);
+            let reported = self.port_error.is_some();
+            let stopped = self.stop_screw(now_ns);
+            result.map_err(WithScrewLineError::Machine)?;
+            // A line that failed is tried again every tick; its error was reported once.
+            return match stopped {
+                Err(e) if !reported => Err(WithScrewLineError::Port(e)),
+                _ => Ok(()),
+            };
         }
         let running = matches!(state.state, PlayerState::Running | PlayerState::Held);
         // The plan clock stops where the plan ends; lines the rate put after that instant
@@ -188,9 +206,12 @@ impl<M: Machine, P: LinePort> Machine for WithScrewLine<M, P> {
             machine_s: now_ns as f64 * 1e-9,
             plan_s,
             feed: if running { state.feed } else { 0.0 },
-            // The MCU reopens the pin when a resume is asked for (its delay at rest), before σ
-            // ramps up; a hold closes it.
-            pin_allowed: running && state.hold.is_none(),
+            // As the MCU (and the virtual machine): the pin stays open while a hold slows
+            // (the screw at σ·rpm, so the slowed path gets its material), closes once held
+            // at rest, and reopens when a resume is asked for (its delay at rest), before σ
+            // ramps up.
+            pin_allowed: state.state == PlayerState::Running
+                || (state.state == PlayerState::Held && state.hold.is_none()),
         };
         let polled = self.line.poll(clock).map(|(text, _)| text);
         self.send(now_ns, polled).map_err(WithScrewLineError::Port)

@@ -210,9 +210,9 @@ fn run(
 }
 
 /// A print on the emulated MCU: every line the bridge wrote reached the peer whole and in
-/// order; lines are 0.1 s apart at least (less a 1 ms tick's lateness); the pin opens and
-/// closes when the commands say, to the tick; the material told is the commanded
-/// profile's; the screw ends stopped with the pin closed.
+/// order; lines are 0.1 s apart at least (less a 1 ms tick's lateness; a stop when due); the
+/// pin opens and closes when the commands say, to the tick; the material told is the
+/// commanded profile's; the screw ends stopped with the pin closed.
 #[test]
 fn a_print_tells_a_pseudo_terminal_peer_its_screw_at_most_ten_times_a_second() {
     let segments = finger_start(150);
@@ -242,8 +242,13 @@ fn a_print_tells_a_pseudo_terminal_peer_its_screw_at_most_ten_times_a_second() {
     assert_eq!(received, written);
     assert_eq!(sent.last().unwrap().1, "RPM 0.0 PIN 0\r\n");
     assert!(sent.len() > 150, "{} lines", sent.len());
+    // A period apart (less a tick), but for "rpm 0, pin closed": a stop goes when due.
     for w in sent.windows(2) {
-        assert!(w[1].0 - w[0].0 >= 99_000_000, "{:?}", w);
+        assert!(
+            w[1].0 - w[0].0 >= 99_000_000 || w[1].1 == "RPM 0.0 PIN 0\r\n",
+            "{:?}",
+            w
+        );
     }
     let plan_at = |ns: i64| plan_times.iter().find(|(t, _)| *t == ns).unwrap().1;
     // The pin: open at 0.5 s of plan, closed at the end less 0.5 s (to the grid's next
@@ -321,6 +326,123 @@ fn an_emergency_stop_reaches_the_amplifier_at_once() {
     assert!(
         sent[sent.len() - 2].1.ends_with("PIN 1\r\n"),
         "it was running"
+    );
+}
+
+/// A pause mid-print: while the steppers slow along the path the pin stays open and the
+/// screw follows σ (never turning behind a closed pin); once the MCU holds at rest the line
+/// says "rpm 0, pin closed" in that very tick, whatever the rate limit.
+#[test]
+fn a_pause_closes_the_pin_when_held_at_rest_and_never_turns_the_screw_behind_it() {
+    let segments = finger_start(150);
+    let plan_end_s: f64 = segments.iter().map(|s| s.duration_s).sum();
+    let messages: Vec<ScrewCommand> = screw_commands(plan_end_s)
+        .into_iter()
+        .map(screw_message)
+        .collect();
+    let (mut machine, stop, reader) = rig();
+    let mut held_at = None;
+    run(&mut machine, &segments, &messages, |m, tick| {
+        assert!(tick.ok);
+        if tick.now_ns == 5_000_000_000 {
+            m.pause();
+        }
+        if tick.now_ns > 5_000_000_000 && m.state().state == cell_machine::PlayerState::Held {
+            held_at.get_or_insert(tick.now_ns);
+        }
+        tick.now_ns >= 7_000_000_000
+    });
+    let held_at = held_at.expect("held at rest within 2 s");
+    let sent = machine.port().sent.clone();
+    drop(machine);
+    stop.store(true, Ordering::Relaxed);
+    let received = reader.join().unwrap();
+    assert_eq!(received.len(), sent.len());
+    for (at_ns, text) in &sent {
+        assert!(
+            text.ends_with("PIN 1\r\n") || text.starts_with("RPM 0.0 "),
+            "{text:?} at {at_ns} ns: the screw turning behind a closed pin"
+        );
+    }
+    // Slowing: the lines after the pause keep the pin open (the slowed path gets material).
+    let slowing: Vec<_> = sent
+        .iter()
+        .filter(|(at, _)| (5_000_000_000..held_at).contains(at))
+        .collect();
+    assert!(
+        slowing.iter().all(|(_, t)| t.ends_with("PIN 1\r\n")),
+        "{slowing:?}"
+    );
+    // Held at rest: closed in the tick the MCU said so (or the one after), and nothing since.
+    let closing = sent
+        .iter()
+        .position(|(at, _)| *at >= held_at)
+        .expect("a line at the hold");
+    assert!(
+        sent[closing].0 <= held_at + 1_000_000,
+        "{:?}",
+        sent[closing]
+    );
+    assert_eq!(sent[closing].1, "RPM 0.0 PIN 0\r\n");
+    assert_eq!(closing, sent.len() - 1, "{:?}", &sent[closing..]);
+}
+
+/// A line that failed mid-print and came back: the stop it could not write is written on a
+/// later tick (the amplifier's state was unknown), not taken as done.
+#[test]
+fn a_stop_the_line_could_not_write_is_written_when_it_can() {
+    let segments = finger_start(150);
+    let plan_end_s: f64 = segments.iter().map(|s| s.duration_s).sum();
+    let messages: Vec<ScrewCommand> = screw_commands(plan_end_s)
+        .into_iter()
+        .map(screw_message)
+        .collect();
+    let (mut machine, stop, reader) = rig();
+    let mut errors = 0;
+    run(&mut machine, &segments, &messages, |m, tick| {
+        errors += usize::from(!tick.ok);
+        if tick.now_ns == 3_000_000_000 {
+            machine_port_fails(m);
+        }
+        if tick.now_ns == 3_100_000_000 {
+            m.port_mut().fail_after = None; // plugged back in
+        }
+        tick.now_ns >= 3_200_000_000
+    });
+    assert_eq!(errors, 1, "the failure is reported once");
+    let sent = machine.port().sent.clone();
+    let (last_ns, last) = sent.last().unwrap();
+    assert_eq!(last, "RPM 0.0 PIN 0\r\n");
+    assert_eq!(
+        *last_ns, 3_101_000_000,
+        "written at the first tick it could be"
+    );
+    assert!(
+        sent[sent.len() - 2].1.ends_with("PIN 1\r\n"),
+        "it was running"
+    );
+    assert_eq!(machine.state().state, cell_machine::PlayerState::Stopped);
+    drop(machine);
+    stop.store(true, Ordering::Relaxed);
+    reader.join().unwrap();
+}
+
+/// Before any plan the amplifier is told to stop: one left turning by an earlier session
+/// stops, and a line that cannot be written fails at start-up.
+#[test]
+fn the_line_starts_with_a_stop() {
+    let (mut machine, stop, reader) = rig();
+    machine.start_stopped().unwrap();
+    assert_eq!(machine.port().sent, [(0, "RPM 0.0 PIN 0\r\n".to_string())]);
+    machine.port_mut().fail_after = Some(0);
+    let err = machine.start_stopped().unwrap_err().to_string();
+    assert!(err.starts_with("the screw's serial line: "), "{err}");
+    drop(machine);
+    stop.store(true, Ordering::Relaxed);
+    assert_eq!(
+        reader.join().unwrap().first(),
+        Some(&(0.0, false)),
+        "the peer parsed the stop"
     );
 }
 
@@ -476,4 +598,16 @@ fn a_failed_screw_line_stops_the_steppers() {
 fn machine_port_fails(machine: &mut Rig) {
     let sent = machine.port().sent.len();
     machine.port_mut().fail_after = Some(sent);
+}
+
+/// The bits one character takes on the wire (start, data, parity, stop): what the start-up
+/// check of the line's load counts with.
+#[test]
+fn framing_counts_every_bit_of_a_character() {
+    use mcu_bridge::node::Framing;
+    let bits = |f: &str| f.parse::<Framing>().unwrap().bits_per_character();
+    assert_eq!(bits("8N1"), 10);
+    assert_eq!(bits("7E2"), 11);
+    assert_eq!(bits("8O1"), 11);
+    assert_eq!(bits("5N2"), 8);
 }

@@ -56,6 +56,22 @@ fn a_bad_template_names_what_and_where() {
         }
     );
     assert_eq!(err("{pin}{rpm}}"), LoneBrace { at: 10 });
+    for words in ["pin:ON/ON", "pin:/", "pin:ON/", "pin:/OFF"] {
+        assert_eq!(
+            err(&format!("{{rpm}} {{{words}}}")),
+            PinWords {
+                name: words.into(),
+                at: 6
+            }
+        );
+    }
+    assert_eq!(
+        err("{pin}{rpm}°"),
+        NotAscii {
+            character: '°',
+            at: 10
+        }
+    );
     assert!(matches!(
         err("P{pin}"),
         Missing {
@@ -195,17 +211,49 @@ fn holds_scale_the_screw_and_a_stop_goes_out_at_once() {
         text(line.poll(at(0.0, 0.0, 1.0, true))).as_deref(),
         Some("RPM 60.0 PIN 1\r\n")
     );
-    // Too soon after the last line: it waits.
-    assert_eq!(line.poll(at(0.05, 0.05, 0.5, false)), None);
+    // Slowing, pin still open: too soon after the last line, it waits; then σ·rpm.
+    assert_eq!(line.poll(at(0.05, 0.05, 0.5, true)), None);
     assert_eq!(
-        text(line.poll(at(0.1, 0.09, 0.5, false))).as_deref(),
-        Some("RPM 30.0 PIN 0\r\n")
+        text(line.poll(at(0.1, 0.09, 0.5, true))).as_deref(),
+        Some("RPM 30.0 PIN 1\r\n")
     );
-    assert_eq!(line.poll(at(0.12, 0.1, 0.0, false)), None);
-    assert_eq!(line.stop_now(0.13).as_deref(), Some("RPM 0.0 PIN 0\r\n"));
-    assert_eq!(line.stop_now(0.14), None, "already stopped");
+    // Held at rest (σ 0, the pin closed): said at once, rate or not.
+    assert_eq!(
+        text(line.poll(at(0.12, 0.1, 0.0, false))).as_deref(),
+        Some("RPM 0.0 PIN 0\r\n")
+    );
+    // A resume: the pin reopens and the screw follows σ, a period after the last line.
+    assert_eq!(line.poll(at(0.2, 0.1, 0.0, true)), None, "rate: 0.1 s");
+    assert_eq!(
+        text(line.poll(at(0.22, 0.1, 0.0, true))).as_deref(),
+        Some("RPM 0.0 PIN 1\r\n")
+    );
+    assert_eq!(line.stop_now(0.23).as_deref(), Some("RPM 0.0 PIN 0\r\n"));
+    assert_eq!(line.stop_now(0.24), None, "already stopped");
     assert_eq!(line.poll(at(0.5, 0.5, 1.0, true)), None, "commands dropped");
     assert_eq!(line.sent(), (0.0, false));
+    // A write that failed: the stop is sent again, however stopped the line thought it was.
+    line.forget_sent();
+    assert_eq!(line.stop_now(0.6).as_deref(), Some("RPM 0.0 PIN 0\r\n"));
+    assert_eq!(line.stop_now(0.7), None);
+}
+
+/// A pin change the rate put inside a line's interval never makes a line that turns the
+/// screw behind a closed pin.
+#[test]
+fn a_closed_pin_never_goes_with_a_turning_screw() {
+    let mut line = ScrewLine::new(template(DEFAULT_TEMPLATE), 2.0, Hold::ZeroOrder);
+    line.push(0.0, 0.0, false, 1).unwrap();
+    line.push(0.1, 0.0, true, 2).unwrap();
+    line.push(0.35, 60.0, true, 3).unwrap();
+    let sent = run(&mut line, 0.001, 3.0);
+    assert!(!sent.is_empty());
+    for (t, text) in &sent {
+        assert!(
+            !text.ends_with("PIN 0\r\n") || text.starts_with("RPM 0.0 "),
+            "{text:?} at {t} s"
+        );
+    }
 }
 
 #[test]
@@ -339,4 +387,18 @@ fn a_held_back_line_does_not_let_the_next_one_follow_at_once() {
     for w in sends.windows(2) {
         assert!(w[1] - w[0] >= 0.099 - 1e-9, "{:?}", w);
     }
+}
+
+/// What a line needs of the serial line: the longest line (at 1,000 rpm) times the rate, in
+/// bits with the framing's start, parity and stop bits.
+#[test]
+fn the_bits_a_second_a_line_needs() {
+    let t = template(DEFAULT_TEMPLATE);
+    assert_eq!(t.render(1000.0, true), "RPM 1000.0 PIN 1\r\n");
+    // 18 characters, 10 lines a second, 8N1 (10 bits a character).
+    assert_eq!(t.bits_per_s(10.0, 10), 1800.0);
+    // The longer pin word counts: "ON"/"OFF".
+    let t = template("S{millirpm};P{pin:ON/OFF}\\r");
+    assert_eq!(t.render(1000.0, false), "S1000000;POFF\r");
+    assert_eq!(t.bits_per_s(4.0, 11), 4.0 * 14.0 * 11.0);
 }

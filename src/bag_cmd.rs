@@ -144,10 +144,22 @@ pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> any
             _ if latched_now => transient_local_qos(10_000),
             _ => reliable_qos(10_000),
         };
-        publishers.insert(
-            t.name.clone(),
-            cdr_publisher(&mut node, &t.name, &t.type_name, &qos)?,
-        );
+        let publisher = match cdr_publisher(&mut node, &t.name, &t.type_name, &qos) {
+            Ok(publisher) => publisher,
+            // A type we do not know: asked for by name, an error; otherwise skipped and
+            // said, as `ros2 bag play` skips a type it cannot load.
+            Err(e) if only_topics.is_empty() => {
+                eprintln!(
+                    "warning: {}: not playing {} ({} messages): {e:#}",
+                    file_path.display(),
+                    t.name,
+                    t.message_count
+                );
+                continue;
+            }
+            Err(e) => return Err(e.context(format!("{}: topic {}", file_path.display(), t.name))),
+        };
+        publishers.insert(t.name.clone(), publisher);
     }
     if wait_subscribers_s > 0.0 {
         // What a topic still lacks: any subscriber, or one of each node named.
@@ -184,8 +196,9 @@ pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> any
     let start = Instant::now();
     let mut first_log_time = None;
     let mut count = 0u64;
-    for message in bag.messages()? {
-        let message = message?;
+    for (index, message) in bag.messages()?.enumerate() {
+        let message = message
+            .with_context(|| format!("{}: message {index} of the bag", file_path.display()))?;
         let Some(publisher) = publishers.get(&message.topic) else {
             continue;
         };
@@ -198,9 +211,13 @@ pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> any
                 tokio::time::sleep(due - now).await;
             }
         }
-        publisher
-            .publish_cdr(&message.data)
-            .with_context(|| format!("{} message {}", message.topic, count))?;
+        publisher.publish_cdr(&message.data).with_context(|| {
+            format!(
+                "{}: message {index} of the bag ({}, {count} played before it)",
+                file_path.display(),
+                message.topic
+            )
+        })?;
         count += 1;
     }
     let played_s = start.elapsed().as_secs_f64();

@@ -222,3 +222,47 @@ def test_a_recorder_the_streamer_does_not_wait_for_says_its_bag_lacks_the_moves(
     assert recorders[1].returncode != 0, errors[1]
     assert "the bag lacks" in errors[1] and "/gcode/moves" in errors[1], errors[1]
     assert "does not count this recorder among its consumers" in errors[1], errors[1]
+
+
+def test_bag_play_skips_a_type_it_does_not_know_and_names_what_is_wrong(polar_cell, tmp_path):
+    """A bag from another ROS 2 tool may hold types the suite does not know: `bag play`
+    plays the rest and says what it skips (as `ros2 bag play` does), refuses the topic when
+    asked for it by name, and names the file and message of a corrupt chunk."""
+    import subprocess
+    from mcap.writer import CompressionType
+    from mcap_ros2.writer import Writer
+
+    bag = tmp_path / "foreign.mcap"
+    with open(bag, "wb") as f:
+        # Uncompressed chunks with CRCs: the damage below lands in a message's bytes.
+        writer = Writer(f, compression=CompressionType.NONE)
+        int32 = writer.register_msgdef("std_msgs/msg/Int32", "int32 data")
+        string = writer.register_msgdef("std_msgs/msg/String", "string data")
+        for i in range(5):
+            writer.write_message(topic="/chatter", schema=int32, message={"data": i},
+                                 log_time=1_000 + i, publish_time=1_000 + i)
+            writer.write_message(topic="/note", schema=string, message={"data": f"n{i}"},
+                                 log_time=1_000 + i, publish_time=1_000 + i)
+        writer.finish()
+
+    def play(*extra):
+        return subprocess.run([str(polar_cell), "bag", "play", str(bag), "--fast", *extra],
+                              capture_output=True, text=True, timeout=60)
+
+    played = play()
+    assert played.returncode == 0, played.stderr
+    assert f"warning: {bag}: not playing /chatter (5 messages)" in played.stderr, played.stderr
+    assert "std_msgs/msg/Int32 is not one of the suite's message types" in played.stderr
+    asked = play("--topics", "/chatter")
+    assert asked.returncode != 0
+    assert f"{bag}: topic /chatter" in asked.stderr, asked.stderr
+
+    # A damaged chunk (its CRC no longer matches): the file and the message are named.
+    data = bytearray(bag.read_bytes())
+    at = data.find(b"n2")
+    assert at > 0
+    data[at:at + 2] = b"\xff\xff"
+    bag.write_bytes(bytes(data))
+    broken = play("--topics", "/note")
+    assert broken.returncode != 0 and "panicked" not in broken.stderr, broken.stderr
+    assert str(bag) in broken.stderr, broken.stderr

@@ -341,7 +341,7 @@ macro_rules! with_message_type {
             "rosgraph_msgs/msg/Clock" => $f::<Clock>($($arg),*),
             "tf2_msgs/msg/TFMessage" => $f::<TFMessage>($($arg),*),
             "polar_cell_msgs/msg/PlanCredit" => $f::<PlanCredit>($($arg),*),
-            other => Err(anyhow!("cannot record type {other}: not one of the suite's message types")),
+            other => Err(anyhow!("type {other} is not one of the suite's message types (polar-cell records and plays only those)")),
         }
     };
 }

@@ -114,7 +114,12 @@ fn a_bag_that_cannot_be_written_stops_the_print_with_the_reason() {
     std::fs::create_dir_all(&dir).unwrap();
     let limited = dir.join("limited.mcap");
     let cases: [(&str, &Path, &[&str], Option<u64>); 3] = [
-        ("full device", Path::new("/dev/full"), &["--speed", "20"], None),
+        (
+            "full device",
+            Path::new("/dev/full"),
+            &["--speed", "20"],
+            None,
+        ),
         ("executing", &limited, &["--speed", "20"], Some(16 * 1024)),
         ("dry run", &limited, &["--dry-run"], Some(16 * 1024)),
     ];

@@ -320,6 +320,8 @@ pub async fn run<M: Machine>(
     let mapping = parse_service_mapping(node.params.string("service_mapping"))?;
     let exit_when_done = node.params.bool("exit_when_done");
     let tree = TfTree::from_urdf(&options.urdf).context("URDF")?;
+    tree.check_joints(&JOINT_NAMES)
+        .context("parameter urdf_file")?;
     let capacity = options.queue_capacity;
 
     // Only the pipeline's own nodes drive the machine: a segment or a screw command from any

@@ -15,6 +15,16 @@ pub enum TfError {
     UnsupportedJoint { joint: String, kind: String },
     #[error("URDF joint {joint}: axis {axis:?} has no direction")]
     ZeroAxis { joint: String, axis: [f64; 3] },
+    #[error("URDF joint {joint}: mimics {mimicked}, which is not a moving joint of its own")]
+    BadMimic { joint: String, mimicked: String },
+    #[error(
+        "URDF: its moving joints {found:?} are not the cell's {expected:?} (a joint the \
+         machine does not drive would stand still at 0; one it drives would not be shown)"
+    )]
+    JointsDiffer {
+        found: Vec<String>,
+        expected: Vec<String>,
+    },
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -32,6 +42,9 @@ struct JointFrame {
     origin: Isometry3<f64>,
     axis: Unit<Vector3<f64>>,
     motion: Motion,
+    /// `<mimic>`: this joint's position is `multiplier · q + offset` of that joint's `q`
+    /// (as robot_state_publisher computes it); it is not in `/joint_states`.
+    mimic: Option<(String, f64, f64)>,
 }
 
 /// The joints of a URDF as transforms.
@@ -80,9 +93,44 @@ impl TfTree {
                 ),
                 axis,
                 motion,
+                mimic: j.mimic.as_ref().map(|m| {
+                    (
+                        m.joint.clone(),
+                        m.multiplier.unwrap_or(1.0),
+                        m.offset.unwrap_or(0.0),
+                    )
+                }),
             });
         }
-        Ok(TfTree { joints })
+        let tree = TfTree { joints };
+        for j in &tree.joints {
+            if let Some((mimicked, _, _)) = &j.mimic {
+                if !tree.moving_joints().any(|name| name == mimicked) {
+                    return Err(TfError::BadMimic {
+                        joint: j.name.clone(),
+                        mimicked: mimicked.clone(),
+                    });
+                }
+            }
+        }
+        Ok(tree)
+    }
+
+    /// Refuse a tree whose driven joints (moving, not mimicking) are not `expected`, in any
+    /// order: the machine publishes those names, and any other would be drawn standing still.
+    pub fn check_joints(&self, expected: &[&str]) -> Result<(), TfError> {
+        let mut found: Vec<String> = self.moving_joints().map(str::to_string).collect();
+        let mut wanted: Vec<String> = expected.iter().map(|s| s.to_string()).collect();
+        found.sort();
+        wanted.sort();
+        if found == wanted {
+            Ok(())
+        } else {
+            Err(TfError::JointsDiffer {
+                found,
+                expected: wanted,
+            })
+        }
     }
 
     /// The fixed joints' transforms (for `/tf_static`).
@@ -105,7 +153,12 @@ impl TfTree {
             .iter()
             .filter(|j| j.motion != Motion::Fixed)
             .map(|j| {
-                let q = position(&j.name).unwrap_or(0.0);
+                let q = match &j.mimic {
+                    Some((mimicked, multiplier, offset)) => {
+                        multiplier * position(mimicked).unwrap_or(0.0) + offset
+                    }
+                    None => position(&j.name).unwrap_or(0.0),
+                };
                 let motion = match j.motion {
                     Motion::Rotate => Isometry3::from_parts(
                         Translation3::identity(),
@@ -121,11 +174,12 @@ impl TfTree {
             .collect()
     }
 
-    /// Names of the joints that move (what `/joint_states` must carry).
+    /// Names of the joints that move of their own (what `/joint_states` must carry; a
+    /// mimic joint follows another).
     pub fn moving_joints(&self) -> impl Iterator<Item = &str> {
         self.joints
             .iter()
-            .filter(|j| j.motion != Motion::Fixed)
+            .filter(|j| j.motion != Motion::Fixed && j.mimic.is_none())
             .map(|j| j.name.as_str())
     }
 }
@@ -217,5 +271,43 @@ mod tests {
             Err(TfError::UnsupportedJoint { joint, .. }) if joint == "free"
         ));
         assert!(matches!(TfTree::from_urdf("<robot"), Err(TfError::Urdf(_))));
+    }
+
+    /// A mimic joint follows its joint as robot_state_publisher computes it (multiplier · q +
+    /// offset), and is not a joint of its own; a URDF whose driven joints are not the cell's is
+    /// refused, naming both lists.
+    #[test]
+    fn mimic_joints_follow_and_other_joints_are_refused() {
+        let urdf = URDF.replace(
+            "</robot>",
+            r#"<link name="follower"/>
+  <joint name="follow" type="revolute">
+    <parent link="base_link"/><child link="follower"/>
+    <axis xyz="0 0 1"/><limit lower="-10" upper="10" effort="1" velocity="1"/>
+    <mimic joint="bed_theta" multiplier="2" offset="0.5"/>
+  </joint>
+</robot>"#,
+        );
+        let tree = TfTree::from_urdf(&urdf).unwrap();
+        tree.check_joints(&["bed_theta", "arm_r", "z", "screw"])
+            .unwrap();
+        let ts =
+            tree.moving_transforms(Time::default(), |name| (name == "bed_theta").then_some(0.3));
+        let q = find(&ts, "follower").transform.rotation;
+        let angle = 2.0 * q.z.atan2(q.w);
+        assert!((angle - (2.0 * 0.3 + 0.5)).abs() < 1e-12, "{angle}");
+
+        let err = tree.check_joints(&["bed_theta", "arm_r", "z", "screw", "pin"]);
+        assert_eq!(
+            err.unwrap_err().to_string(),
+            "URDF: its moving joints [\"arm_r\", \"bed_theta\", \"screw\", \"z\"] are not \
+             the cell's [\"arm_r\", \"bed_theta\", \"pin\", \"screw\", \"z\"] (a joint the \
+             machine does not drive would stand still at 0; one it drives would not be shown)"
+        );
+        let orphan = urdf.replace("joint=\"bed_theta\"", "joint=\"nothing\"");
+        assert!(matches!(
+            TfTree::from_urdf(&orphan),
+            Err(TfError::BadMimic { .. })
+        ));
     }
 }

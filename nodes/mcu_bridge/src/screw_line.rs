@@ -225,6 +225,9 @@ fn placeholder(name: &str, at: usize) -> Result<Piece, TemplateError> {
                         at,
                     });
                 }
+                if let Some(character) = words.chars().find(|c| !c.is_ascii()) {
+                    return Err(TemplateError::NotAscii { character, at });
+                }
                 Piece::Pin {
                     open: open.to_string(),
                     closed: closed.to_string(),
@@ -387,6 +390,11 @@ impl ScrewLine {
         self.counters
     }
 
+    /// The shortest time between two lines (s): `1 / max_rate_hz`.
+    pub fn min_period_s(&self) -> f64 {
+        self.min_period_s
+    }
+
     pub fn template(&self) -> &CommandTemplate {
         &self.template
     }
@@ -456,9 +464,10 @@ impl ScrewLine {
         } else {
             0.0
         };
-        // Stopping the screw and closing the pin is always safe to say at once (as an
-        // emergency stop is); anything else waits for the rate.
-        let stopping = (rpm, pin_open) == (0.0, false);
+        // A machine that holds the pin closed (held at rest, idle, stopped) has it said at
+        // once, as an emergency stop is; the plan's own lines, a pin closing on travel among
+        // them, keep the rate.
+        let stopping = (rpm, pin_open) == (0.0, false) && !clock.pin_allowed;
         if let Some(sent) = &self.sent {
             if (sent.rpm, sent.pin_open) == (rpm, pin_open) {
                 if sent.line_id != line.id {
@@ -615,7 +624,13 @@ impl ScrewLine {
         self.current = Some(Scheduled {
             id: self.next_id,
             start_s,
-            rpm: self.template.quantize(raw_rpm),
+            // Nothing turns behind a closed pin: what the profile asks meanwhile (a pin
+            // opening the rate put off to the next line) is owed to that line.
+            rpm: if pin_open {
+                self.template.quantize(raw_rpm)
+            } else {
+                0.0
+            },
             pin_open,
         });
         self.next_id += 1;

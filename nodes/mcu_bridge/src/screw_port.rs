@@ -46,6 +46,9 @@ pub struct WithScrewLine<M: Machine, P: LinePort> {
     last_tick_ns: Option<i64>,
     angle_rad: f64,
     port_error: Option<String>,
+    /// A failed line's stop is tried again no sooner than this (machine ns): once a period,
+    /// not every tick (a blocked write waits, and the loop with it).
+    retry_at_ns: i64,
     input_finished: bool,
 }
 
@@ -62,6 +65,7 @@ impl<M: Machine, P: LinePort> WithScrewLine<M, P> {
             last_tick_ns: None,
             angle_rad: 0.0,
             port_error: None,
+            retry_at_ns: i64::MIN,
             input_finished: false,
         }
     }
@@ -95,8 +99,9 @@ impl<M: Machine, P: LinePort> WithScrewLine<M, P> {
         let sent = self.port.send(now_ns, &text).map_err(|e| e.to_string());
         if let Err(e) = &sent {
             // Whatever part of the line went out, the amplifier's state is unknown now: the
-            // next stop is sent again (every tick while it fails, and at a reset).
+            // next stop is sent again (every period while it fails, and at a reset).
             self.line.forget_sent();
+            self.retry_at_ns = now_ns + (self.line.min_period_s() * 1e9) as i64;
             // The screw is out of reach: the steppers stop too, at once.
             if self.port_error.is_none() {
                 self.port_error = Some(e.clone());
@@ -186,9 +191,13 @@ impl<M: Machine, P: LinePort> Machine for WithScrewLine<M, P> {
         let dropped = self.epoch_ns.is_some() && self.inner.epoch_ns().is_none();
         if result.is_err() || state.state == PlayerState::Stopped || dropped {
             let reported = self.port_error.is_some();
-            let stopped = self.stop_screw(now_ns);
+            let stopped = if reported && now_ns < self.retry_at_ns {
+                Ok(())
+            } else {
+                self.stop_screw(now_ns)
+            };
             result.map_err(WithScrewLineError::Machine)?;
-            // A line that failed is tried again every tick; its error was reported once.
+            // A line that failed is tried again every period; its error was reported once.
             return match stopped {
                 Err(e) if !reported => Err(WithScrewLineError::Port(e)),
                 _ => Ok(()),

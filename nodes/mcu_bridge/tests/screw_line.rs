@@ -210,9 +210,9 @@ fn run(
 }
 
 /// A print on the emulated MCU: every line the bridge wrote reached the peer whole and in
-/// order; lines are 0.1 s apart at least (less a 1 ms tick's lateness; a stop when due); the
-/// pin opens and closes when the commands say, to the tick; the material told is the
-/// commanded profile's; the screw ends stopped with the pin closed.
+/// order; lines are 0.1 s apart at least (less a 1 ms tick's lateness); the pin opens and
+/// closes when the commands say, to the tick; the material told is the commanded profile's;
+/// the screw ends stopped with the pin closed.
 #[test]
 fn a_print_tells_a_pseudo_terminal_peer_its_screw_at_most_ten_times_a_second() {
     let segments = finger_start(150);
@@ -242,13 +242,9 @@ fn a_print_tells_a_pseudo_terminal_peer_its_screw_at_most_ten_times_a_second() {
     assert_eq!(received, written);
     assert_eq!(sent.last().unwrap().1, "RPM 0.0 PIN 0\r\n");
     assert!(sent.len() > 150, "{} lines", sent.len());
-    // A period apart (less a tick), but for "rpm 0, pin closed": a stop goes when due.
+    // A period apart (less a tick): the plan's closing of the pin too, which is no stop.
     for w in sent.windows(2) {
-        assert!(
-            w[1].0 - w[0].0 >= 99_000_000 || w[1].1 == "RPM 0.0 PIN 0\r\n",
-            "{:?}",
-            w
-        );
+        assert!(w[1].0 - w[0].0 >= 99_000_000, "{:?}", w);
     }
     let plan_at = |ns: i64| plan_times.iter().find(|(t, _)| *t == ns).unwrap().1;
     // The pin: open at 0.5 s of plan, closed at the end less 0.5 s (to the grid's next
@@ -407,15 +403,17 @@ fn a_stop_the_line_could_not_write_is_written_when_it_can() {
         if tick.now_ns == 3_100_000_000 {
             m.port_mut().fail_after = None; // plugged back in
         }
-        tick.now_ns >= 3_200_000_000
+        tick.now_ns >= 3_300_000_000
     });
     assert_eq!(errors, 1, "the failure is reported once");
     let sent = machine.port().sent.clone();
     let (last_ns, last) = sent.last().unwrap();
     assert_eq!(last, "RPM 0.0 PIN 0\r\n");
-    assert_eq!(
-        *last_ns, 3_101_000_000,
-        "written at the first tick it could be"
+    // Tried again a period (0.1 s) after each failure, not every tick: written at the first
+    // try after the line came back.
+    assert!(
+        (3_100_000_000..=3_200_000_000).contains(last_ns),
+        "written at {last_ns}"
     );
     assert!(
         sent[sent.len() - 2].1.ends_with("PIN 1\r\n"),

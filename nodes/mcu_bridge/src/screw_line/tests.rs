@@ -66,6 +66,13 @@ fn a_bad_template_names_what_and_where() {
         );
     }
     assert_eq!(
+        err("{rpm} {pin:AN/ÄUS}"),
+        NotAscii {
+            character: 'Ä',
+            at: 6
+        }
+    );
+    assert_eq!(
         err("{pin}{rpm}°"),
         NotAscii {
             character: '°',
@@ -247,13 +254,19 @@ fn a_closed_pin_never_goes_with_a_turning_screw() {
     line.push(0.1, 0.0, true, 2).unwrap();
     line.push(0.35, 60.0, true, 3).unwrap();
     let sent = run(&mut line, 0.001, 3.0);
-    assert!(!sent.is_empty());
-    for (t, text) in &sent {
-        assert!(
-            !text.ends_with("PIN 0\r\n") || text.starts_with("RPM 0.0 "),
-            "{text:?} at {t} s"
-        );
-    }
+    // [0, 0.5): the pin closed at the start (its opening at 0.1 waits), so rpm 0; the 9
+    // rpm·s the profile asks from 0.35 are owed to the next line: 60 + 9 / 0.5 = 78.
+    assert_eq!(
+        sent,
+        [
+            (0.0, "RPM 0.0 PIN 0\r\n".to_string()),
+            (0.5, "RPM 78.0 PIN 1\r\n".to_string()),
+            (1.0, "RPM 60.0 PIN 1\r\n".to_string()),
+        ]
+    );
+    // The material to 3 s is the profile's: 60 rpm from 0.35 s.
+    let told: f64 = 78.0 * 0.5 + 60.0 * 2.0;
+    assert!((told - 60.0 * (3.0 - 0.35)).abs() < 1e-9);
 }
 
 #[test]

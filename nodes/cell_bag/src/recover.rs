@@ -17,6 +17,8 @@ use std::io::{Read, Seek, Write};
 
 use mcap::records::{op, MessageHeader, Record};
 
+use crate::meta::{bag_information, RecordedTopic, TopicStats, ROS_DISTRO};
+use crate::qos::QosRecord;
 use crate::writer::WriterOptions;
 use crate::BagError;
 
@@ -56,6 +58,10 @@ struct Copier<W: Write + Seek> {
     channels: HashMap<u16, u16>,
     /// Channels whose schema was not (yet) seen.
     waiting: HashMap<u16, mcap::records::Channel>,
+    /// The output's schemas' names (message types), by output schema id.
+    schema_names: HashMap<u16, String>,
+    /// What the new bag's `rosbag2` metadata record lists, by output channel id.
+    topics: HashMap<u16, RecordedTopic>,
     messages: u64,
     orphans: u64,
 }
@@ -67,6 +73,7 @@ impl<W: Write + Seek> Copier<W> {
             Record::Schema { header, data } => {
                 let id = self.out.add_schema(&header.name, &header.encoding, &data)?;
                 self.schemas.insert(header.id, id);
+                self.schema_names.insert(id, header.name.clone());
                 let ready: Vec<u16> = self
                     .waiting
                     .iter()
@@ -95,6 +102,9 @@ impl<W: Write + Seek> Copier<W> {
                         &data,
                     )?;
                     self.messages += 1;
+                    if let Some(topic) = self.topics.get_mut(&channel_id) {
+                        topic.stats.record(header.log_time);
+                    }
                 }
                 None => self.orphans += 1,
             },
@@ -115,6 +125,36 @@ impl<W: Write + Seek> Copier<W> {
             &channel.metadata,
         )?;
         self.channels.insert(channel.id, id);
+        self.topics.insert(
+            id,
+            RecordedTopic {
+                topic: channel.topic.clone(),
+                type_name: self.schema_names.get(&schema).cloned().unwrap_or_default(),
+                qos: channel
+                    .metadata
+                    .get("offered_qos_profiles")
+                    .and_then(|q| QosRecord::from_yaml(q))
+                    .unwrap_or(QosRecord::ROS_DEFAULT),
+                stats: TopicStats::default(),
+            },
+        );
+        Ok(())
+    }
+
+    /// The `rosbag2` metadata record, as [`crate::BagWriter::finish`] writes it, then the
+    /// summary.
+    fn finish(mut self) -> Result<(), BagError> {
+        let mut topics: Vec<RecordedTopic> = self.topics.into_values().collect();
+        topics.sort_by(|a, b| a.topic.cmp(&b.topic));
+        self.out.write_metadata(&mcap::records::Metadata {
+            name: "rosbag2".into(),
+            metadata: [(
+                "serialized_metadata".to_string(),
+                bag_information(None, &topics, ROS_DISTRO),
+            )]
+            .into(),
+        })?;
+        self.out.finish()?;
         Ok(())
     }
 }
@@ -229,6 +269,8 @@ pub fn recover<W: Write + Seek>(
         schemas: HashMap::new(),
         channels: HashMap::new(),
         waiting: HashMap::new(),
+        schema_names: HashMap::new(),
+        topics: HashMap::new(),
         messages: 0,
         orphans: 0,
     };
@@ -298,12 +340,13 @@ pub fn recover<W: Write + Seek>(
         RecoveryEnd::Complete => at as u64,
         RecoveryEnd::Truncated { at } | RecoveryEnd::Damaged { at, .. } => *at,
     };
-    copier.out.finish()?;
+    let (messages, orphans) = (copier.messages, copier.orphans);
+    copier.finish()?;
     Ok(Recovery {
-        messages: copier.messages,
+        messages,
         complete_chunks,
         partial_chunk_messages,
-        orphan_messages: copier.orphans,
+        orphan_messages: orphans,
         intact_bytes,
         end,
     })

@@ -102,6 +102,26 @@ fn a_finished_bag_comes_back_whole() {
     assert_eq!(info.message_count, 3000);
     assert_eq!(info.topics.len(), 3);
     assert!(is_finished(&out) && is_finished(&bytes));
+    // With rosbag2's metadata record, as the recorder writes it (rosbag2 takes the metadata
+    // version from it), counting what was recovered.
+    let summary = mcap::read::Summary::read(&out).unwrap().unwrap();
+    let records: Vec<_> = summary
+        .metadata_indexes
+        .iter()
+        .map(|index| mcap::read::metadata(&out, index).unwrap())
+        .filter(|m| m.name == "rosbag2")
+        .collect();
+    assert_eq!(records.len(), 1);
+    let information: yaml_serde::Value =
+        yaml_serde::from_str(&records[0].metadata["serialized_metadata"]).unwrap();
+    assert_eq!(information["version"].as_u64(), Some(8));
+    assert_eq!(information["message_count"].as_u64(), Some(3000));
+    assert_eq!(
+        information["topics_with_message_count"]
+            .as_sequence()
+            .map(Vec::len),
+        Some(3)
+    );
 }
 
 /// Cut anywhere: what comes back is the original's first messages, in order, and at least

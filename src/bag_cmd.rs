@@ -148,7 +148,7 @@ pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> any
             Ok(publisher) => publisher,
             // A type we do not know: asked for by name, an error; otherwise skipped and
             // said, as `ros2 bag play` skips a type it cannot load.
-            Err(e) if only_topics.is_empty() => {
+            Err(e) if only_topics.is_empty() && polar_cell_msgs::find(&t.type_name).is_none() => {
                 eprintln!(
                     "warning: {}: not playing {} ({} messages): {e:#}",
                     file_path.display(),

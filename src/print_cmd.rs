@@ -283,6 +283,12 @@ impl Drop for Emulator {
 }
 
 /// How a print ended, when it did not end by itself.
+/// A print ended because its bag could not be written (the machine stopped on the path by
+/// the job, not by an operator): `serve` reports it as aborted, not as cancelled.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct BagFailed(pub String);
+
 enum Stop {
     Interrupted,
     Failed(anyhow::Error),
@@ -760,10 +766,13 @@ pub async fn run_job(
     let recorded = recorder.stop().await;
     let recorded = match &outcome {
         // (The recorder's own error is the writer's again: the reason says it.)
-        Err(Stop::BagFailed(reason)) => match ended {
-            Some((_, how)) => bail!("{reason}; {how}"),
-            None => bail!("{reason}"),
-        },
+        Err(Stop::BagFailed(reason)) => {
+            return Err(BagFailed(match ended {
+                Some((_, how)) => format!("{reason}; {how}"),
+                None => reason.clone(),
+            })
+            .into())
+        }
         _ => recorded.context("finishing the bag")?,
     };
     match outcome {
@@ -1034,6 +1043,9 @@ async fn stop_machine(
     use cell_machine::node::Command;
     let _ = commands.send(Command::Cancel);
     bar.println("cancelling: stopping on the path (Ctrl-C again: emergency stop)");
+    // The next interrupt is the emergency stop, whether this stop came from one (a Ctrl-C)
+    // or not (a bag that cannot be written).
+    let emergency_at = *interrupts.borrow() + 1;
     let mut watch = status.clone();
     let at_rest = async {
         loop {
@@ -1053,7 +1065,7 @@ async fn stop_machine(
     };
     let (s, emergency) = tokio::select! {
         s = at_rest => (s, false),
-        _ = interrupted(interrupts, 2) => {
+        _ = interrupted(interrupts, emergency_at) => {
             let _ = commands.send(Command::EmergencyStop);
             let mut watch = status.clone();
             loop {

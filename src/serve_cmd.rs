@@ -458,9 +458,12 @@ fn outcome(
                 status.state == Some(cell_executor::PlayerState::Stopped) && status.fault.is_none();
             // Stopped from outside the action (`/cell/estop`, `/cell/cancel`): aborted, as
             // the goal was not cancelled through it, but said how.
+            // A bag that could not be written stopped the machine through a cancel of the
+            // job's own: aborted, not an operator's cancel.
+            let bag_failed = e.downcast_ref::<crate::print_cmd::BagFailed>().is_some();
             result.ended = if stopped {
                 "emergency_stop"
-            } else if status.cancelled {
+            } else if status.cancelled && !bag_failed {
                 "cancelled"
             } else {
                 "aborted"

@@ -638,6 +638,9 @@ impl Recorder {
             .iter()
             .map(|t| parse_topic(t))
             .collect::<anyhow::Result<_>>()?;
+        // Written through now, so a bag that cannot be written (a full device) is refused
+        // before anything moves, not at the first flush a second into the print.
+        bag.flush().map_err(|e| cannot_write(&bag_path, e.into()))?;
         let acknowledge_moves = params.bool("acknowledge_moves");
         let reader_depth = params.i64("reader_depth") as usize;
         let (tx, rx) = mpsc::channel::<Item>(WRITER_QUEUE);

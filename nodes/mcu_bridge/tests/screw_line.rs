@@ -150,6 +150,17 @@ fn rig() -> (Rig, Arc<AtomicBool>, Peer) {
     (machine, stop, reader)
 }
 
+/// finger's first 150 segments and the screw commands for them, as messages.
+fn finger_plan() -> (Vec<StepSegment>, Vec<ScrewCommand>) {
+    let segments = finger_start(150);
+    let plan_end_s: f64 = segments.iter().map(|s| s.duration_s).sum();
+    let messages = screw_commands(plan_end_s)
+        .into_iter()
+        .map(screw_message)
+        .collect();
+    (segments, messages)
+}
+
 /// What `run` tells its `done` after each tick.
 struct Tick {
     now_ns: i64,
@@ -291,12 +302,7 @@ fn a_print_tells_a_pseudo_terminal_peer_its_screw_at_most_ten_times_a_second() {
 /// a tenth of a second later — and nothing follows.
 #[test]
 fn an_emergency_stop_reaches_the_amplifier_at_once() {
-    let segments = finger_start(150);
-    let plan_end_s: f64 = segments.iter().map(|s| s.duration_s).sum();
-    let messages: Vec<ScrewCommand> = screw_commands(plan_end_s)
-        .into_iter()
-        .map(screw_message)
-        .collect();
+    let (segments, messages) = finger_plan();
     let (mut machine, stop, reader) = rig();
     let mut stopped_at = None;
     run(&mut machine, &segments, &messages, |m, tick| {
@@ -330,12 +336,7 @@ fn an_emergency_stop_reaches_the_amplifier_at_once() {
 /// says "rpm 0, pin closed" in that very tick, whatever the rate limit.
 #[test]
 fn a_pause_closes_the_pin_when_held_at_rest_and_never_turns_the_screw_behind_it() {
-    let segments = finger_start(150);
-    let plan_end_s: f64 = segments.iter().map(|s| s.duration_s).sum();
-    let messages: Vec<ScrewCommand> = screw_commands(plan_end_s)
-        .into_iter()
-        .map(screw_message)
-        .collect();
+    let (segments, messages) = finger_plan();
     let (mut machine, stop, reader) = rig();
     let mut held_at = None;
     run(&mut machine, &segments, &messages, |m, tick| {
@@ -387,12 +388,7 @@ fn a_pause_closes_the_pin_when_held_at_rest_and_never_turns_the_screw_behind_it(
 /// later tick (the amplifier's state was unknown), not taken as done.
 #[test]
 fn a_stop_the_line_could_not_write_is_written_when_it_can() {
-    let segments = finger_start(150);
-    let plan_end_s: f64 = segments.iter().map(|s| s.duration_s).sum();
-    let messages: Vec<ScrewCommand> = screw_commands(plan_end_s)
-        .into_iter()
-        .map(screw_message)
-        .collect();
+    let (segments, messages) = finger_plan();
     let (mut machine, stop, reader) = rig();
     let mut errors = 0;
     run(&mut machine, &segments, &messages, |m, tick| {
@@ -564,12 +560,7 @@ fn material_per_move_when_the_screw_is_told_at_most_n_times_a_second() {
 /// MCU's steppers with it, at once.
 #[test]
 fn a_failed_screw_line_stops_the_steppers() {
-    let segments = finger_start(150);
-    let plan_end_s: f64 = segments.iter().map(|s| s.duration_s).sum();
-    let messages: Vec<ScrewCommand> = screw_commands(plan_end_s)
-        .into_iter()
-        .map(screw_message)
-        .collect();
+    let (segments, messages) = finger_plan();
     let (mut machine, stop, reader) = rig();
     let mut failed_at = None;
     run(&mut machine, &segments, &messages, |m, tick| {

@@ -464,10 +464,10 @@ impl ScrewLine {
         } else {
             0.0
         };
-        // A machine that holds the pin closed (held at rest, idle, stopped) has it said at
-        // once, as an emergency stop is; the plan's own lines, a pin closing on travel among
-        // them, keep the rate.
-        let stopping = (rpm, pin_open) == (0.0, false) && !clock.pin_allowed;
+        // A machine that holds the pin closed (held at rest, idle, stopped: the line then
+        // says rpm 0, pin closed) has it said at once, as an emergency stop is; the plan's
+        // own lines, a pin closing on travel among them, keep the rate.
+        let stopping = !clock.pin_allowed;
         if let Some(sent) = &self.sent {
             if (sent.rpm, sent.pin_open) == (rpm, pin_open) {
                 if sent.line_id != line.id {

@@ -17,9 +17,9 @@ use std::io::{Read, Seek, Write};
 
 use mcap::records::{op, MessageHeader, Record};
 
-use crate::meta::{bag_information, RecordedTopic, TopicStats, ROS_DISTRO};
+use crate::meta::{RecordedTopic, TopicStats};
 use crate::qos::QosRecord;
-use crate::writer::WriterOptions;
+use crate::writer::{write_rosbag2_record, WriterOptions};
 use crate::BagError;
 
 /// How the salvage ended.
@@ -146,14 +146,7 @@ impl<W: Write + Seek> Copier<W> {
     fn finish(mut self) -> Result<(), BagError> {
         let mut topics: Vec<RecordedTopic> = self.topics.into_values().collect();
         topics.sort_by(|a, b| a.topic.cmp(&b.topic));
-        self.out.write_metadata(&mcap::records::Metadata {
-            name: "rosbag2".into(),
-            metadata: [(
-                "serialized_metadata".to_string(),
-                bag_information(None, &topics, ROS_DISTRO),
-            )]
-            .into(),
-        })?;
+        write_rosbag2_record(&mut self.out, &topics)?;
         self.out.finish()?;
         Ok(())
     }

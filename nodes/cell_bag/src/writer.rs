@@ -219,12 +219,25 @@ impl<W: Write + Seek> BagWriter<W> {
             })
             .collect();
         topics.sort_by(|a, b| a.topic.cmp(&b.topic));
-        let information = bag_information(None, &topics, ROS_DISTRO);
-        self.inner.write_metadata(&mcap::records::Metadata {
-            name: "rosbag2".into(),
-            metadata: [("serialized_metadata".to_string(), information)].into(),
-        })?;
+        write_rosbag2_record(&mut self.inner, &topics)?;
         self.inner.finish()?;
         Ok((self.inner.into_inner(), topics))
     }
+}
+
+/// rosbag2's `rosbag2` metadata record (`serialized_metadata`: the bag information of
+/// `topics`), which its MCAP reader takes the metadata version from; for every bag we finish.
+pub(crate) fn write_rosbag2_record<W: Write + Seek>(
+    out: &mut mcap::Writer<W>,
+    topics: &[RecordedTopic],
+) -> Result<(), BagError> {
+    out.write_metadata(&mcap::records::Metadata {
+        name: "rosbag2".into(),
+        metadata: [(
+            "serialized_metadata".to_string(),
+            bag_information(None, topics, ROS_DISTRO),
+        )]
+        .into(),
+    })?;
+    Ok(())
 }

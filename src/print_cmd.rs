@@ -282,13 +282,13 @@ impl Drop for Emulator {
     }
 }
 
-/// How a print ended, when it did not end by itself.
 /// A print ended because its bag could not be written (the machine stopped on the path by
 /// the job, not by an operator): `serve` reports it as aborted, not as cancelled.
 #[derive(Debug, thiserror::Error)]
 #[error("{0}")]
 pub struct BagFailed(pub String);
 
+/// How a print ended, when it did not end by itself.
 enum Stop {
     Interrupted,
     Failed(anyhow::Error),

@@ -214,11 +214,65 @@ class String(IdlStruct, typename="std_msgs::msg::dds_::String_"):
     data: str
 
 
+@dataclass
+@annotate.final
+class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
+    x: float
+    y: float
+    z: float
+
+
+@dataclass
+@annotate.final
+class Transform(IdlStruct, typename="geometry_msgs::msg::dds_::Transform_"):
+    translation: Vector3
+    rotation: Quaternion
+
+
+@dataclass
+@annotate.final
+class TransformStamped(IdlStruct, typename="geometry_msgs::msg::dds_::TransformStamped_"):
+    header: Header
+    child_frame_id: str
+    transform: Transform
+
+
+@dataclass
+@annotate.final
+class TFMessage(IdlStruct, typename="tf2_msgs::msg::dds_::TFMessage_"):
+    transforms: t.sequence[TransformStamped]
+
+
+def homogeneous(transform):
+    """The 4×4 matrix of a geometry_msgs Transform (unit quaternion x, y, z, w)."""
+    q, v = transform.rotation, transform.translation
+    x, y, z, w = q.x, q.y, q.z, q.w
+    m = np.eye(4)
+    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    m[:3, 3] = [v.x, v.y, v.z]
+    return m
+
+
+def in_root(transforms, frame, root):
+    """`frame`'s pose in `root`, composed parent by parent from tf transforms."""
+    by_child = {tr.child_frame_id: tr for tr in transforms}
+    pose = np.eye(4)
+    while frame != root:
+        tr = by_child[frame]
+        pose = homogeneous(tr.transform) @ pose
+        frame = tr.header.frame_id
+    return pose
+
+
 def test_node_solves_cyclone_poses_and_latches_the_urdf():
     participant = DomainParticipant(0)
-    node = subprocess.Popen([str(binary("mechanism_kin"))], stdout=subprocess.PIPE,
+    node = subprocess.Popen([str(binary("mechanism_kin")), "--ros-args", "-p",
+                             "frame_prefix:=head/"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
+        tf = DataReader(participant, Topic(participant, "rt/tf", TFMessage), qos=ros_qos(1000))
         poses = DataWriter(participant, Topic(participant, "rt/mechanism/tool_pose", PoseStamped),
                            qos=ros_qos(100))
         states = DataReader(participant, Topic(participant, "rt/mechanism/joint_states", JointState),
@@ -263,6 +317,31 @@ def test_node_solves_cyclone_poses_and_latches_the_urdf():
             time.sleep(0.2)
             urdf = valid(description.take(N=1), String)
         assert urdf and urdf[0].data == URDF.read_text()
+        # The head's transforms, as RViz would compose them: the fixed joints latched on
+        # /tf_static (read late), the held pose repeated on /tf at 10 Hz, stamped now; both
+        # put the tool tip on its target in the table frame, under the frame prefix.
+        latched = DataReader(participant, Topic(participant, "rt/tf_static", TFMessage),
+                             qos=ros_qos(1, transient_local=True))
+        fixed = []
+        deadline = time.time() + 15
+        while time.time() < deadline and not fixed:
+            time.sleep(0.2)
+            fixed = valid(latched.take(N=1), TFMessage)
+        assert fixed and {tr.child_frame_id for tr in fixed[0].transforms} == {
+            "head/platform", "head/tool_tip"}
+        tf.take(N=1000)
+        time.sleep(1.0)
+        repeats = valid(tf.take(N=1000), TFMessage)
+        assert 5 <= len(repeats) <= 15, len(repeats)
+        stamps = [m.transforms[0].header.stamp for m in repeats]
+        now = time.time()
+        assert all(abs(s.sec + s.nanosec * 1e-9 - now) < 2.0 for s in stamps), (stamps, now)
+        last = repeats[-1].transforms + fixed[0].transforms
+        assert len(repeats[-1].transforms) == 17
+        tip = np.linalg.inv(in_root(last, "head/table", "head/base_link")) @ in_root(
+            last, "head/tool_tip", "head/base_link")
+        assert np.linalg.norm(tip[:3, 3] * 1e3 - np.array([5.0, -10.0, 240.0])) < 1e-6
+        assert np.abs(tip[:3, 2] - np.array(axis)).max() < 1e-9
     finally:
         node.terminate()
         node.wait(timeout=10)

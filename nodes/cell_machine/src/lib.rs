@@ -10,12 +10,11 @@
 //!
 //! * [`Machine`] — what a backend does: take the plan, run to "now", report its state, obey
 //!   pause, resume, cancel, emergency stop and reset;
-//! * [`tf`] — the URDF's joints as transforms, for `/tf` and `/tf_static`;
-//! * [`node`] — the loop: messages and the clock in, the machine's state out.
+//! * [`node`] — the loop: messages and the clock in, the machine's state out (its `/tf` from
+//!   the URDF by `cell_runtime::tf`, which the machining head's node shares).
 
 #[cfg(feature = "node")]
 pub mod node;
-pub mod tf;
 
 use polar_cell_msgs::{ScrewCommand, StepSegment};
 
@@ -112,5 +111,3 @@ pub trait Machine {
         Vec::new()
     }
 }
-
-pub use tf::{TfError, TfTree};

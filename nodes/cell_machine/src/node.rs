@@ -32,8 +32,8 @@ use polar_cell_msgs::{
 use step_core::StepOptions;
 use tokio::sync::{mpsc, watch};
 
-use crate::tf::TfTree;
 use crate::{HoldReason, Machine, PlayerState};
+use cell_runtime::tf::TfTree;
 
 /// The most plan (s) the screw commands must reach ahead of the machine: it holds on the path
 /// before that (a quarter of the horizon when that is less).

@@ -2,7 +2,8 @@
 //!
 //! Pure parts (unit-tested without DDS): [`args`] (the ROS command line), [`params`] (typed,
 //! validated parameters from files and overrides), [`names`] (expansion and remapping),
-//! [`flow`] (lossless flow control of a pipeline link), [`throttle`] (repeated log lines).
+//! [`flow`] (lossless flow control of a pipeline link), [`throttle`] (repeated log lines),
+//! [`tf`] (a URDF's joints as `/tf` transforms, for the cell and the machining head alike).
 //! DDS parts: [`dds`] (participant on loopback, ROS-default QoS, node with declared parameters,
 //! diagnostics, rosout, shutdown on SIGINT/SIGTERM).
 
@@ -14,6 +15,7 @@ pub mod graph;
 pub mod names;
 pub mod params;
 pub mod replay;
+pub mod tf;
 pub mod throttle;
 pub mod topics;
 

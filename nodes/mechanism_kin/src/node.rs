@@ -1,6 +1,14 @@
 //! The `mechanism_kin` node: `/mechanism/tool_pose` in, `/mechanism/joint_states` (every URDF
 //! joint, so RViz shows the closed mechanism) and `/robot_description` (transient local) out.
 //!
+//! It also publishes the mechanism's transforms itself, as the cell's machine does: the fixed
+//! joints on `/tf_static` once, the moving ones on `/tf` with each answer and `rate_hz` times
+//! a second, stamped with the current time. A pose is commanded once and then held, and
+//! tf2 listeners forget transforms older than their buffer (10 s by default), so the current
+//! pose is repeated for RViz and Foxglove as a joint state publisher would; the joint states
+//! themselves are not repeated, one answers each pose. `frame_prefix` (e.g. `head/`) keeps
+//! the head's frames apart from the cell's, which also has a `base_link`.
+//!
 //! A tool pose is the tool tip in the workpiece (`table`) frame, in metres, and an orientation
 //! whose z axis is the tool axis pointing spindle-ward; rotation about the tool axis is free
 //! (a ball end mill). Each pose is solved, checked by forward kinematics and through the URDF
@@ -8,10 +16,13 @@
 //! joint state.
 
 use anyhow::{anyhow, Context};
+use cell_runtime::tf::TfTree;
 use cell_runtime::topics::publisher_qos;
 use cell_runtime::{reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue};
 use nalgebra::Vector3;
-use polar_cell_msgs::{Header, JointState, Point, Pose, PoseStamped, Quaternion, StringMsg, Time};
+use polar_cell_msgs::{
+    Header, JointState, Point, Pose, PoseStamped, Quaternion, StringMsg, TFMessage, Time,
+};
 
 use crate::kinematics::{ForwardSolver, ToolTarget};
 use crate::report::{evaluate, Evaluation};
@@ -31,6 +42,17 @@ pub fn param_specs() -> Vec<ParamSpec> {
             "publish_home",
             ParamValue::Bool(true),
             "publish the home pose's joint states at start so the model shows closed at once",
+        ),
+        ParamSpec::new(
+            "rate_hz",
+            ParamValue::Double(10.0),
+            "/tf of the current pose per second, stamped now (0: only with each answer)",
+        )
+        .range(0.0, 1000.0),
+        ParamSpec::new(
+            "frame_prefix",
+            ParamValue::String(String::new()),
+            "put before every frame name in /tf and /tf_static (e.g. head/), as robot_state_publisher does",
         ),
     ]
 }
@@ -94,6 +116,19 @@ pub fn joint_state(e: &Evaluation, stamp: Time) -> JointState {
     }
 }
 
+/// The moving joints' transforms for joint values in [`joint_names`] order.
+pub fn transforms(tree: &TfTree, joint_values_si: &[f64], stamp: Time) -> TFMessage {
+    let names = joint_names();
+    TFMessage {
+        transforms: tree.moving_transforms(stamp, |joint| {
+            names
+                .iter()
+                .position(|n| n == joint)
+                .and_then(|k| joint_values_si.get(k).copied())
+        }),
+    }
+}
+
 /// Diagnostic key/values of an evaluation.
 pub fn diagnostic_values(e: &Evaluation) -> Vec<(&'static str, String)> {
     let legs = e.solution.ik.legs_mm;
@@ -140,12 +175,24 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             }
         )
     })?;
+    let frames = TfTree::from_urdf(&text)
+        .map_err(|e| anyhow!("{e}"))?
+        .with_frame_prefix(node.params.string("frame_prefix"));
+    let rate_hz = node.params.f64("rate_hz");
     let description =
         node.publisher::<StringMsg>("/robot_description", &publisher_qos("/robot_description"))?;
     description
         .publish(StringMsg { data: text })
         .map_err(|e| anyhow!("/robot_description: {e:?}"))?;
     node.keep(description);
+    let tf_static = node.publisher::<TFMessage>("/tf_static", &publisher_qos("/tf_static"))?;
+    tf_static
+        .publish(TFMessage {
+            transforms: frames.static_transforms(now()),
+        })
+        .map_err(|e| anyhow!("/tf_static: {e:?}"))?;
+    node.keep(tf_static);
+    let tf = node.publisher::<TFMessage>("/tf", &publisher_qos("/tf"))?;
     let states = node.publisher::<JointState>(
         "/mechanism/joint_states",
         &publisher_qos("/mechanism/joint_states"),
@@ -160,6 +207,8 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         geom.platform_radius_mm,
         geom.tool_length_mm
     );
+    // The joint values of the pose the mechanism holds (none until one is solved).
+    let mut holding: Option<Vec<f64>> = None;
     if node.params.bool("publish_home") {
         // Home: platform flat at the seed's Z = 393 mm, table centred under the tool.
         let home = ToolTarget {
@@ -168,12 +217,15 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         };
         match evaluate(&geom, &tree, &mut fk, &home) {
             Ok(e) => {
+                let stamp = now();
+                let _ = tf.publish(transforms(&frames, &e.joint_values_si, stamp));
                 cell_runtime::publish(
                     &states,
-                    joint_state(&e, Time::from_nanos(cell_runtime::now_ns() as i64)),
+                    joint_state(&e, stamp),
                     std::time::Duration::from_secs(5),
                 )
-                .await?
+                .await?;
+                holding = Some(e.joint_values_si);
             }
             Err(err) => cell_runtime::cell_log!(
                 node,
@@ -182,14 +234,27 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             ),
         }
     }
+    let mut repeat = (rate_hz > 0.0).then(|| {
+        let mut every = tokio::time::interval(std::time::Duration::from_secs_f64(1.0 / rate_hz));
+        every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        every
+    });
     loop {
-        let (msg, _) = poses
-            .async_take()
-            .await
-            .map_err(|e| anyhow!("/mechanism/tool_pose: {e:?}"))?;
+        let msg = tokio::select! {
+            taken = poses.async_take() => taken.map_err(|e| anyhow!("/mechanism/tool_pose: {e:?}"))?.0,
+            _ = async { repeat.as_mut().unwrap().tick().await }, if repeat.is_some() => {
+                if let Some(values) = &holding {
+                    let _ = tf.publish(transforms(&frames, values, now()));
+                }
+                continue;
+            }
+        };
         let target = target_from_pose(&msg);
         match evaluate(&geom, &tree, &mut fk, &target) {
             Ok(e) => {
+                // Stamped now, as the repeats are: the pose's own stamp may be a replayed
+                // bag's, which tf2 would take as older than the repeats and drop.
+                let _ = tf.publish(transforms(&frames, &e.joint_values_si, now()));
                 cell_runtime::publish(
                     &states,
                     joint_state(&e, msg.header.stamp),
@@ -197,6 +262,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 )
                 .await?;
                 node.diagnose(0, "tool pose solved", &diagnostic_values(&e));
+                holding = Some(e.joint_values_si);
             }
             Err(err) => {
                 let text = format!(
@@ -208,6 +274,10 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             }
         }
     }
+}
+
+fn now() -> Time {
+    Time::from_nanos(cell_runtime::now_ns() as i64)
 }
 
 /// Run the node from its own command line until SIGINT/SIGTERM.
@@ -222,6 +292,62 @@ pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The transforms the node publishes, composed by hand from the table to the tool tip,
+    /// put the tip on the commanded target and the tip frame's z on the tool axis; chains 2
+    /// and 3 end on the platform's sphere points, so the loops close in RViz too.
+    #[test]
+    fn published_transforms_put_the_tool_on_its_target() {
+        let text = crate::BUILTIN_URDF;
+        let (tree, geom) = crate::urdf::load(text).unwrap();
+        let frames = TfTree::from_urdf(text).unwrap().with_frame_prefix("head/");
+        let target = ToolTarget {
+            tip_mm: Vector3::new(5.0, -10.0, 240.0),
+            axis: Vector3::new(0.0, -(12f64.to_radians().sin()), 12f64.to_radians().cos()),
+        };
+        let e = evaluate(&geom, &tree, &mut ForwardSolver::default(), &target).unwrap();
+        let stamp = Time::from_nanos(7);
+        let mut all = frames.static_transforms(stamp);
+        let moving = transforms(&frames, &e.joint_values_si, stamp).transforms;
+        assert_eq!(moving.len(), 17);
+        assert!(moving.iter().all(|t| t.header.stamp == stamp));
+        all.extend(moving);
+        let in_base = |frame: &str| {
+            let mut pose = nalgebra::Isometry3::identity();
+            let mut at = frame.to_string();
+            while at != "head/base_link" {
+                let t = all.iter().find(|t| t.child_frame_id == at).unwrap();
+                let (v, q) = (t.transform.translation, t.transform.rotation);
+                let step = nalgebra::Isometry3::from_parts(
+                    nalgebra::Translation3::new(v.x, v.y, v.z),
+                    nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                        q.w, q.x, q.y, q.z,
+                    )),
+                );
+                pose = step * pose;
+                at = t.header.frame_id.clone();
+            }
+            pose
+        };
+        let tip_in_table = in_base("head/table").inverse() * in_base("head/tool_tip");
+        let tip_m = tip_in_table.translation.vector;
+        assert!((tip_m - target.tip_mm * 1e-3).amax() < 1e-9, "{tip_m}");
+        let axis = tip_in_table.rotation * Vector3::z();
+        assert!((axis - target.axis).amax() < 1e-9, "{axis}");
+        let platform = in_base("head/platform");
+        for chain in [2, 3] {
+            let ball = in_base(&format!("head/chain{chain}_ball"))
+                .translation
+                .vector;
+            let on_platform = platform.inverse() * nalgebra::Point3::from(ball);
+            let radius_mm = on_platform.coords.xy().norm() * 1e3;
+            assert!(
+                (radius_mm - geom.platform_radius_mm).abs() < 1e-6,
+                "{radius_mm}"
+            );
+            assert!(on_platform.z.abs() < 1e-9, "{}", on_platform.z);
+        }
+    }
 
     #[test]
     fn quaternion_z_axis_is_the_tool_axis() {

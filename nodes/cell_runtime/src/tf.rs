@@ -116,6 +116,18 @@ impl TfTree {
         Ok(tree)
     }
 
+    /// Put `prefix` before every frame name, as robot_state_publisher's `frame_prefix` does
+    /// (e.g. `head/`), so two robots with the same link names can share `/tf`.
+    pub fn with_frame_prefix(mut self, prefix: &str) -> TfTree {
+        if !prefix.is_empty() {
+            for j in &mut self.joints {
+                j.parent = format!("{prefix}{}", j.parent);
+                j.child = format!("{prefix}{}", j.child);
+            }
+        }
+        self
+    }
+
     /// Refuse a tree whose driven joints (moving, not mimicking) are not `expected`, in any
     /// order: the machine publishes those names, and any other would be drawn standing still.
     pub fn check_joints(&self, expected: &[&str]) -> Result<(), TfError> {

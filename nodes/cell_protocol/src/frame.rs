@@ -57,6 +57,18 @@ pub struct Frame<'a> {
     pub payload: &'a [u8],
 }
 
+impl<'a> Frame<'a> {
+    /// The payload as messages, or `None` when it is the link's own: a session start's nonce,
+    /// its answer's two nonces, or a NAK's bitmap of the frames held. Those bytes may look
+    /// like any message (a nonce starting 0x30 reads as EMERGENCY_STOP), so a receiver that
+    /// looks into a frame before the link has taken it asks here first.
+    pub fn messages(&self) -> Option<&'a [u8]> {
+        let h = &self.header;
+        let link_only = h.sync_request || h.sync_reply || (h.nak && !h.sequenced);
+        (!link_only).then_some(self.payload)
+    }
+}
+
 /// Why bytes did not make a frame. Receivers count these and go on with the next frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum FrameError {
@@ -124,6 +136,12 @@ pub fn parse_frame(frame: &[u8]) -> Result<Frame<'_>, FrameError> {
     if declared != actual {
         return Err(FrameError::LengthMismatch { declared, actual });
     }
+    // Longer than the decoder lets through, but a caller may parse frames it framed itself:
+    // such a payload is no frame of this protocol, and a receiver's 64-byte buffers must
+    // never see it.
+    if actual > MAX_PAYLOAD {
+        return Err(FrameError::PayloadTooLong { len: actual });
+    }
     let flags = frame[3];
     if flags & !KNOWN_FLAGS != 0 {
         return Err(FrameError::UnknownFlags { flags });
@@ -156,7 +174,8 @@ pub struct DecoderCounters {
 /// delimiter. Bounded memory: one wire frame.
 #[derive(Clone, Debug)]
 pub struct FrameDecoder {
-    buf: [u8; MAX_WIRE_FRAME],
+    /// An encoded frame without its delimiter: 71 bytes, as PROTOCOL.md §1 says.
+    buf: [u8; MAX_WIRE_FRAME - 1],
     len: usize,
     /// More bytes than a frame arrived since the last delimiter: skip to the next one.
     overlong: usize,
@@ -172,7 +191,7 @@ impl Default for FrameDecoder {
 impl FrameDecoder {
     pub const fn new() -> FrameDecoder {
         FrameDecoder {
-            buf: [0; MAX_WIRE_FRAME],
+            buf: [0; MAX_WIRE_FRAME - 1],
             len: 0,
             overlong: 0,
             counters: DecoderCounters {

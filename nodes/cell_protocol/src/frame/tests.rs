@@ -138,6 +138,70 @@ fn payload_too_long_is_refused() {
     );
 }
 
+/// A frame that passes length and CRC checks but carries 65 bytes is refused, never handed on
+/// with a payload longer than the receiver's buffers: its 72 encoded bytes are more than any
+/// frame's 71 (the decoder's buffer once held 72, and let it through to the MCU's 64-byte
+/// copy, which panicked).
+#[test]
+fn a_well_formed_frame_with_a_65_byte_payload_is_refused() {
+    let mut body = std::vec![MAX_PAYLOAD as u8 + 1, 0, 0, FLAG_SEQUENCED];
+    body.extend_from_slice(&[0x55; MAX_PAYLOAD + 1]);
+    let crc = FRAME_CRC.checksum(&body).to_le_bytes();
+    body.extend_from_slice(&crc);
+    assert_eq!(
+        parse_frame(&body),
+        Err(FrameError::PayloadTooLong {
+            len: MAX_PAYLOAD + 1
+        })
+    );
+    let mut encoded = std::vec![0; cobs::max_encoding_length(body.len())];
+    let written = cobs::encode(&body, &mut encoded);
+    encoded.truncate(written);
+    assert_eq!(encoded.len(), MAX_WIRE_FRAME);
+    encoded.push(0);
+    let mut decoder = FrameDecoder::new();
+    assert_eq!(
+        decode_all(&mut decoder, &encoded),
+        [Err(FrameError::Overlong { len: 72 })]
+    );
+    assert_eq!(decoder.counters().framing_errors, 1);
+    // and the decoder goes on with the next frame
+    let (out, len) = wire(&header(1, 2, true, false), &[7; 3]);
+    assert_eq!(
+        decode_all(&mut decoder, &out[..len]),
+        [Ok((header(1, 2, true, false), std::vec![7; 3]))]
+    );
+}
+
+/// A session start's nonce, its answer and a NAK's bitmap are the link's bytes, not messages;
+/// a sequenced frame's payload is messages even when it also carries a NAK.
+#[test]
+fn only_frames_of_messages_give_messages() {
+    let frame = |header: FrameHeader| Frame {
+        header,
+        payload: &[0x30, 1, 2, 3],
+    };
+    let sync_request = FrameHeader {
+        sync_request: true,
+        ..FrameHeader::default()
+    };
+    let sync_reply = FrameHeader {
+        sync_reply: true,
+        ..FrameHeader::default()
+    };
+    assert_eq!(frame(sync_request).messages(), None);
+    assert_eq!(frame(sync_reply).messages(), None);
+    assert_eq!(frame(header(0, 0, false, true)).messages(), None);
+    assert_eq!(
+        frame(header(0, 0, true, true)).messages(),
+        Some(&[0x30, 1, 2, 3][..])
+    );
+    assert_eq!(
+        frame(header(0, 0, false, false)).messages(),
+        Some(&[0x30, 1, 2, 3][..])
+    );
+}
+
 #[test]
 fn unknown_flags_are_refused() {
     let body = [0u8, 0, 0, 0x40];

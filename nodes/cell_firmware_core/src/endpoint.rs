@@ -67,9 +67,10 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
                 continue;
             };
             self.machine.host_frame(now);
-            // An emergency stop acts in any valid frame, before the link decides whether the
-            // frame is in order.
-            if host_messages(frame.payload).any(|m| m == Ok(HostMessage::EmergencyStop)) {
+            // An emergency stop acts in any valid frame of messages, before the link decides
+            // whether the frame is in order.
+            let messages = frame.messages().unwrap_or_default();
+            if host_messages(messages).any(|m| m == Ok(HostMessage::EmergencyStop)) {
                 self.machine.emergency_stop();
             }
             // No room for a reply (a frame asks for at most one): leave the frame to be resent

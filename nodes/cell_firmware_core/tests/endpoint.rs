@@ -187,6 +187,38 @@ fn a_schedule_through_a_corrupting_line_plays_exactly() {
     );
 }
 
+/// A host whose session nonce starts with EMERGENCY_STOP's byte (0x30, one session in 256)
+/// starts a session like any other: the nonce is the link's, not a message. The MCU looked
+/// for an emergency stop in every frame's bytes and stopped at once.
+#[test]
+fn a_session_nonce_that_looks_like_an_emergency_stop_is_not_one() {
+    let mut host = Host {
+        endpoint: HostEndpoint::new(2_000, 0x1234_5630),
+        received: Vec::new(),
+    };
+    let mut mcu = mcu();
+    let mut edges = Vec::new();
+    let mut never = || false;
+    let mut now = 0;
+    for _ in 0..5 {
+        exchange(&mut host, &mut mcu, now, &mut never, &mut edges);
+        now += 100;
+    }
+    host.send(HostMessage::QueueSegment(cruise(
+        1_000,
+        100,
+        100.0,
+        SEGMENT_ENDS_AT_REST,
+        1,
+    )));
+    for _ in 0..200 {
+        exchange(&mut host, &mut mcu, now, &mut never, &mut edges);
+        now += 100;
+    }
+    assert_eq!(mcu.machine().fault(), FaultCode::None);
+    assert_eq!(edges.len(), 100, "the segment played");
+}
+
 #[test]
 fn an_emergency_stop_acts_even_behind_a_lost_frame() {
     let mut host = Host::new();

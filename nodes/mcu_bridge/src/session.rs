@@ -493,10 +493,11 @@ impl McuSession {
         })
     }
 
-    /// Stop at once: the MCU stops every output on the first frame that reaches it; repeated
-    /// each tick until the MCU reports the fault.
+    /// Stop at once: the MCU stops every output on the first frame that reaches it; sent at
+    /// once, then every retransmit timeout until the MCU reports a fault.
     pub fn emergency_stop(&mut self) {
         self.emergency = true;
+        self.emergency_sent_us = None;
         self.controls.clear(); // nothing held back may follow the stop (a resume least)
         self.segments.clear();
         self.screw.clear();
@@ -781,13 +782,13 @@ impl McuSession {
     /// The next bytes to write at `now_us`; call until `None`.
     pub fn poll_transmit(&mut self, now_us: u64, out: &mut [u8; MAX_WIRE_FRAME]) -> Option<usize> {
         if self.emergency {
-            let stopped = self
-                .state()
-                .is_some_and(|s| s.fault == FaultCode::EmergencyStop);
+            // Any latched fault has stopped the outputs; an MCU already faulted keeps its
+            // first fault, so waiting for EMERGENCY_STOP itself would repeat it for ever.
+            let stopped = self.state().is_some_and(|s| s.fault != FaultCode::None);
             let due = self.emergency_sent_us.is_none_or(|at| {
                 now_us.saturating_sub(at) >= (self.options.retransmit_timeout_s * 1e6) as u64
             });
-            if stopped {
+            if stopped && self.emergency_sent_us.is_some() {
                 self.emergency = false;
             } else if due {
                 // Unsequenced: it acts even behind a lost frame; repeated until reported.

@@ -190,6 +190,58 @@ fn an_emergency_stop_stops_the_steps_within_a_round() {
     );
 }
 
+/// An emergency stop asked of an MCU that a fault has already stopped goes out, and is not
+/// repeated once the MCU reports that fault: its outputs are stopped, and it keeps its first
+/// fault (PROTOCOL.md §3). The host used to repeat it until the MCU said EMERGENCY_STOP, that
+/// is every retransmit timeout until a reset.
+#[test]
+fn an_emergency_stop_of_a_faulted_mcu_is_not_repeated_for_ever() {
+    let mut rig = printing(EmulatorOptions::default(), &finger_start(300));
+    for _ in 0..1000 {
+        rig.round();
+    }
+    // The host falls silent for 1.5 s: the MCU's watchdog (1 s) latches HOST_SILENT.
+    for _ in 0..1500 {
+        let t = rig.now_us as f64 * 1e-6;
+        let mut bytes = Vec::new();
+        let edges = &mut rig.edges;
+        rig.mcu.run_until(t, &mut |e| edges.push(e), &mut bytes);
+        rig.session.receive(&bytes, rig.now_us);
+        rig.now_us += 1000;
+    }
+    assert_eq!(rig.mcu.endpoint().machine().fault(), FaultCode::HostSilent);
+    rig.session.emergency_stop();
+    let mut emergency_frames = 0;
+    let mut decoder = cell_protocol::FrameDecoder::new();
+    for _ in 0..3000 {
+        let t = rig.now_us as f64 * 1e-6;
+        let _ = rig.session.tick(rig.now_us);
+        let mut out = [0; MAX_WIRE_FRAME];
+        while let Some(len) = rig.session.poll_transmit(rig.now_us, &mut out) {
+            for &byte in &out[..len] {
+                if let Some(Ok(frame)) = decoder.push(byte) {
+                    emergency_frames += cell_protocol::message::host_messages(frame.payload)
+                        .filter(|m| *m == Ok(HostMessage::EmergencyStop))
+                        .count();
+                }
+            }
+            rig.mcu.receive(&out[..len], t);
+        }
+        let mut bytes = Vec::new();
+        let edges = &mut rig.edges;
+        rig.mcu.run_until(t, &mut |e| edges.push(e), &mut bytes);
+        rig.session.receive(&bytes, rig.now_us);
+        rig.now_us += 1000;
+    }
+    assert_eq!(
+        rig.session.state().map(|s| s.fault),
+        Some(FaultCode::HostSilent),
+        "the first fault is kept"
+    );
+    assert_eq!(emergency_frames, 1, "sent once, in 3 s");
+    assert!(!rig.mcu.endpoint().machine().pin_open());
+}
+
 #[test]
 fn a_restarted_or_silent_mcu_is_a_fault_of_the_print() {
     // A power cycle 4 s in.

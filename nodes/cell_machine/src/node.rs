@@ -254,11 +254,22 @@ impl Control {
                 "cancelling: already stopping on the path, then dropping the plan".into(),
             ),
             Command::Pause if self.plan_dropped => (false, "no plan: it was dropped".into()),
+            Command::Pause if self.operator_paused => (
+                true,
+                "already paused: holding on the path until /cell/resume".into(),
+            ),
             Command::Pause => {
                 executor.pause();
                 self.operator_paused = true;
                 (true, "pausing: decelerating along the path to rest".into())
             }
+            // The node's own hold (screw commands ending too soon) is not the operator's to
+            // end: it would start again at once, and brake again.
+            Command::Resume if now.hold == Some(HoldReason::Pause) && !self.operator_paused => (
+                false,
+                "not paused: holding until the screw commands continue, then resuming by itself"
+                    .into(),
+            ),
             Command::Resume if now.hold == Some(HoldReason::Pause) => {
                 executor.resume();
                 self.operator_paused = false;
@@ -928,7 +939,13 @@ pub async fn run<M: Machine>(
         // when the state changes, else at most every 50 ms of wall time.
         let next = Status {
             state: Some(state.state),
-            hold: state.hold,
+            // Holding for screw commands is an underrun of the plan's input, not a pause.
+            hold: match state.hold {
+                Some(HoldReason::Pause) if held_for_screw && !control.operator_paused => {
+                    Some(HoldReason::Underrun)
+                }
+                hold => hold,
+            },
             machine_time_s: state.machine_time_s,
             plan_time_s: state.plan_time_s,
             plan_ahead_s: executor.plan_ahead_s(),
@@ -1236,6 +1253,33 @@ mod tests {
         );
         assert!(executor.calls.is_empty());
         assert!(control.plan_dropped);
+    }
+
+    /// The node's own hold for screw commands (a pause the operator did not ask for) is not
+    /// ended by /cell/resume: the node would hold again at once, braking twice. A pause asked
+    /// twice says it is paused already; the operator's resume then ends it.
+    #[test]
+    fn resume_ends_only_the_operators_pause() {
+        let mut control = Control::default();
+        let mut executor = Fake {
+            hold: Some(HoldReason::Pause), // the node held for the screw
+            ..Fake::default()
+        };
+        let (accepted, message) = control.apply(&mut executor, Command::Resume);
+        assert!(
+            !accepted && message.starts_with("not paused: holding until the screw"),
+            "{message}"
+        );
+        assert!(executor.calls.is_empty());
+        assert!(control.apply(&mut executor, Command::Pause).0);
+        let (accepted, message) = control.apply(&mut executor, Command::Pause);
+        assert!(
+            accepted && message.starts_with("already paused"),
+            "{message}"
+        );
+        assert_eq!(executor.calls, ["pause"]);
+        assert!(control.apply(&mut executor, Command::Resume).0);
+        assert_eq!(executor.calls, ["pause", "resume"]);
     }
 
     /// A machine that only remembers what it was asked (its state follows the asks).

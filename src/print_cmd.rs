@@ -282,11 +282,12 @@ impl Drop for Emulator {
     }
 }
 
-/// A print ended because its bag could not be written (the machine stopped on the path by
-/// the job, not by an operator): `serve` reports it as aborted, not as cancelled.
+/// A print the job itself stopped on the path, because its bag could not be written or a
+/// node of the pipeline failed (not an operator): `serve` reports it as aborted, not as
+/// cancelled.
 #[derive(Debug, thiserror::Error)]
 #[error("{0}")]
-pub struct BagFailed(pub String);
+pub struct StoppedByJob(pub String);
 
 /// How a print ended, when it did not end by itself.
 enum Stop {
@@ -409,6 +410,13 @@ pub async fn run_job(
             cell_executor::node::NODE_NAME,
             cell_bag::node::NODE_NAME,
         );
+    }
+    if let (Some(device), Some(speed)) = (options.device.as_deref(), options.execution) {
+        if speed != 1.0 && is_serial_port(device) {
+            bail!(
+                "speed {speed} with the serial device {device}: a microcontroller's clock runs                  at machine pace, speed 1 (other speeds are for the virtual executor,                  `--device emulator` and emulated MCUs behind a pseudo-terminal or a unix: socket)"
+            );
+        }
     }
     // A real MCU is where the last print left it (a cancel leaves it mid-part): ask it,
     // and plan from there.
@@ -704,8 +712,20 @@ pub async fn run_job(
     // Ctrl-C while the machine moves: a controlled stop on the path; a second: stop at once.
     // The same when the bag cannot be written (nothing more of the print could be recorded,
     // and the recorder's acknowledgements that pace the stream are gone with it).
+    // So too when a node of the pipeline failed while the machine runs: dropping the machine
+    // would stop a real MCU at once, mid-move.
+    let machine_runs_on = || {
+        let s = status.borrow();
+        s.fault.is_none()
+            && s.state != Some(cell_executor::PlayerState::Stopped)
+            && !s.cancelled
+            && !s.done
+    };
     let mut ended = None;
-    if executing && matches!(outcome, Err(Stop::Interrupted | Stop::BagFailed(_))) {
+    if executing
+        && (matches!(outcome, Err(Stop::Interrupted | Stop::BagFailed(_)))
+            || (matches!(outcome, Err(Stop::Failed(_))) && machine_runs_on()))
+    {
         ended = Some(stop_machine(&commands, &status, &bar, &io.interrupts).await);
     }
     bar.finish_and_clear();
@@ -767,7 +787,7 @@ pub async fn run_job(
     let recorded = match &outcome {
         // (The recorder's own error is the writer's again: the reason says it.)
         Err(Stop::BagFailed(reason)) => {
-            return Err(BagFailed(match ended {
+            return Err(StoppedByJob(match ended {
                 Some((_, how)) => format!("{reason}; {how}"),
                 None => reason.clone(),
             })
@@ -789,7 +809,10 @@ pub async fn run_job(
         }
         Err(Stop::Failed(e)) => {
             print_summary(&recorded);
-            Err(e)
+            match ended {
+                Some((_, how)) => Err(StoppedByJob(format!("{e:#}; {how}")).into()),
+                None => Err(e),
+            }
         }
         Ok(s) => {
             let secs = s.elapsed.as_secs_f64();
@@ -1042,10 +1065,15 @@ async fn stop_machine(
     use cell_executor::PlayerState;
     use cell_machine::node::Command;
     let _ = commands.send(Command::Cancel);
-    bar.println("cancelling: stopping on the path (Ctrl-C again: emergency stop)");
-    // The next interrupt is the emergency stop, whether this stop came from one (a Ctrl-C)
-    // or not (a bag that cannot be written).
-    let emergency_at = *interrupts.borrow() + 1;
+    // The second interrupt is the emergency stop, whether this stop came from the first (a
+    // Ctrl-C, an action's cancel) or from the job itself (a bag that cannot be written, a
+    // node that failed): then a cancel asked meanwhile is that stop, not an emergency.
+    const EMERGENCY_AT: u32 = 2;
+    bar.println(if *interrupts.borrow() == 0 {
+        "stopping on the path (Ctrl-C twice: emergency stop)"
+    } else {
+        "cancelling: stopping on the path (Ctrl-C again: emergency stop)"
+    });
     let mut watch = status.clone();
     let at_rest = async {
         loop {
@@ -1065,7 +1093,7 @@ async fn stop_machine(
     };
     let (s, emergency) = tokio::select! {
         s = at_rest => (s, false),
-        _ = interrupted(interrupts, emergency_at) => {
+        _ = interrupted(interrupts, EMERGENCY_AT) => {
             let _ = commands.send(Command::EmergencyStop);
             let mut watch = status.clone();
             loop {
@@ -1076,12 +1104,31 @@ async fn stop_machine(
             (s, true)
         }
     };
-    let how = if emergency {
-        "emergency stop"
-    } else {
-        "cancelled: stopped on the path"
+    // The machine may have stopped at once meanwhile, by a fault or `/cell/estop`: that is
+    // how it ended, not on the path.
+    let stopped_at_once = emergency || s.state == Some(PlayerState::Stopped);
+    let how = match &s.fault {
+        Some(fault) if stopped_at_once => format!("the machine stopped at once: {fault}"),
+        None if emergency => "emergency stop".to_string(),
+        None if stopped_at_once => "emergency stop (/cell/estop) while stopping".to_string(),
+        _ => "cancelled: stopped on the path".to_string(),
     };
-    (emergency, stop_text(how, &s))
+    (stopped_at_once, stop_text(&how, &s))
+}
+
+/// Whether `device` is a serial port, where a real microcontroller keeps real time: not the
+/// built-in emulator, a `unix:` socket or a pseudo-terminal (which an emulator serves). A
+/// path that does not resolve is left to the bridge to refuse.
+fn is_serial_port(device: &str) -> bool {
+    if device == "emulator" || device.starts_with("unix:") {
+        return false;
+    }
+    use std::os::unix::fs::FileTypeExt;
+    std::fs::canonicalize(device).is_ok_and(|path| {
+        let character_device =
+            std::fs::metadata(&path).is_ok_and(|m| m.file_type().is_char_device());
+        character_device && !(path.starts_with("/dev/pts") || path.ends_with("ptmx"))
+    })
 }
 
 /// How a print stopped short, where and when: "`how` at line L after T of machine time (bed,
@@ -1257,6 +1304,126 @@ mod tests {
             ],
         )
         .map_err(|e| e.to_string())
+    }
+
+    /// A machine that obeys the stop's commands as `obey` says, the status as it then is.
+    async fn stopped_with(
+        interrupts_during: u32,
+        obey: impl Fn(&cell_machine::node::Command, &mut cell_machine::node::Status) + Send + 'static,
+    ) -> ((bool, String), Vec<cell_machine::node::Command>) {
+        use cell_machine::node::Status;
+        let (commands, mut asked) = tokio::sync::mpsc::unbounded_channel();
+        let (status_tx, status) = tokio::sync::watch::channel(Status {
+            state: Some(cell_executor::PlayerState::Running),
+            current: Some((41, 120)),
+            ..Status::default()
+        });
+        let (interrupts_tx, interrupts) = tokio::sync::watch::channel(0u32);
+        let machine = tokio::spawn(async move {
+            let mut seen = Vec::new();
+            while let Some(command) = asked.recv().await {
+                if matches!(command, cell_machine::node::Command::Cancel) {
+                    interrupts_tx.send_replace(interrupts_during);
+                    tokio::task::yield_now().await;
+                }
+                status_tx.send_modify(|s| obey(&command, s));
+                seen.push(command);
+            }
+            seen
+        });
+        let ended = stop_machine(&commands, &status, &ProgressBar::hidden(), &interrupts).await;
+        drop(commands);
+        (ended, machine.await.unwrap())
+    }
+
+    /// A controlled stop is reported as what it became: an emergency stop from `/cell/estop`
+    /// or a fault meanwhile is not "cancelled: stopped on the path"; the job's own stop (a
+    /// bag, a node) takes one interrupt as that stop and only a second as an emergency stop.
+    #[tokio::test]
+    async fn a_controlled_stop_says_how_it_really_ended() {
+        use cell_executor::PlayerState;
+        use cell_machine::node::Command;
+        // /cell/estop while decelerating
+        let (ended, seen) = stopped_with(0, |c, s| {
+            if matches!(c, Command::Cancel) {
+                s.state = Some(PlayerState::Stopped);
+            }
+        })
+        .await;
+        assert_eq!(
+            ended,
+            (true, "emergency stop (/cell/estop) while stopping at line 120 after 0:00.0 of machine time (bed 0.000000 rad, arm 0.000000 m, z 0.000000 m)".to_string())
+        );
+        assert!(matches!(seen[..], [Command::Cancel]));
+        // a fault of the machine while decelerating
+        let (ended, _) = stopped_with(0, |_, s| {
+            s.state = Some(PlayerState::Stopped);
+            s.fault = Some("late segment".into());
+        })
+        .await;
+        assert!(
+            ended.0
+                && ended
+                    .1
+                    .starts_with("the machine stopped at once: late segment at line 120"),
+            "{ended:?}"
+        );
+        // one interrupt (an action's cancel) during the job's own stop: no emergency stop
+        let (ended, seen) = stopped_with(1, |c, s| {
+            if matches!(c, Command::Cancel) {
+                s.cancelled = true;
+                s.state = Some(PlayerState::Idle);
+            }
+        })
+        .await;
+        assert!(
+            !ended.0 && ended.1.starts_with("cancelled: stopped on the path"),
+            "{ended:?}"
+        );
+        assert!(matches!(seen[..], [Command::Cancel]));
+        // a second: an emergency stop
+        let (ended, seen) = stopped_with(2, |c, s| {
+            if matches!(c, Command::EmergencyStop) {
+                s.state = Some(PlayerState::Stopped);
+            }
+        })
+        .await;
+        assert!(
+            ended.0 && ended.1.starts_with("emergency stop at line 120"),
+            "{ended:?}"
+        );
+        assert!(matches!(
+            seen[..],
+            [Command::Cancel, Command::EmergencyStop]
+        ));
+    }
+
+    /// Only a character device that is not a pseudo-terminal keeps real time; an emulator's
+    /// pty, socket or the built-in emulator may run at any speed.
+    #[test]
+    fn only_a_serial_port_is_held_to_speed_1() {
+        assert!(is_serial_port("/dev/null"));
+        assert!(!is_serial_port("emulator"));
+        assert!(!is_serial_port("unix:/tmp/uart0.sock"));
+        assert!(!is_serial_port("/dev/ptmx"));
+        assert!(!is_serial_port("/no/such/device"));
+        assert!(!is_serial_port(env!("CARGO_MANIFEST_DIR")));
+        // SAFETY: a pseudo-terminal pair of this process; the name is copied out before
+        // the master is closed.
+        let name = unsafe {
+            let master = libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY);
+            assert!(master >= 0 && libc::grantpt(master) == 0 && libc::unlockpt(master) == 0);
+            let mut buf = [0 as libc::c_char; 128];
+            assert_eq!(libc::ptsname_r(master, buf.as_mut_ptr(), buf.len()), 0);
+            let name = std::ffi::CStr::from_ptr(buf.as_ptr())
+                .to_str()
+                .unwrap()
+                .to_string();
+            assert!(!is_serial_port(&name), "{name}");
+            libc::close(master);
+            name
+        };
+        assert!(name.starts_with("/dev/pts/"), "{name}");
     }
 
     #[test]

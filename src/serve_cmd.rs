@@ -218,9 +218,16 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 );
                 continue;
             }
-            jobs += 1;
+            // The next number no bag in the directory has yet: a restarted server does not
+            // overwrite the last one's bags.
+            let bag = loop {
+                jobs += 1;
+                let bag = options.bag_dir.join(format!("print-{jobs}.mcap"));
+                if !bag.exists() {
+                    break bag;
+                }
+            };
             let goal = request.goal.0;
-            let bag = options.bag_dir.join(format!("print-{jobs}.mcap"));
             let speed = if goal.speed > 0.0 {
                 goal.speed
             } else {
@@ -247,7 +254,15 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                     status: status_tx,
                     planned: planned_tx,
                 };
-                let report = print_cmd::run_job(&file, &job_options, &args, io).await;
+                // `print -` reads its own standard input; the server's is not the client's.
+                let report = if file == "-" {
+                    Err(anyhow::anyhow!(
+                        "gcode_file \"-\" would read the server's standard input: send a \
+                         file's path on the machine that serves /print"
+                    ))
+                } else {
+                    print_cmd::run_job(&file, &job_options, &args, io).await
+                };
                 (report, bag.display().to_string())
             });
             let accepted = GoalInfo {
@@ -458,12 +473,12 @@ fn outcome(
                 status.state == Some(cell_executor::PlayerState::Stopped) && status.fault.is_none();
             // Stopped from outside the action (`/cell/estop`, `/cell/cancel`): aborted, as
             // the goal was not cancelled through it, but said how.
-            // A bag that could not be written stopped the machine through a cancel of the
-            // job's own: aborted, not an operator's cancel.
-            let bag_failed = e.downcast_ref::<crate::print_cmd::BagFailed>().is_some();
+            // A bag that could not be written or a failed node stopped the machine through a
+            // cancel of the job's own: aborted, not an operator's cancel.
+            let by_job = e.downcast_ref::<crate::print_cmd::StoppedByJob>().is_some();
             result.ended = if stopped {
                 "emergency_stop"
-            } else if status.cancelled && !bag_failed {
+            } else if status.cancelled && !by_job {
                 "cancelled"
             } else {
                 "aborted"

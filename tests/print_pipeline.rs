@@ -211,6 +211,31 @@ fn a_file_leaving_the_reach_at_its_end_is_refused_before_anything_moves() {
         "{stderr}"
     );
     assert!(bag.exists(), "this time the print had started");
+    // Executed, with the move a third into the part: the planner fails while the machine
+    // runs, and the machine stops on the path at the end of what was planned (dropping it
+    // would stop a real MCU at once, mid-move).
+    let source = std::fs::read_to_string(&fixture).unwrap();
+    let lines: Vec<&str> = source.lines().collect();
+    let at = lines.len() / 3;
+    let mut text = lines[..at].join("\n");
+    text.push_str("\nG1 X120 Y120 F3000\n");
+    text.push_str(&lines[at..].join("\n"));
+    std::fs::write(&gcode, text).unwrap();
+    let (ok, stderr) = run_print(44, &gcode, &bag, &["--no-preflight", "--speed", "20"]);
+    assert!(!ok, "{stderr}");
+    assert!(
+        stderr.contains(&format!("(line {}): arm_r", at + 1))
+            && stderr.contains("; cancelled: stopped on the path at line"),
+        "{stderr}"
+    );
+    let states = topic_messages::<polar_cell_msgs::JointState>(&bag, "/joint_states");
+    let last = states.last().expect("executed joint states");
+    assert!(states.len() > 10, "{} states", states.len());
+    assert!(
+        last.velocity.iter().all(|v| v.abs() < 1e-9),
+        "at rest at the end: {:?}",
+        last.velocity
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -280,6 +280,10 @@ def test_cancel_rules_goal_ids_result_timeout_and_shutdown_as_rcl_has_them(tmp_p
     moved the machine, and a server stopped with a goal running still ending that goal."""
     long_file = tmp_path / "long.gcode"
     circle(long_file, 3)
+    # A bag of an earlier server in the directory: not overwritten.
+    (tmp_path / "bags").mkdir()
+    earlier = tmp_path / "bags" / "print-1.mcap"
+    earlier.write_bytes(b"an earlier server's bag")
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN + 2))
     server = subprocess.Popen(
         [str(binary("polar-cell")), "serve", "--bag-dir", str(tmp_path / "bags"),
@@ -338,6 +342,7 @@ def test_cancel_rules_goal_ids_result_timeout_and_shutdown_as_rcl_has_them(tmp_p
         assert cancel_goal(first, Time(0, 0)).return_code == ERROR_GOAL_TERMINATED
         result = result_of(first, 30)
         assert result.status == CANCELED, result
+        assert result.result.bag == str(tmp_path / "bags" / "print-2.mcap"), result.result.bag
         stop = list(result.result.stop_position[:3])
         assert stop[1] > 0.04, stop
         assert cancel_goal(first, Time(0, 0)).return_code == ERROR_GOAL_TERMINATED
@@ -352,6 +357,12 @@ def test_cancel_rules_goal_ids_result_timeout_and_shutdown_as_rcl_has_them(tmp_p
         result = result_of(missing, 30)
         assert result.status == ABORTED, result
         assert list(result.result.stop_position[:3]) == stop, (result.result.stop_position, stop)
+        # "-" would read the server's own standard input: refused, saying why.
+        stdin_goal = new_id()
+        assert goal(stdin_goal, "-").accepted
+        result = result_of(stdin_goal, 30)
+        assert result.status == ABORTED, result
+        assert "standard input" in result.result.message, result.result.message
 
         # Kept for the result timeout after they ended (4 s here), then unknown.
         assert bytes(first.uuid) in latest_statuses()
@@ -371,6 +382,7 @@ def test_cancel_rules_goal_ids_result_timeout_and_shutdown_as_rcl_has_them(tmp_p
         assert result.result.message.startswith("the server shut down: cancelled"), result.result.message
         _, stderr = server.communicate(timeout=20)
         assert server.returncode == 0, stderr
+        assert earlier.read_bytes() == b"an earlier server's bag"
     finally:
         if server.poll() is None:
             server.kill()

@@ -194,6 +194,48 @@ fn a_cruise_is_exact() {
     assert_eq!(pulses[1].tick(), 75); // 74.5 rounds up
 }
 
+/// PROTOCOL.md §6's worked example, pulse by pulse: the document a firmware author writes from
+/// says exactly what this crate computes.
+#[test]
+fn protocol_md_worked_example_is_what_the_generator_computes() {
+    let segment = Segment {
+        step_counts: [3, 2, 0],
+        negative_mask: 0,
+        dominant_axis: 0,
+        accelerate_steps: 3,
+        cruise_steps: 0,
+        decelerate_steps: 0,
+        first_period_q32: 32 << 32,
+        first_ramp_q62: 1 << 60,
+    };
+    segment.check().unwrap();
+    let mut train = PulseTrain::new(&segment);
+    let first = train.next_pulse().unwrap().unwrap();
+    assert_eq!(
+        (first.time_q32, first.axes, first.tick()),
+        (32 << 32, 0b001, 32)
+    );
+    assert_eq!(
+        (train.period_q32(), train.ramp_q62()),
+        (27 << 32, 729 << 50)
+    );
+    let second = train.next_pulse().unwrap().unwrap();
+    assert_eq!(
+        (second.time_q32, second.axes, second.tick()),
+        (59 << 32, 0b011, 59)
+    );
+    assert_eq!(
+        (train.period_q32(), train.ramp_q62()),
+        (100_834_975_872, 620_586_691_840_016_001)
+    );
+    let third = train.next_pulse().unwrap().unwrap();
+    assert_eq!(
+        (third.time_q32, third.axes, third.tick()),
+        (354_238_046_336, 0b011, 82)
+    );
+    assert_eq!(train.next_pulse().unwrap(), None);
+}
+
 #[test]
 fn followers_make_floor_of_their_share_at_every_dominant_step() {
     let fields = SegmentFields {

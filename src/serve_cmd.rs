@@ -5,6 +5,14 @@
 //! and where the machine stands. While a job runs, the executor's services
 //! (`/cell/pause`, `/cell/resume`, `/cell/estop`, …) work as in `print`.
 //!
+//! An emergency stop outlives the job it ended: until `/cell/reset`, every new goal is
+//! aborted with the reason (a new job's MCU session would otherwise reset the MCU, and the
+//! cell would print again with nobody having reset it). While no job runs, the server answers
+//! the `/cell` services itself: `/cell/estop` latches that stop, `/cell/reset` clears it, and
+//! the others say that no print runs (a `ros2 service call` no longer waits for ever). While
+//! a job runs its machine answers them (from its pre-flight until its machine node is up,
+//! nobody does).
+//!
 //! One goal at a time: a goal sent while another runs is rejected. The endpoints are
 //! ros2-client's synchronous `ActionServer` (its async wrapper needs `Copy` goals and has the
 //! pitfalls listed in docs/design/actions-and-services.md); the goal states follow rcl's table.
@@ -13,8 +21,9 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context as _;
+use cell_machine::node::{Command, TriggerServer};
 use cell_runtime::{reliable_qos, transient_local_qos, CellNode, RosArgs, Wire};
-use polar_cell_msgs::{PrintFeedback, PrintGoal, PrintResult};
+use polar_cell_msgs::{PrintFeedback, PrintGoal, PrintResult, TriggerRequest, TriggerResponse};
 use ros2_client::action::{GetResultResponse, SendGoalResponse};
 use ros2_client::action_msgs::{
     CancelGoalResponse, CancelGoalResponseEnum, GoalInfo, GoalStatus, GoalStatusArray,
@@ -102,6 +111,22 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
         options.bag_dir.display()
     );
     let mut running: Option<Running> = None;
+    // Why the cell is stopped at once, until `/cell/reset`.
+    let mut latched: Option<String> = None;
+    // The `/cell` services while no job runs; while one runs its machine answers them, and
+    // these take the requests and leave them. They live as long as the server: a reader made
+    // again on this participant would be handed the requests its predecessor had taken
+    // (RustDDS keeps a topic's samples for the participant), an old /cell/reset among them.
+    let mut idle: Vec<(TriggerServer, Command)> = Vec::new();
+    let mut replies = cell_runtime::service::Replies::default();
+    for (name, command) in cell_machine::node::SERVICES {
+        let server = node.service::<TriggerRequest, TriggerResponse>(
+            name,
+            ("std_srvs", "Trigger"),
+            options.mapping,
+        )?;
+        idle.push((server, command));
+    }
     let mut finished: Vec<Finished> = Vec::new();
     let mut result_requests: Vec<(RmwRequestId, GoalId)> = Vec::new();
     let mut jobs = 0u32;
@@ -143,6 +168,14 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
     loop {
         let ended = tokio::select! {
             _ = poll.tick() => None,
+            (index, request) = cell_machine::node::next_request(&idle) => {
+                if let (None, Some(request)) = (&running, request) {
+                    let (success, message) = idle_reply(idle[index].1, &mut latched);
+                    eprintln!("serve: {}: {message}", cell_machine::node::SERVICES[index].0);
+                    replies.push(index, request, Wire(TriggerResponse { success, message }));
+                }
+                None
+            }
             ended = async {
                 match running.as_mut() {
                     Some(r) => (&mut r.job).await,
@@ -165,6 +198,12 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 None
             }
         };
+        for (index, problem) in replies.send_ready(|index| &idle[index].0) {
+            eprintln!(
+                "serve: {}: {problem}",
+                cell_machine::node::SERVICES[index].0
+            );
+        }
         // The job's end first: a goal that comes in the same pass finds the server free.
         // (Only a running goal's job can end, and then the goal is no longer running.)
         if let Some(((report, bag), r)) = ended.and_then(|e| running.take().map(|r| (e, r))) {
@@ -174,6 +213,11 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 machine_at = Some([bed, arm, z]);
             }
             let (goal_status, mut result) = outcome(report, &status, bag);
+            if result.ended == "emergency_stop"
+                || status.state == Some(cell_executor::PlayerState::Stopped)
+            {
+                latched = Some(result.message.clone());
+            }
             if status.state.is_none() {
                 // The machine never ran for this goal: it stands where it stood.
                 result.stop_position = match (&options.device, machine_at) {
@@ -227,6 +271,41 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                     break bag;
                 }
             };
+            if let Some(why) = &latched {
+                // Accepted, to say why it ends at once (a rejection carries no reason).
+                let info = GoalInfo {
+                    goal_id: request.goal_id,
+                    stamp,
+                };
+                finished.push(Finished {
+                    info,
+                    status: GoalStatusEnum::Aborted,
+                    result: PrintResult {
+                        ended: "aborted".into(),
+                        message: format!(
+                            "the cell is stopped ({why}): call /cell/reset before a new print"
+                        ),
+                        stop_position: match (&options.device, machine_at) {
+                            (None, Some([bed, arm, z])) => vec![bed, arm, z, 0.0],
+                            _ => vec![],
+                        },
+                        ..PrintResult::default()
+                    },
+                    ended_at: std::time::Instant::now(),
+                });
+                if finished.len() > MAX_RESULTS_KEPT {
+                    finished.remove(0);
+                }
+                publish_statuses(&server, &running, &finished);
+                let _ = server.send_goal_response(
+                    request_id,
+                    SendGoalResponse {
+                        accepted: true,
+                        stamp,
+                    },
+                );
+                continue;
+            }
             let goal = request.goal.0;
             let speed = if goal.speed > 0.0 {
                 goal.speed
@@ -372,6 +451,24 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
 /// Finished goals kept at most, whatever the result timeout (a client sending goals that
 /// fail at once must not grow the server without bound).
 const MAX_RESULTS_KEPT: usize = 64;
+
+/// The answer to a `/cell` service while no job runs.
+fn idle_reply(command: Command, latched: &mut Option<String>) -> (bool, String) {
+    match command {
+        Command::EmergencyStop => {
+            *latched = Some("emergency stop (/cell/estop) while no print ran".into());
+            (
+                true,
+                "emergency stop: no print runs; new prints are refused until /cell/reset".into(),
+            )
+        }
+        Command::Reset if latched.take().is_some() => {
+            (true, "reset: the cell takes new prints again".into())
+        }
+        Command::Reset => (false, "not stopped".into()),
+        Command::Pause | Command::Resume | Command::Cancel => (false, "no print runs".into()),
+    }
+}
 
 /// How long a server that was told to stop still answers result requests once its last goal
 /// ended (a client asks for the result when it sees the terminal status).

@@ -28,6 +28,7 @@ from mcap_ros2.decoder import DecoderFactory
 from conftest import binary
 from rmw_cyclone import ServiceClient
 from test_dds import Time, ros_qos
+from test_services import TriggerRequest, TriggerResponse, trigger
 
 DOMAIN = 78
 PKG = "polar_cell_msgs::action::dds_::"
@@ -385,5 +386,84 @@ def test_cancel_rules_goal_ids_result_timeout_and_shutdown_as_rcl_has_them(tmp_p
         assert earlier.read_bytes() == b"an earlier server's bag"
     finally:
         if server.poll() is None:
+            server.kill()
+            server.wait()
+
+
+def test_an_emergency_stop_outlives_its_goal_until_a_reset(tmp_path):
+    """`/cell/estop` during a goal: that goal ends in an emergency stop, and every goal after
+    it is aborted, saying why, until `/cell/reset` (a new job's MCU session resets the MCU, so
+    the cell would otherwise print again with nobody having reset it). With no goal running
+    the server answers the /cell services itself: a call does not wait for ever, and an e-stop
+    then latches the same way."""
+    long_file = tmp_path / "long.gcode"
+    circle(long_file, 3)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN + 3))
+    server = subprocess.Popen(
+        [str(binary("polar-cell")), "serve", "--bag-dir", str(tmp_path / "bags")],
+        env=env, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        p = DomainParticipant(DOMAIN + 3)
+        send_goal = ServiceClient(p, "/print/_action/send_goal", SendGoalRequest, SendGoalResponse)
+        get_result = ServiceClient(p, "/print/_action/get_result", GetResultRequest, GetResultResponse)
+        cancel = ServiceClient(p, "/print/_action/cancel_goal", CancelRequest, CancelResponse)
+        deadline = time.monotonic() + 20
+        for client in (send_goal, get_result, cancel):
+            client.wait_for_server(deadline)
+
+        def cell(name):
+            return ServiceClient(p, f"/cell/{name}", TriggerRequest, TriggerResponse)
+
+        def goal(path):
+            goal_id = UUID([random.randrange(256) for _ in range(16)])
+            seq = send_goal.send(lambda g, s: SendGoalRequest(g, s, goal_id, PrintGoal(str(path), 1.0)))
+            assert send_goal.reply(seq, 10).accepted
+            return goal_id
+
+        def result_of(goal_id, timeout=30):
+            seq = get_result.send(lambda g, s: GetResultRequest(g, s, goal_id))
+            return get_result.reply(seq, timeout)
+
+        # Idle: answered by the server.
+        reply = trigger(cell("pause"))
+        assert (reply.success, reply.message) == (False, "no print runs"), reply
+        assert trigger(cell("reset")).message == "not stopped"
+
+        # An e-stop of the running print (served by its machine).
+        running = goal(long_file)
+        time.sleep(3.0)
+        reply = trigger(cell("estop"))
+        assert reply.success, reply
+        result = result_of(running)
+        assert result.result.ended == "emergency_stop", result.result
+        time.sleep(1.0)
+
+        # The next goal ends at once, saying why; after a reset one runs.
+        refused = goal(long_file)
+        result = result_of(refused)
+        assert result.status == ABORTED, result
+        assert "call /cell/reset before a new print" in result.result.message, result.result.message
+        reply = trigger(cell("reset"))
+        assert (reply.success, reply.message) == (True, "reset: the cell takes new prints again")
+        running = goal(long_file)
+        time.sleep(2.0)
+        seq = cancel.send(lambda g, s: CancelRequest(g, s, GoalInfo(running, Time(0, 0))))
+        assert cancel.reply(seq, 10).return_code == ERROR_NONE
+        result = result_of(running)
+        assert result.status == CANCELED, result
+        assert result.result.machine_time_s > 0.5, result.result
+        time.sleep(1.0)
+
+        # An e-stop with no print running latches too.
+        assert trigger(cell("estop")).success
+        result = result_of(goal(long_file))
+        assert result.status == ABORTED and "while no print ran" in result.result.message, result
+        assert trigger(cell("reset")).success
+    finally:
+        server.send_signal(signal.SIGINT)
+        try:
+            server.wait(timeout=20)
+        except subprocess.TimeoutExpired:
             server.kill()
             server.wait()

@@ -212,7 +212,8 @@ impl MachineParams {
     }
 }
 
-const SERVICES: [(&str, Command); 5] = [
+/// The `/cell` services (`std_srvs/srv/Trigger`) and what each asks.
+pub const SERVICES: [(&str, Command); 5] = [
     ("/cell/pause", Command::Pause),
     ("/cell/resume", Command::Resume),
     ("/cell/cancel", Command::Cancel),
@@ -487,9 +488,12 @@ pub async fn run<M: Machine>(
     // in timer wake-ups.
     let period = Duration::from_secs_f64(node.params.f64("tick_period_s"));
     let mut wake = Instant::now();
+    // Service replies waiting for their clients' response readers.
+    let mut replies = cell_runtime::service::Replies::default();
     loop {
         // A command, and the service request to answer if it came from one.
-        let mut requested: Option<(Command, Option<(usize, ros2_client::RmwRequestId)>)> = None;
+        let mut requested: Option<(Command, Option<(usize, cell_runtime::service::Request)>)> =
+            None;
         tokio::select! {
             taken = steps_sub.async_take() => {
                 let (s, info) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
@@ -610,8 +614,8 @@ pub async fn run<M: Machine>(
             }
             Some(command) = commands.recv() => requested = Some((command, None)),
             (index, request) = next_request(&servers) => {
-                if let Some(id) = request {
-                    requested = Some((servers[index].1, Some((index, id))));
+                if let Some(request) = request {
+                    requested = Some((servers[index].1, Some((index, request))));
                 }
             }
             _ = tokio::time::sleep_until(wake.into()) => {}
@@ -629,19 +633,16 @@ pub async fn run<M: Machine>(
             }
             match caller {
                 None => cell_runtime::cell_log!(node, LogLevel::Info, "{}", message),
-                Some((index, id)) => {
+                Some((index, request)) => {
                     let service = SERVICES[index].0;
                     cell_runtime::cell_log!(node, LogLevel::Info, "{service}: {message}");
-                    let reply = TriggerResponse { success, message };
-                    if let Err(e) = servers[index].0.send_response(id, Wire(reply)) {
-                        cell_runtime::cell_log!(
-                            node,
-                            LogLevel::Warn,
-                            "{service}: reply lost: {e:?}"
-                        );
-                    }
+                    replies.push(index, request, Wire(TriggerResponse { success, message }));
                 }
             }
+        }
+        for (index, problem) in replies.send_ready(|index| &servers[index].0) {
+            let service = SERVICES[index].0;
+            cell_runtime::cell_log!(node, LogLevel::Warn, "{service}: {problem}");
         }
         // Once cancelled or stopped, what is still in flight for the dropped plan is dropped
         // too: a stopped machine would refuse it, and that refusal is no fault of the print.
@@ -1104,19 +1105,15 @@ pub async fn main_with_args(
     }
 }
 
-type TriggerServer = ros2_client::Server<Wire<TriggerRequest>, Wire<TriggerResponse>>;
+/// A `/cell` service's server.
+pub type TriggerServer = ros2_client::Server<Wire<TriggerRequest>, Wire<TriggerResponse>>;
 
-/// The first service with a request waiting, and its request id.
-async fn next_request(
+/// The first service with a request waiting, and the request.
+pub async fn next_request(
     servers: &[(TriggerServer, Command)],
-) -> (usize, Option<ros2_client::RmwRequestId>) {
+) -> (usize, Option<cell_runtime::service::Request>) {
     let futures = servers.iter().enumerate().map(|(i, (s, _))| {
-        Box::pin(async move {
-            match s.async_receive_request().await {
-                Ok((id, _)) => (i, Some(id)),
-                Err(_) => (i, None),
-            }
-        })
+        Box::pin(async move { (i, cell_runtime::service::receive(s).await.map(|(r, _)| r)) })
     });
     futures::future::select_all(futures).await.0
 }

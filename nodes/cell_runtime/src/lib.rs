@@ -5,7 +5,8 @@
 //! [`flow`] (lossless flow control of a pipeline link), [`throttle`] (repeated log lines),
 //! [`tf`] (a URDF's joints as `/tf` transforms, for the cell and the machining head alike).
 //! DDS parts: [`dds`] (participant on loopback, ROS-default QoS, node with declared parameters,
-//! diagnostics, rosout, shutdown on SIGINT/SIGTERM).
+//! diagnostics, rosout, shutdown on SIGINT/SIGTERM), [`service`] (replies that wait for their
+//! client's reader).
 
 pub mod args;
 pub mod dds;
@@ -15,6 +16,7 @@ pub mod graph;
 pub mod names;
 pub mod params;
 pub mod replay;
+pub mod service;
 pub mod tf;
 pub mod throttle;
 pub mod topics;

@@ -131,6 +131,41 @@ where
     } // match
   }
 
+  /// Like [`Server::async_receive_request`], with the request's [`MessageInfo`]: its
+  /// `publisher_gid` is the client's request writer, for
+  /// [`Server::response_reader_matched`]. (polar-cell patch)
+  pub async fn async_receive_request_with_info(
+    &self,
+  ) -> ReadResult<(RmwRequestId, Req, MessageInfo)> {
+    let dcc_stream = self.request_receiver.as_async_stream();
+    pin_mut!(dcc_stream);
+    match dcc_stream.next().await {
+      Some(Err(e)) => Err(e.into()),
+      Some(Ok(dcc)) => {
+        let mi = MessageInfo::from(&dcc);
+        let req_wrapper = dcc.into_value();
+        let (ri, req) = req_wrapper.unwrap(self.service_mapping, &mi)?;
+        Ok((ri, req, mi))
+      }
+      None => read_error_internal!("SimpleDataReader value stream unexpectedly ended!"),
+    }
+  }
+
+  /// Whether the response writer has matched a reader of the participant whose writer
+  /// `request_writer` sent a request. A client's request can arrive before this server has
+  /// discovered the client's response reader, and a response written then is lost (the
+  /// topic is volatile): a server waits for this first, as rmw_cyclonedds does.
+  /// (polar-cell patch)
+  pub fn response_reader_matched(&self, request_writer: crate::gid::Gid) -> bool {
+    let prefix = GUID::from(request_writer).prefix;
+    self
+      .response_sender
+      .acknowledgments()
+      .matched_readers()
+      .iter()
+      .any(|reader| reader.prefix == prefix)
+  }
+
   /// Returns a never-ending stream of (request_id, request)
   /// The request_id must be sent back with the response to identify which
   /// request and response belong together.

@@ -29,7 +29,7 @@ use ros2_client::action_msgs::{
     CancelGoalResponse, CancelGoalResponseEnum, GoalInfo, GoalStatus, GoalStatusArray,
     GoalStatusEnum,
 };
-use ros2_client::{ActionTypeName, RmwRequestId};
+use ros2_client::{ActionTypeName, Gid, RmwRequestId};
 
 use crate::print_cmd::{self, Ending, JobIo, JobReport, PrintOptions};
 
@@ -128,7 +128,9 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
         idle.push((server, command));
     }
     let mut finished: Vec<Finished> = Vec::new();
-    let mut result_requests: Vec<(RmwRequestId, GoalId)> = Vec::new();
+    let mut result_requests: Vec<(RmwRequestId, GoalId, Gid)> = Vec::new();
+    // Answers waiting until their client's response reader is matched.
+    let mut answers = Answers::default();
     let mut jobs = 0u32;
     // Where the virtual machine stands after the last job, for the next plan to start there
     // (a cancelled print leaves it mid-part). A real MCU is asked where it stands at each
@@ -246,19 +248,22 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
         }
         // New goals: accept one when idle, reject while busy, shutting down, or when its id
         // is already known (rcl refuses a goal id that exists).
-        while let Ok(Some((request_id, request))) = server.receive_goal() {
+        while let Ok(Some((request_id, request, client))) = server.receive_goal_with_info() {
             let stamp = ros2_client::builtin_interfaces::Time::now();
             let known = running
                 .as_ref()
                 .is_some_and(|r| r.goal_id == request.goal_id)
                 || finished.iter().any(|f| f.info.goal_id == request.goal_id);
             if running.is_some() || signals_seen > 0 || known {
-                let _ = server.send_goal_response(
-                    request_id,
-                    SendGoalResponse {
-                        accepted: false,
-                        stamp,
-                    },
+                answers.push(
+                    client,
+                    Answer::Goal(
+                        request_id,
+                        SendGoalResponse {
+                            accepted: false,
+                            stamp,
+                        },
+                    ),
                 );
                 continue;
             }
@@ -297,12 +302,15 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                     finished.remove(0);
                 }
                 publish_statuses(&server, &running, &finished);
-                let _ = server.send_goal_response(
-                    request_id,
-                    SendGoalResponse {
-                        accepted: true,
-                        stamp,
-                    },
+                answers.push(
+                    client,
+                    Answer::Goal(
+                        request_id,
+                        SendGoalResponse {
+                            accepted: true,
+                            stamp,
+                        },
+                    ),
                 );
                 continue;
             }
@@ -359,17 +367,22 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 job,
             });
             publish_statuses(&server, &running, &finished);
-            let _ = server.send_goal_response(
-                request_id,
-                SendGoalResponse {
-                    accepted: true,
-                    stamp,
-                },
+            answers.push(
+                client,
+                Answer::Goal(
+                    request_id,
+                    SendGoalResponse {
+                        accepted: true,
+                        stamp,
+                    },
+                ),
             );
         }
         // Cancel requests, as rcl judges them (the goal by its id, and/or every goal accepted
         // at or before the stamp; both zero: every goal).
-        while let Ok(Some((request_id, request))) = server.receive_cancel_request() {
+        while let Ok(Some((request_id, request, client))) =
+            server.receive_cancel_request_with_info()
+        {
             let target = serde_json::to_value(&request)
                 .ok()
                 .and_then(|v| serde_json::from_value::<CancelWire>(v).ok())
@@ -395,10 +408,12 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 },
             };
             publish_statuses(&server, &running, &finished);
-            let _ = server.send_cancel_response(request_id, response);
+            answers.push(client, Answer::Cancel(request_id, response));
         }
-        while let Ok(Some((request_id, request))) = server.receive_result_request() {
-            result_requests.push((request_id, request.goal_id));
+        while let Ok(Some((request_id, request, client))) =
+            server.receive_result_request_with_info()
+        {
+            result_requests.push((request_id, request.goal_id, client));
         }
         // Feedback at 4 Hz.
         if let Some(r) = &running {
@@ -409,30 +424,37 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 let _ = server.send_feedback(r.goal_id, Wire(feedback(&s, planned_s)));
             }
         }
-        result_requests.retain(|(request_id, goal_id)| {
+        result_requests.retain(|(request_id, goal_id, client)| {
             let Some(f) = finished.iter().find(|f| f.info.goal_id == *goal_id) else {
                 // Unknown and not running: answer at once (rcl answers UNKNOWN).
                 if running.as_ref().is_some_and(|r| r.goal_id == *goal_id) {
                     return true;
                 }
-                let _ = server.send_result(
-                    *request_id,
-                    GetResultResponse {
-                        status: GoalStatusEnum::Unknown,
-                        result: Wire(PrintResult::default()),
-                    },
+                answers.push(
+                    *client,
+                    Answer::Result(
+                        *request_id,
+                        GetResultResponse {
+                            status: GoalStatusEnum::Unknown,
+                            result: Wire(PrintResult::default()),
+                        },
+                    ),
                 );
                 return false;
             };
-            let _ = server.send_result(
-                *request_id,
-                GetResultResponse {
-                    status: f.status,
-                    result: Wire(f.result.clone()),
-                },
+            answers.push(
+                *client,
+                Answer::Result(
+                    *request_id,
+                    GetResultResponse {
+                        status: f.status,
+                        result: Wire(f.result.clone()),
+                    },
+                ),
             );
             false
         });
+        answers.send_ready(&server);
         // A finished goal is kept (in the status list, its result for get_result) for the
         // result timeout after it ended, as rcl keeps it; then it is unknown. (After the
         // answers above: a request waiting when the goal ended gets its result whatever the
@@ -451,6 +473,56 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
 /// Finished goals kept at most, whatever the result timeout (a client sending goals that
 /// fail at once must not grow the server without bound).
 const MAX_RESULTS_KEPT: usize = 64;
+
+/// An action service's answer to one request.
+enum Answer {
+    Goal(RmwRequestId, SendGoalResponse),
+    Cancel(RmwRequestId, CancelGoalResponse),
+    Result(RmwRequestId, GetResultResponse<Wire<PrintResult>>),
+}
+
+/// The action's answers waiting until the server has discovered their client's response
+/// reader (at most `cell_runtime::service::REPLY_PATIENCE`): `ros2 action send_goal` sends
+/// its goal as soon as it sees the server, and an answer sent before the server saw the
+/// client's reader was lost (see `cell_runtime::service`).
+#[derive(Default)]
+struct Answers {
+    waiting: Vec<(Gid, Answer, std::time::Instant)>,
+}
+
+impl Answers {
+    fn push(&mut self, client: Gid, answer: Answer) {
+        let give_up_at = std::time::Instant::now() + cell_runtime::service::REPLY_PATIENCE;
+        self.waiting.push((client, answer, give_up_at));
+    }
+
+    /// Send what its client can hear now, or has waited long enough.
+    fn send_ready(&mut self, server: &Server) {
+        let now = std::time::Instant::now();
+        for (client, answer, give_up_at) in std::mem::take(&mut self.waiting) {
+            let matched = match answer {
+                Answer::Goal(..) => server.goal_client_matched(client),
+                Answer::Cancel(..) => server.cancel_client_matched(client),
+                Answer::Result(..) => server.result_client_matched(client),
+            };
+            if !matched && now < give_up_at {
+                self.waiting.push((client, answer, give_up_at));
+                continue;
+            }
+            if !matched {
+                eprintln!(
+                    "serve: an action client's response reader was not seen in {} s: its answer may be lost",
+                    cell_runtime::service::REPLY_PATIENCE.as_secs_f64()
+                );
+            }
+            let _ = match answer {
+                Answer::Goal(id, response) => server.send_goal_response(id, response),
+                Answer::Cancel(id, response) => server.send_cancel_response(id, response),
+                Answer::Result(id, response) => server.send_result(id, response),
+            };
+        }
+    }
+}
 
 /// The answer to a `/cell` service while no job runs.
 fn idle_reply(command: Command, latched: &mut Option<String>) -> (bool, String) {

@@ -425,14 +425,24 @@ def test_an_emergency_stop_outlives_its_goal_until_a_reset(tmp_path):
             seq = get_result.send(lambda g, s: GetResultRequest(g, s, goal_id))
             return get_result.reply(seq, timeout)
 
-        # Idle: answered by the server.
-        reply = trigger(cell("pause"))
-        assert (reply.success, reply.message) == (False, "no print runs"), reply
+        # Idle: answered by the server, also to clients made just before their call, as
+        # `ros2 service call` makes its client (their answers wait until the server has
+        # seen the client's response reader).
+        for _ in range(5):
+            reply = trigger(cell("pause"))
+            assert (reply.success, reply.message) == (False, "no print runs"), reply
         assert trigger(cell("reset")).message == "not stopped"
 
         # An e-stop of the running print (served by its machine).
         running = goal(long_file)
         time.sleep(3.0)
+        # Goals from new clients, as `ros2 action send_goal` sends them: each is answered
+        # (rejected: one goal at a time).
+        for _ in range(5):
+            fresh = ServiceClient(p, "/print/_action/send_goal", SendGoalRequest, SendGoalResponse)
+            goal_id = UUID([random.randrange(256) for _ in range(16)])
+            reply = fresh.call(lambda g, s: SendGoalRequest(g, s, goal_id, PrintGoal(str(long_file), 1.0)))
+            assert not reply.accepted
         reply = trigger(cell("estop"))
         assert reply.success, reply
         result = result_of(running)

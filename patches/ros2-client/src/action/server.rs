@@ -125,6 +125,71 @@ where
     self.my_result_server.send_response(result_request_id, resp)
   }
 
+  /// [`ActionServer::receive_goal`] with the client's request writer (polar-cell patch).
+  pub fn receive_goal_with_info(
+    &self,
+  ) -> ReadResult<Option<(RmwRequestId, SendGoalRequest<G>, crate::gid::Gid)>>
+  where
+    G: 'static,
+  {
+    Ok(
+      self
+        .my_goal_server
+        .receive_request_with_info()?
+        .map(|(id, request, info)| (id, request, info.publisher_gid())),
+    )
+  }
+
+  /// [`ActionServer::receive_cancel_request`] with the client's request writer (polar-cell
+  /// patch).
+  pub fn receive_cancel_request_with_info(
+    &self,
+  ) -> ReadResult<Option<(RmwRequestId, action_msgs::CancelGoalRequest, crate::gid::Gid)>> {
+    Ok(
+      self
+        .my_cancel_server
+        .receive_request_with_info()?
+        .map(|(id, request, info)| (id, request, info.publisher_gid())),
+    )
+  }
+
+  /// [`ActionServer::receive_result_request`] with the client's request writer (polar-cell
+  /// patch).
+  pub fn receive_result_request_with_info(
+    &self,
+  ) -> ReadResult<Option<(RmwRequestId, GetResultRequest, crate::gid::Gid)>>
+  where
+    R: 'static,
+  {
+    Ok(
+      self
+        .my_result_server
+        .receive_request_with_info()?
+        .map(|(id, request, info)| (id, request, info.publisher_gid())),
+    )
+  }
+
+  /// Whether the goal, cancel and result services' response writers have each matched a
+  /// reader of the participant of `client` (a request writer): a response sent before then
+  /// is lost (see `Server::response_reader_matched`). (polar-cell patch)
+  pub fn goal_client_matched(&self, client: crate::gid::Gid) -> bool
+  where
+    G: 'static,
+  {
+    self.my_goal_server.response_reader_matched(client)
+  }
+
+  pub fn cancel_client_matched(&self, client: crate::gid::Gid) -> bool {
+    self.my_cancel_server.response_reader_matched(client)
+  }
+
+  pub fn result_client_matched(&self, client: crate::gid::Gid) -> bool
+  where
+    R: 'static,
+  {
+    self.my_result_server.response_reader_matched(client)
+  }
+
   pub fn send_feedback(&self, goal_id: GoalId, feedback: F) -> WriteResult<(), FeedbackMessage<F>> {
     self
       .my_feedback_publisher

@@ -131,6 +131,23 @@ where
     } // match
   }
 
+  /// Like [`Server::receive_request`], with the request's [`MessageInfo`] (see
+  /// [`Server::async_receive_request_with_info`]). (polar-cell patch)
+  pub fn receive_request_with_info(&self) -> ReadResult<Option<(RmwRequestId, Req, MessageInfo)>> {
+    self.request_receiver.drain_read_notifications();
+    let dcc_rw: Option<no_key::DeserializedCacheChange<RequestWrapper<Req>>> =
+      self.request_receiver.try_take_one()?;
+    match dcc_rw {
+      None => Ok(None),
+      Some(dcc) => {
+        let mi = MessageInfo::from(&dcc);
+        let req_wrapper = dcc.into_value();
+        let (ri, req) = req_wrapper.unwrap(self.service_mapping, &mi)?;
+        Ok(Some((ri, req, mi)))
+      }
+    }
+  }
+
   /// Like [`Server::async_receive_request`], with the request's [`MessageInfo`]: its
   /// `publisher_gid` is the client's request writer, for
   /// [`Server::response_reader_matched`]. (polar-cell patch)

@@ -114,6 +114,9 @@ pub struct Machine<const Q: usize, const S: usize> {
     /// a compact one is told relative to it.
     screw_reference: Option<ScrewReference>,
     positions: [i32; MAX_AXES],
+    /// The tick of the last step edge: a pin takes one edge per tick, so a second pulse due
+    /// in the same tick is a fault, never an edge lost downstream.
+    last_edge_clock: Option<u64>,
     done_tag: u32,
     screw: Screw<S>,
     fault: FaultCode,
@@ -139,6 +142,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             schedule_tag: 0,
             screw_reference: None,
             positions: config.initial_steps,
+            last_edge_clock: None,
             done_tag: 0,
             screw: Screw::new(),
             fault: FaultCode::None,
@@ -545,6 +549,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 }
             };
             let negative_mask = playing.queued.segment.negative_mask;
+            self.last_edge_clock = Some(clock);
             sink(step(&mut self.positions, negative_mask, pulse.axes, clock));
         }
         self.plan_q32 += ((clock - self.clock) as u128) << 32;
@@ -693,6 +698,10 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             let start = playing.start_q32();
             match playing.train.next_time_q32() {
                 Some(t) if self.plan_q32 + HALF > start + t as u128 => {
+                    if self.last_edge_clock == Some(self.clock) {
+                        let tag = playing.queued.tag;
+                        return self.latch(FaultCode::StepFault, tag);
+                    }
                     let pulse = match playing.train.next_pulse() {
                         Ok(Some(pulse)) => pulse,
                         Ok(None) => unreachable!("next_time_q32 said a pulse remains"),
@@ -702,6 +711,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                         }
                     };
                     let negative_mask = playing.queued.segment.negative_mask;
+                    self.last_edge_clock = Some(self.clock);
                     sink(step(
                         &mut self.positions,
                         negative_mask,

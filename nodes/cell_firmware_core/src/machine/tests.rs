@@ -65,6 +65,42 @@ fn a_cruise_steps_on_its_exact_ticks_and_counts_positions() {
     assert_eq!(m.fault(), FaultCode::None);
 }
 
+/// A pin takes one edge per tick. A segment whose acceleration brings its period under a tick
+/// (the rules check only the first period) would put two pulses in one tick, and the firmware
+/// would lose the second edge while counting it in the positions: it faults instead, with
+/// every edge before it out and counted.
+#[test]
+fn two_pulses_in_one_tick_are_a_step_fault_not_a_lost_edge() {
+    let mut m = machine();
+    let segment = Segment {
+        step_counts: [40, 0, 0],
+        negative_mask: 0,
+        dominant_axis: 0,
+        accelerate_steps: 40,
+        cruise_steps: 0,
+        decelerate_steps: 0,
+        first_period_q32: 2 << 32,
+        first_ramp_q62: 1 << 61, // y = 1/2: under a tick from the 5th period on
+    };
+    segment.check().unwrap();
+    queue(
+        &mut m,
+        QueuedSegment {
+            start_clock: 100,
+            duration_ticks: 40,
+            tag: 9,
+            flags: SEGMENT_ENDS_AT_REST,
+            segment,
+        },
+    );
+    let edges = run(&mut m, 1000);
+    assert_eq!(m.fault(), FaultCode::StepFault);
+    let ticks: Vec<u64> = edges.iter().map(|e| e.clock).collect();
+    assert!(ticks.windows(2).all(|w| w[0] < w[1]), "{ticks:?}");
+    assert!(edges.len() >= 3 && edges.len() < 40, "{ticks:?}");
+    assert_eq!(m.positions(), [edges.len() as i32, 0, 0]);
+}
+
 #[test]
 fn generating_in_any_chunks_gives_the_same_edges() {
     let mut whole = machine();

@@ -109,8 +109,8 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
         }
     }
 
-    /// Act on every message of a payload in order. One that does not decode is counted, and
-    /// what follows it is lost with it (its length is unknown).
+    /// Act on every message of a payload in order. One that does not decode is counted and
+    /// faults the machine, and what follows it is lost with it (its length is unknown).
     fn handle_payload(&mut self, payload: &[u8], now: u64) {
         for message in host_messages(payload) {
             self.handle(message, now);
@@ -124,6 +124,7 @@ impl<const W: usize, const Q: usize, const S: usize> Endpoint<W, Q, S> {
             Ok(m) => self.machine.handle(&m, now),
             Err(_) => {
                 self.bad_messages += 1;
+                self.machine.bad_message();
                 None
             }
         };

@@ -355,6 +355,13 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         self.latch(FaultCode::EmergencyStop, 0);
     }
 
+    /// A host message that does not decode, in a frame that passed its checks: a host that
+    /// speaks another protocol, or a bug. What it was (a segment, a screw command) is lost,
+    /// and the segments after a lost NEXT_* would continue from the wrong one: stop.
+    pub fn bad_message(&mut self) {
+        self.latch(FaultCode::BadSegment, 0);
+    }
+
     /// Take back edges that were generated but never reached the pins: an output stage that
     /// generates ahead of its pins (the RP2040's, by its lead) drops what it still held when
     /// a fault stopped it, and the positions must say where the motors are, not where they

@@ -219,6 +219,32 @@ fn a_session_nonce_that_looks_like_an_emergency_stop_is_not_one() {
     assert_eq!(edges.len(), 100, "the segment played");
 }
 
+/// A message the MCU cannot decode in a frame that passed its checks (a host speaking another
+/// protocol, or a bug) may have been a segment: the MCU stops rather than play on without it.
+#[test]
+fn an_undecodable_message_is_a_fault() {
+    let mut host = Host::new();
+    let mut mcu = mcu();
+    let mut edges = Vec::new();
+    let mut never = || false;
+    let mut now = 0;
+    for _ in 0..5 {
+        exchange(&mut host, &mut mcu, now, &mut never, &mut edges);
+        now += 100;
+    }
+    assert_eq!(mcu.machine().fault(), FaultCode::None);
+    let mut out = [0; MAX_WIRE_FRAME];
+    let len = cell_protocol::encode_frame(
+        &cell_protocol::FrameHeader::default(),
+        &[0x7E], // no such kind
+        &mut out,
+    )
+    .unwrap();
+    mcu.receive(&out[..len], now);
+    assert_eq!(mcu.machine().fault(), FaultCode::BadSegment);
+    assert_eq!(mcu.bad_messages, 1);
+}
+
 #[test]
 fn an_emergency_stop_acts_even_behind_a_lost_frame() {
     let mut host = Host::new();

@@ -169,7 +169,7 @@ pub struct McuState {
     pub fault: FaultCode,
 }
 
-/// Link and timing counters since the last reset.
+/// Link and timing counters since power-up (RESET keeps them).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub struct McuCounters {
     pub frames_received: u32,

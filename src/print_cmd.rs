@@ -438,7 +438,22 @@ pub async fn run_job(
     if options.run_preflight && file != "-" {
         let (streamer, planner) = preflight_params(ros_args, start_joints)?;
         let started = std::time::Instant::now();
-        let report = preflight(file, &streamer, &planner)?;
+        // Off the runtime's threads: `serve` answers its clients meanwhile (a million moves
+        // take seconds).
+        let checked = file.to_string();
+        let report = tokio::task::spawn_blocking(move || preflight(&checked, &streamer, &planner))
+            .await
+            .context("the pre-flight")??;
+        if *io.interrupts.borrow() > 0 {
+            // Cancelled while checking: nothing has started, nothing to stop.
+            return Ok(JobReport {
+                ending: Ending::Interrupted {
+                    emergency: false,
+                    how: None,
+                },
+                summary: None,
+            });
+        }
         eprintln!(
             "{file}: pre-flight passed: {}",
             describe(&report, started.elapsed())

@@ -266,3 +266,62 @@ def test_bag_play_skips_a_type_it_does_not_know_and_names_what_is_wrong(polar_ce
     broken = play("--topics", "/note")
     assert broken.returncode != 0 and "panicked" not in broken.stderr, broken.stderr
     assert str(bag) in broken.stderr, broken.stderr
+
+
+def test_a_best_effort_topic_is_recorded_with_the_qos_its_publisher_offers(tmp_path):
+    """A topic the suite does not define, published best effort (as sensor drivers do): the
+    recorder takes the QoS its publisher offers, as rosbag2 does. Its reader was reliable,
+    which matches no best-effort writer: the bag held none of it, and said nothing."""
+    import os
+    import signal
+    import subprocess
+    import yaml
+    from dataclasses import dataclass
+    import cyclonedds.idl.annotations as annotate
+    from cyclonedds.core import Policy, Qos
+    from cyclonedds.domain import DomainParticipant
+    from cyclonedds.idl import IdlStruct
+    from cyclonedds.pub import DataWriter
+    from cyclonedds.topic import Topic
+    from conftest import BIN_DIR
+
+    @dataclass
+    @annotate.final
+    class String(IdlStruct, typename="std_msgs::msg::dds_::String_"):
+        data: str
+
+    domain = 91
+    participant = DomainParticipant(domain)
+    best_effort = Qos(Policy.Reliability.BestEffort, Policy.Durability.Volatile,
+                      Policy.History.KeepLast(10),
+                      Policy.DataRepresentation(use_cdrv0_representation=True))
+    writer = DataWriter(participant, Topic(participant, "rt/chatter", String), qos=best_effort)
+    out = tmp_path / "chatter"
+    recorder = subprocess.Popen(
+        [str(BIN_DIR / "bag_recorder"), "--ros-args", "-p", f"output:={out}",
+         "-p", "bag_directory:=true", "-p", "topics:=[/chatter:std_msgs/msg/String]",
+         "-p", "acknowledge_moves:=false", "-p", "qos_wait_s:=5.0"],
+        env=dict(os.environ, ROS_DOMAIN_ID=str(domain)),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 15
+        while not writer.get_matched_subscriptions():
+            assert time.monotonic() < deadline, "the recorder's reader never matched"
+            time.sleep(0.05)
+        for k in range(100):
+            writer.write(String(f"hello {k}"))
+            time.sleep(0.01)
+        time.sleep(1.0)
+    finally:
+        recorder.send_signal(signal.SIGINT)
+        _, stderr = recorder.communicate(timeout=30)
+    with open(out / "chatter_0.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        texts = [m.data for _, _, _, m in reader.iter_decoded_messages(topics=["/chatter"])]
+    # Best effort on loopback: all of it here, but not promised.
+    assert len(texts) >= 90 and texts[0] == "hello 0", (len(texts), stderr)
+    info = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    [chatter] = [t["topic_metadata"] for t in info["topics_with_message_count"]
+                 if t["topic_metadata"]["name"] == "/chatter"]
+    [offered] = yaml.safe_load(chatter["offered_qos_profiles"])
+    assert (offered["reliability"], offered["durability"]) == (2, 2), offered

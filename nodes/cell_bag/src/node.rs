@@ -228,6 +228,12 @@ pub fn param_specs() -> Vec<ParamSpec> {
         )
         .range(16.0, 1e7),
         ParamSpec::new(
+            "qos_wait_s",
+            ParamValue::Double(1.0),
+            "for a topic the suite does not define: how long to wait at start for its publishers, whose QoS the reader takes (best effort unless all are reliable, transient local only if all are, as rosbag2 does)",
+        )
+        .range(0.0, 60.0),
+        ParamSpec::new(
             "grant_credit",
             ParamValue::Bool(false),
             "publish /cell/plan_credit from what is recorded of the plan (/polar/trajectory, /polar/steps): with no machine (a dry run), producers plan no further ahead of the bag than credit_horizon_s",
@@ -311,6 +317,69 @@ fn qos_for(topic: &str, reader_depth: usize) -> (QosProfile, QosRecord) {
         return (transient_local_qos(offered.depth.max(reader_depth)), record);
     }
     (reliable_qos(reader_depth), record)
+}
+
+/// A topic the suite does not define: the reader takes what its writers offer, as rosbag2
+/// does — reliable only if every writer is (a reliable reader matches no best-effort writer,
+/// and records nothing of it), transient local only if every writer is. It waits up to
+/// `wait` for a writer to be discovered; with none, ROS's default (reliable, volatile), said
+/// in the log. The record keeps ROS's default depth: discovery does not tell a writer's.
+fn offered_qos(
+    node: &CellNode,
+    topic: &str,
+    reader_depth: usize,
+    wait: Duration,
+) -> anyhow::Result<(QosProfile, QosRecord)> {
+    let deadline = std::time::Instant::now() + wait;
+    let offered = loop {
+        let offered = node.offered(topic)?;
+        if !offered.is_empty() || std::time::Instant::now() >= deadline {
+            break offered;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    if offered.is_empty() {
+        cell_runtime::cell_log!(
+            node,
+            LogLevel::Warn,
+            "{topic}: no publisher seen within {} s: recorded reliable and volatile (ROS's default), so a best-effort publisher that comes later is not recorded",
+            wait.as_secs_f64()
+        );
+        return Ok(qos_for(topic, reader_depth));
+    }
+    let reliable = offered.iter().all(|o| o.reliable);
+    let transient_local = offered.iter().all(|o| o.transient_local);
+    let qos = match (reliable, transient_local) {
+        (false, _) => cell_runtime::best_effort_qos(reader_depth),
+        (true, true) => transient_local_qos(reader_depth),
+        (true, false) => reliable_qos(reader_depth),
+    };
+    let record = QosRecord {
+        reliability: if reliable {
+            crate::Reliability::Reliable
+        } else {
+            crate::Reliability::BestEffort
+        },
+        durability: if transient_local && reliable {
+            crate::Durability::TransientLocal
+        } else {
+            crate::Durability::Volatile
+        },
+        depth: 10,
+    };
+    cell_runtime::cell_log!(
+        node,
+        LogLevel::Info,
+        "{topic}: {} publisher(s) offer {}: recorded {}",
+        offered.len(),
+        if reliable { "reliable" } else { "best effort" },
+        match (reliable, transient_local) {
+            (false, _) => "best effort",
+            (true, true) => "reliable, transient local",
+            (true, false) => "reliable",
+        }
+    );
+    Ok((qos, record))
 }
 
 fn parse_topic(entry: &str) -> anyhow::Result<(String, String)> {
@@ -643,6 +712,7 @@ impl Recorder {
         bag.flush().map_err(|e| cannot_write(&bag_path, e.into()))?;
         let acknowledge_moves = params.bool("acknowledge_moves");
         let reader_depth = params.i64("reader_depth") as usize;
+        let qos_wait = Duration::from_secs_f64(params.f64("qos_wait_s"));
         let (tx, rx) = mpsc::channel::<Item>(WRITER_QUEUE);
         let (stop, stop_rx) = watch::channel(false);
         let (finished_tx, stream_finished) = watch::channel(false);
@@ -658,7 +728,11 @@ impl Recorder {
         for (topic, type_name) in &topics {
             let msg_type = polar_cell_msgs::find(type_name)
                 .ok_or_else(|| anyhow!("topic {topic}: unknown message type {type_name}"))?;
-            let (qos, record) = qos_for(topic, reader_depth);
+            let (qos, record) = if cell_runtime::topics::suite_topic(topic).is_some() {
+                qos_for(topic, reader_depth)
+            } else {
+                offered_qos(&node, topic, reader_depth, qos_wait)?
+            };
             let channel = bag
                 .add_topic(topic, msg_type, record)
                 .map_err(|e| cannot_write(&bag_path, e.into()))?;

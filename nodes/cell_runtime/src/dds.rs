@@ -98,6 +98,23 @@ pub fn reliable_qos(depth: usize) -> QosProfile {
         .history(History::KeepLast { depth })
 }
 
+/// Best effort, volatile, keep-last `depth` (a reader for best-effort writers: a reliable
+/// reader matches none of them).
+pub fn best_effort_qos(depth: usize) -> QosProfile {
+    use ros2_client::qos::{Durability, History, Reliability};
+    QosProfile::publisher_default()
+        .reliability(Reliability::BestEffort)
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth })
+}
+
+/// What one discovered writer of a topic offers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Offered {
+    pub reliable: bool,
+    pub transient_local: bool,
+}
+
 /// Reliable, transient-local, keep-last `depth` (latched, e.g. `/robot_description`).
 pub fn transient_local_qos(depth: usize) -> QosProfile {
     use ros2_client::qos::Durability;
@@ -277,6 +294,31 @@ impl CellNode {
     /// Keep `endpoint` (a publisher, say) alive as long as the node.
     pub fn keep<T: Send + 'static>(&mut self, endpoint: T) {
         self.kept.push(Box::new(endpoint));
+    }
+
+    /// What the writers discovered so far on `topic` (resolved as this node's topics are)
+    /// offer, one entry per writer. A writer that does not say offers reliable and volatile,
+    /// DDS's defaults for a writer.
+    pub fn offered(&self, topic: &str) -> Result<Vec<Offered>, RuntimeError> {
+        use rustdds::policy::{Durability, Reliability};
+        let dds_name = format!("rt{}", self.names.resolve(topic)?);
+        Ok(self
+            ._context
+            .domain_participant()
+            .discovered_writers()
+            .into_iter()
+            .filter(|w| w.publication_topic_data.topic_name == dds_name)
+            .map(|w| Offered {
+                reliable: !matches!(
+                    w.publication_topic_data.reliability,
+                    Some(Reliability::BestEffort)
+                ),
+                transient_local: matches!(
+                    w.publication_topic_data.durability,
+                    Some(Durability::TransientLocal)
+                ),
+            })
+            .collect())
     }
 
     /// Fully qualified node name, e.g. `/gcode_streamer`.

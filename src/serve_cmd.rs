@@ -255,16 +255,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 .is_some_and(|r| r.goal_id == request.goal_id)
                 || finished.iter().any(|f| f.info.goal_id == request.goal_id);
             if running.is_some() || signals_seen > 0 || known {
-                answers.push(
-                    client,
-                    Answer::Goal(
-                        request_id,
-                        SendGoalResponse {
-                            accepted: false,
-                            stamp,
-                        },
-                    ),
-                );
+                answers.push(client, goal_answer(request_id, false, stamp));
                 continue;
             }
             // The next number no bag in the directory has yet: a restarted server does not
@@ -302,16 +293,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                     finished.remove(0);
                 }
                 publish_statuses(&server, &running, &finished);
-                answers.push(
-                    client,
-                    Answer::Goal(
-                        request_id,
-                        SendGoalResponse {
-                            accepted: true,
-                            stamp,
-                        },
-                    ),
-                );
+                answers.push(client, goal_answer(request_id, true, stamp));
                 continue;
             }
             let goal = request.goal.0;
@@ -367,16 +349,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 job,
             });
             publish_statuses(&server, &running, &finished);
-            answers.push(
-                client,
-                Answer::Goal(
-                    request_id,
-                    SendGoalResponse {
-                        accepted: true,
-                        stamp,
-                    },
-                ),
-            );
+            answers.push(client, goal_answer(request_id, true, stamp));
         }
         // Cancel requests, as rcl judges them (the goal by its id, and/or every goal accepted
         // at or before the stamp; both zero: every goal).
@@ -473,6 +446,15 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
 /// Finished goals kept at most, whatever the result timeout (a client sending goals that
 /// fail at once must not grow the server without bound).
 const MAX_RESULTS_KEPT: usize = 64;
+
+/// The answer to a goal request.
+fn goal_answer(
+    request_id: RmwRequestId,
+    accepted: bool,
+    stamp: ros2_client::builtin_interfaces::Time,
+) -> Answer {
+    Answer::Goal(request_id, SendGoalResponse { accepted, stamp })
+}
 
 /// An action service's answer to one request.
 enum Answer {

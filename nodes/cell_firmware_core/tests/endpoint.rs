@@ -86,6 +86,17 @@ fn exchange_generating_ahead(
     }
 }
 
+/// Five exchanges 100 ticks apart from clock 0, so that the session is up: the clock after.
+fn start_session(host: &mut Host, mcu: &mut Mcu, edges: &mut Vec<StepEdge>) -> u64 {
+    let mut never = || false;
+    let mut now = 0;
+    for _ in 0..5 {
+        exchange(host, mcu, now, &mut never, edges);
+        now += 100;
+    }
+    now
+}
+
 fn cruise(start: u64, steps: u32, period: f64, flags: u8, tag: u32) -> QueuedSegment {
     QueuedSegment {
         start_clock: start,
@@ -199,11 +210,7 @@ fn a_session_nonce_that_looks_like_an_emergency_stop_is_not_one() {
     let mut mcu = mcu();
     let mut edges = Vec::new();
     let mut never = || false;
-    let mut now = 0;
-    for _ in 0..5 {
-        exchange(&mut host, &mut mcu, now, &mut never, &mut edges);
-        now += 100;
-    }
+    let mut now = start_session(&mut host, &mut mcu, &mut edges);
     host.send(HostMessage::QueueSegment(cruise(
         1_000,
         100,
@@ -226,12 +233,7 @@ fn an_undecodable_message_is_a_fault() {
     let mut host = Host::new();
     let mut mcu = mcu();
     let mut edges = Vec::new();
-    let mut never = || false;
-    let mut now = 0;
-    for _ in 0..5 {
-        exchange(&mut host, &mut mcu, now, &mut never, &mut edges);
-        now += 100;
-    }
+    let now = start_session(&mut host, &mut mcu, &mut edges);
     assert_eq!(mcu.machine().fault(), FaultCode::None);
     let mut out = [0; MAX_WIRE_FRAME];
     let len = cell_protocol::encode_frame(
@@ -251,11 +253,7 @@ fn an_emergency_stop_acts_even_behind_a_lost_frame() {
     let mut mcu = mcu();
     let mut edges = Vec::new();
     let mut never = || false;
-    let mut now = 0;
-    for _ in 0..5 {
-        exchange(&mut host, &mut mcu, now, &mut never, &mut edges);
-        now += 100;
-    }
+    let mut now = start_session(&mut host, &mut mcu, &mut edges);
     host.send(HostMessage::QueueSegment(cruise(1_000, 1000, 100.0, 0, 1)));
     exchange(&mut host, &mut mcu, now, &mut never, &mut edges);
     for _ in 0..100 {

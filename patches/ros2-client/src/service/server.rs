@@ -71,19 +71,8 @@ where
   /// Receive a request from Client.
   /// Returns `Ok(None)` if no new requests have arrived.
   pub fn receive_request(&self) -> ReadResult<Option<(RmwRequestId, Req)>> {
-    self.request_receiver.drain_read_notifications();
-    let dcc_rw: Option<no_key::DeserializedCacheChange<RequestWrapper<Req>>> =
-      self.request_receiver.try_take_one()?;
-
-    match dcc_rw {
-      None => Ok(None),
-      Some(dcc) => {
-        let mi = MessageInfo::from(&dcc);
-        let req_wrapper = dcc.into_value();
-        let (ri, req) = req_wrapper.unwrap(self.service_mapping, &mi)?;
-        Ok(Some((ri, req)))
-      }
-    } // match
+    // (polar-cell patch: one body for both forms)
+    Ok(self.receive_request_with_info()?.map(|(ri, req, _)| (ri, req)))
   }
 
   /// Send response to request by Client.
@@ -114,21 +103,10 @@ where
   /// The request_id must be sent back with the response to identify which
   /// request and response belong together.
   pub async fn async_receive_request(&self) -> ReadResult<(RmwRequestId, Req)> {
-    let dcc_stream = self.request_receiver.as_async_stream();
-    pin_mut!(dcc_stream);
-
-    match dcc_stream.next().await {
-      Some(Err(e)) => Err(e.into()),
-      Some(Ok(dcc)) => {
-        let mi = MessageInfo::from(&dcc);
-        let req_wrapper = dcc.into_value();
-        let (ri, req) = req_wrapper.unwrap(self.service_mapping, &mi)?;
-        debug!("async_receive_request: {ri:?}");
-        Ok((ri, req))
-      }
-      // This should never occur, because topic do not "end".
-      None => read_error_internal!("SimpleDataReader value stream unexpectedly ended!"),
-    } // match
+    // (polar-cell patch: one body for both forms)
+    let (ri, req, _) = self.async_receive_request_with_info().await?;
+    debug!("async_receive_request: {ri:?}");
+    Ok((ri, req))
   }
 
   /// Like [`Server::receive_request`], with the request's [`MessageInfo`] (see

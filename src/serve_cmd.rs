@@ -10,8 +10,9 @@
 //! cell would print again with nobody having reset it). While no job runs, the server answers
 //! the `/cell` services itself: `/cell/estop` latches that stop, `/cell/reset` clears it, and
 //! the others say that no print runs (a `ros2 service call` no longer waits for ever). While
-//! a job runs its machine answers them (from its pre-flight until its machine node is up,
-//! nobody does).
+//! a job's machine node is up it answers them; before (pre-flight, start-up) and after it
+//! (the job closing its bag) the server does, and an e-stop then stops the job before it
+//! moves and latches all the same.
 //!
 //! One goal at a time: a goal sent while another runs is rejected. The endpoints are
 //! ros2-client's synchronous `ActionServer` (its async wrapper needs `Copy` goals and has the
@@ -69,6 +70,8 @@ struct Running {
     cancelling: bool,
     /// Cancelled because the server is shutting down.
     shutdown: bool,
+    /// `/cell/estop` came while the job's machine was not up (pre-flight, start-up).
+    estopped_before_motion: bool,
     job: Job,
 }
 
@@ -171,8 +174,33 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
         let ended = tokio::select! {
             _ = poll.tick() => None,
             (index, request) = cell_machine::node::next_request(&idle) => {
-                if let (None, Some(request)) = (&running, request) {
-                    let (success, message) = idle_reply(idle[index].1, &mut latched);
+                let command = idle[index].1;
+                let answer = match (running.as_mut(), request) {
+                    (None, Some(request)) => Some((request, idle_reply(command, &mut latched))),
+                    (Some(r), Some(request)) => {
+                        // The job's machine answers while its node is up. Before (pre-flight,
+                        // start-up) and after (the job closing its bag) these do: an e-stop
+                        // then stops the job before it moves, and holds the cell either way.
+                        let up = r.status.has_changed().is_ok() && r.status.borrow().state.is_some();
+                        if command == Command::EmergencyStop {
+                            latched.get_or_insert_with(|| "emergency stop (/cell/estop) during a print".into());
+                        }
+                        (!up).then(|| {
+                            let reply = match command {
+                                Command::EmergencyStop if r.status.borrow().state.is_none() => {
+                                    r.estopped_before_motion = true;
+                                    let _ = r.interrupts.send(2);
+                                    (true, "emergency stop: the print stops before it moves; new prints are refused until /cell/reset".to_string())
+                                }
+                                Command::EmergencyStop => (true, "emergency stop: the print has ended; new prints are refused until /cell/reset".to_string()),
+                                _ => (false, "the print is starting or ending: its machine is not up".to_string()),
+                            };
+                            (request, reply)
+                        })
+                    }
+                    (_, None) => None,
+                };
+                if let Some((request, (success, message))) = answer {
                     eprintln!("serve: {}: {message}", cell_machine::node::SERVICES[index].0);
                     replies.push(index, request, Wire(TriggerResponse { success, message }));
                 }
@@ -214,7 +242,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 let [bed, arm, z, _] = status.positions;
                 machine_at = Some([bed, arm, z]);
             }
-            let (goal_status, mut result) = outcome(report, &status, bag);
+            let (mut goal_status, mut result) = outcome(report, &status, bag);
             if result.ended == "emergency_stop"
                 || status.state == Some(cell_executor::PlayerState::Stopped)
             {
@@ -231,6 +259,14 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
             }
             if r.shutdown {
                 result.message = format!("the server shut down: {}", result.message);
+            }
+            // Stopped from outside the action, as a `/cell/estop` to the machine would be.
+            if r.estopped_before_motion {
+                result.ended = "emergency_stop".into();
+                if status.state.is_none() {
+                    result.message = "emergency stop (/cell/estop) before the print moved".into();
+                }
+                goal_status = GoalStatusEnum::Aborted;
             }
             finished.push(Finished {
                 info: r.accepted.clone(),
@@ -346,6 +382,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 planned,
                 cancelling: false,
                 shutdown: false,
+                estopped_before_motion: false,
                 job,
             });
             publish_statuses(&server, &running, &finished);

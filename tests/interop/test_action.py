@@ -429,7 +429,10 @@ def test_an_emergency_stop_outlives_its_goal_until_a_reset(tmp_path):
         # `ros2 service call` makes its client (their answers wait until the server has
         # seen the client's response reader).
         for _ in range(5):
-            reply = trigger(cell("pause"))
+            # Its own participant, as a new process has (the server waits for that
+            # participant's response reader).
+            fresh = DomainParticipant(DOMAIN + 3)
+            reply = trigger(ServiceClient(fresh, "/cell/pause", TriggerRequest, TriggerResponse))
             assert (reply.success, reply.message) == (False, "no print runs"), reply
         assert trigger(cell("reset")).message == "not stopped"
 
@@ -439,7 +442,8 @@ def test_an_emergency_stop_outlives_its_goal_until_a_reset(tmp_path):
         # Goals from new clients, as `ros2 action send_goal` sends them: each is answered
         # (rejected: one goal at a time).
         for _ in range(5):
-            fresh = ServiceClient(p, "/print/_action/send_goal", SendGoalRequest, SendGoalResponse)
+            fresh = ServiceClient(DomainParticipant(DOMAIN + 3), "/print/_action/send_goal",
+                                  SendGoalRequest, SendGoalResponse)
             goal_id = UUID([random.randrange(256) for _ in range(16)])
             reply = fresh.call(lambda g, s: SendGoalRequest(g, s, goal_id, PrintGoal(str(long_file), 1.0)))
             assert not reply.accepted
@@ -469,6 +473,24 @@ def test_an_emergency_stop_outlives_its_goal_until_a_reset(tmp_path):
         assert trigger(cell("estop")).success
         result = result_of(goal(long_file))
         assert result.status == ABORTED and "while no print ran" in result.result.message, result
+        assert trigger(cell("reset")).success
+
+        # An e-stop during a goal's pre-flight (800,000 moves: seconds of checking,
+        # no machine node yet) is answered by the server, stops the job before it moves,
+        # and latches.
+        big = tmp_path / "big.gcode"
+        with open(big, "w") as f:
+            for i in range(800_000):
+                a = i * 0.01
+                f.write(f"G1 X{30 * math.cos(a):.3f} Y{30 * math.sin(a):.3f} F3000\n")
+        checking = goal(big)
+        reply = trigger(cell("estop"))
+        assert reply.success and "stops before it moves" in reply.message, reply
+        result = result_of(checking, 60)
+        assert (result.status, result.result.ended) == (ABORTED, "emergency_stop"), result
+        assert result.result.machine_time_s == 0.0, result.result
+        result = result_of(goal(long_file))
+        assert result.status == ABORTED and "/cell/reset" in result.result.message, result
         assert trigger(cell("reset")).success
     finally:
         server.send_signal(signal.SIGINT)

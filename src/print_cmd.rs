@@ -414,7 +414,9 @@ pub async fn run_job(
     if let (Some(device), Some(speed)) = (options.device.as_deref(), options.execution) {
         if speed != 1.0 && is_serial_port(device) {
             bail!(
-                "speed {speed} with the serial device {device}: a microcontroller's clock runs                  at machine pace, speed 1 (other speeds are for the virtual executor,                  `--device emulator` and emulated MCUs behind a pseudo-terminal or a unix: socket)"
+                "speed {speed} with the serial device {device}: a microcontroller's clock runs \
+                 at machine pace, speed 1 (other speeds are for the virtual executor, \
+                 `--device emulator` and emulated MCUs behind a pseudo-terminal or a unix: socket)"
             );
         }
     }
@@ -729,9 +731,13 @@ pub async fn run_job(
     // and the recorder's acknowledgements that pace the stream are gone with it).
     // So too when a node of the pipeline failed while the machine runs: dropping the machine
     // would stop a real MCU at once, mid-move.
+    // (Not a machine whose node is gone — its status is its last — nor one that never ran.)
     let machine_runs_on = || {
+        let alive = status.has_changed().is_ok();
         let s = status.borrow();
-        s.fault.is_none()
+        alive
+            && s.state.is_some()
+            && s.fault.is_none()
             && s.state != Some(cell_executor::PlayerState::Stopped)
             && !s.cancelled
             && !s.done

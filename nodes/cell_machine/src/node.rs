@@ -988,7 +988,11 @@ pub async fn run<M: Machine>(
         // last sample (if the machine had one to give) shows it standing where it stopped.
         if let (Some(f), true) = (&fault, exit_when_done) {
             let since_ns = *fault_at_ns.get_or_insert(machine_now);
-            if state.state == PlayerState::Stopped && next_sample_ns > since_ns + sample_ns {
+            // (Not before the service replies have gone: a caller would wait for ever.)
+            if state.state == PlayerState::Stopped
+                && next_sample_ns > since_ns + sample_ns
+                && replies.is_empty()
+            {
                 cell_runtime::cell_log!(node, LogLevel::Error, "the machine stopped: {f}");
                 anyhow::bail!("the machine stopped: {f}");
             }
@@ -1004,7 +1008,7 @@ pub async fn run<M: Machine>(
         };
         if let (Some(how), true, None, None) = (operator_stop, exit_when_done, &fault, done_at_s) {
             let since_ns = *operator_stop_at_ns.get_or_insert(machine_now);
-            if next_sample_ns > since_ns + sample_ns {
+            if next_sample_ns > since_ns + sample_ns && replies.is_empty() {
                 cell_runtime::cell_log!(node, LogLevel::Warn, "the plan was dropped: {how}");
                 anyhow::bail!("the plan was dropped: {how}");
             }
@@ -1012,7 +1016,10 @@ pub async fn run<M: Machine>(
         // And at the end once the grid has passed it too: the last sample shows the machine
         // at rest where the plan ends (it used to be up to a sample period short of it).
         let done_at_ns = done.then(|| *finished_at_ns.get_or_insert(machine_now));
-        if done_at_ns.is_some_and(|at| next_sample_ns > at + sample_ns) && exit_when_done {
+        if done_at_ns.is_some_and(|at| next_sample_ns > at + sample_ns)
+            && exit_when_done
+            && replies.is_empty()
+        {
             cell_runtime::cell_log!(
                 node,
                 LogLevel::Info,
@@ -1032,6 +1039,14 @@ pub async fn run<M: Machine>(
                     DiagnosticStatus::WARN,
                     "underrun: the plan ran short, holding at rest on the path".into(),
                 ),
+                (None, _, Some(HoldReason::Pause))
+                    if held_for_screw && !control.operator_paused =>
+                {
+                    (
+                        DiagnosticStatus::WARN,
+                        "holding on the path until the screw commands continue".into(),
+                    )
+                }
                 (None, _, Some(HoldReason::Pause)) => (DiagnosticStatus::OK, "paused".into()),
                 (None, _, Some(HoldReason::Cancel)) => (DiagnosticStatus::OK, "cancelling".into()),
                 (None, PlayerState::Idle, None) => (DiagnosticStatus::OK, "idle".into()),

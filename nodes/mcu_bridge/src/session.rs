@@ -783,12 +783,19 @@ impl McuSession {
     pub fn poll_transmit(&mut self, now_us: u64, out: &mut [u8; MAX_WIRE_FRAME]) -> Option<usize> {
         if self.emergency {
             // Any latched fault has stopped the outputs; an MCU already faulted keeps its
-            // first fault, so waiting for EMERGENCY_STOP itself would repeat it for ever.
-            let stopped = self.state().is_some_and(|s| s.fault != FaultCode::None);
+            // first fault, so waiting for EMERGENCY_STOP itself would repeat it for ever. (A
+            // report from after the stop went out: the one before may be a fault a reset
+            // has just cleared.)
+            let stopped = self.state.as_ref().is_some_and(|(s, received_us)| {
+                s.fault != FaultCode::None
+                    && self
+                        .emergency_sent_us
+                        .is_some_and(|sent| *received_us >= sent)
+            });
             let due = self.emergency_sent_us.is_none_or(|at| {
                 now_us.saturating_sub(at) >= (self.options.retransmit_timeout_s * 1e6) as u64
             });
-            if stopped && self.emergency_sent_us.is_some() {
+            if stopped {
                 self.emergency = false;
             } else if due {
                 // Unsequenced: it acts even behind a lost frame; repeated until reported.

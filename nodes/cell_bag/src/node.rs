@@ -322,18 +322,27 @@ fn qos_for(topic: &str, reader_depth: usize) -> (QosProfile, QosRecord) {
 /// A topic the suite does not define: the reader takes what its writers offer, as rosbag2
 /// does — reliable only if every writer is (a reliable reader matches no best-effort writer,
 /// and records nothing of it), transient local only if every writer is. It waits up to
-/// `wait` for a writer to be discovered; with none, ROS's default (reliable, volatile), said
-/// in the log. The record keeps ROS's default depth: discovery does not tell a writer's.
+/// `wait` for a writer to be discovered, then 0.2 s more for others; with none, ROS's
+/// default (reliable, volatile), said in the log. (A blocking wait: only a recorder of
+/// topics outside the suite makes it, at its start.) The record keeps ROS's default depth: discovery does not tell a writer's.
 fn offered_qos(
     node: &CellNode,
     topic: &str,
     reader_depth: usize,
     wait: Duration,
 ) -> anyhow::Result<(QosProfile, QosRecord)> {
-    let deadline = std::time::Instant::now() + wait;
+    let mut deadline = std::time::Instant::now() + wait;
+    let mut settling = false;
     let offered = loop {
         let offered = node.offered(topic)?;
-        if !offered.is_empty() || std::time::Instant::now() >= deadline {
+        let now = std::time::Instant::now();
+        if !offered.is_empty() && !settling {
+            // Its other publishers are announced about when the first is: a moment more,
+            // so that a best-effort one seen a little later still counts.
+            settling = true;
+            deadline = deadline.min(now + Duration::from_millis(200));
+        }
+        if now >= deadline {
             break offered;
         }
         std::thread::sleep(Duration::from_millis(20));

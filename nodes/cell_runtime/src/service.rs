@@ -38,22 +38,54 @@ pub async fn receive<Q: Message + 'static, R: Message + 'static>(
     }
 }
 
-struct Pending<R> {
-    server: usize,
-    request: Request,
-    response: R,
-    give_up_at: Instant,
+/// Answers waiting for their clients' response readers, whatever they are (a service's
+/// replies, an action's goal, cancel and result answers): one waiting rule for all.
+pub struct Waiting<T> {
+    items: Vec<(Gid, T, Instant)>,
+}
+
+impl<T> Default for Waiting<T> {
+    fn default() -> Self {
+        Waiting { items: Vec::new() }
+    }
+}
+
+impl<T> Waiting<T> {
+    /// Hold `item` for the client whose request writer is `client`.
+    pub fn push(&mut self, client: Gid, item: T) {
+        self.items
+            .push((client, item, Instant::now() + REPLY_PATIENCE));
+    }
+
+    /// Hand `send` every item whose client's reader `matched` says is matched (with `true`),
+    /// or that has waited [`REPLY_PATIENCE`] (with `false`: it may be lost); keep the rest.
+    pub fn release(&mut self, matched: impl Fn(Gid, &T) -> bool, mut send: impl FnMut(T, bool)) {
+        let now = Instant::now();
+        for (client, item, give_up_at) in std::mem::take(&mut self.items) {
+            let heard = matched(client, &item);
+            if heard || now >= give_up_at {
+                send(item, heard);
+            } else {
+                self.items.push((client, item, give_up_at));
+            }
+        }
+    }
+
+    /// Whether nothing waits (the caller's loop may sleep longer).
+    pub fn is_empty(&self) -> bool {
+        self.items.is_empty()
+    }
 }
 
 /// Replies waiting for their clients' readers, to servers numbered by the caller.
 pub struct Replies<R> {
-    pending: Vec<Pending<R>>,
+    waiting: Waiting<(usize, RmwRequestId, R)>,
 }
 
 impl<R> Default for Replies<R> {
     fn default() -> Self {
         Replies {
-            pending: Vec::new(),
+            waiting: Waiting::default(),
         }
     }
 }
@@ -61,12 +93,8 @@ impl<R> Default for Replies<R> {
 impl<R: Message + 'static> Replies<R> {
     /// Reply `response` to `request` of server number `server` when its client can hear it.
     pub fn push(&mut self, server: usize, request: Request, response: R) {
-        self.pending.push(Pending {
-            server,
-            request,
-            response,
-            give_up_at: Instant::now() + REPLY_PATIENCE,
-        });
+        self.waiting
+            .push(request.client, (server, request.id, response));
     }
 
     /// Send the replies whose clients' readers are matched, or that waited long enough;
@@ -78,35 +106,29 @@ impl<R: Message + 'static> Replies<R> {
     where
         R: 's,
     {
-        let now = Instant::now();
         let mut problems = Vec::new();
-        let mut waiting = Vec::new();
-        for p in self.pending.drain(..) {
-            let to = server(p.server);
-            let matched = to.response_reader_matched(p.request.client);
-            if !matched && now < p.give_up_at {
-                waiting.push(p);
-                continue;
-            }
-            if !matched {
-                problems.push((
-                    p.server,
-                    format!(
-                        "the client's response reader was not matched after {} s: the reply may be lost",
-                        REPLY_PATIENCE.as_secs_f64()
-                    ),
-                ));
-            }
-            if let Err(e) = to.send_response(p.request.id, p.response) {
-                problems.push((p.server, format!("reply lost: {e:?}")));
-            }
-        }
-        self.pending = waiting;
+        self.waiting.release(
+            |client, (index, _, _)| server(*index).response_reader_matched(client),
+            |(index, id, response), heard| {
+                if !heard {
+                    problems.push((
+                        index,
+                        format!(
+                            "the client's response reader was not matched after {} s: the reply may be lost",
+                            REPLY_PATIENCE.as_secs_f64()
+                        ),
+                    ));
+                }
+                if let Err(e) = server(index).send_response(id, response) {
+                    problems.push((index, format!("reply lost: {e:?}")));
+                }
+            },
+        );
         problems
     }
 
     /// Whether no reply waits (the caller's loop may sleep longer).
     pub fn is_empty(&self) -> bool {
-        self.pending.is_empty()
+        self.waiting.is_empty()
     }
 }

@@ -250,12 +250,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
             }
             if status.state.is_none() {
                 // The machine never ran for this goal: it stands where it stood.
-                result.stop_position = match (&options.device, machine_at) {
-                    (None, Some([bed, arm, z])) => vec![bed, arm, z, 0.0],
-                    (None, None) => vec![0.0; 4],
-                    (Some(device), _) if device == "emulator" => vec![0.0; 4],
-                    (Some(_), _) => vec![], // a real MCU that was not reached: unknown
-                };
+                result.stop_position = standing_position(&options.device, machine_at);
             }
             if r.shutdown {
                 result.message = format!("the server shut down: {}", result.message);
@@ -268,15 +263,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 }
                 goal_status = GoalStatusEnum::Aborted;
             }
-            finished.push(Finished {
-                info: r.accepted.clone(),
-                status: goal_status,
-                result,
-                ended_at: std::time::Instant::now(),
-            });
-            if finished.len() > MAX_RESULTS_KEPT {
-                finished.remove(0);
-            }
+            keep_finished(&mut finished, r.accepted.clone(), goal_status, result);
             publish_statuses(&server, &running, &finished);
         }
         if signals_seen > 0 && running.is_none() && leave_at.is_none() {
@@ -294,6 +281,25 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 answers.push(client, goal_answer(request_id, false, stamp));
                 continue;
             }
+            if let Some(why) = &latched {
+                // Accepted, to say why it ends at once (a rejection carries no reason).
+                let info = GoalInfo {
+                    goal_id: request.goal_id,
+                    stamp,
+                };
+                let result = PrintResult {
+                    ended: "aborted".into(),
+                    message: format!(
+                        "the cell is stopped ({why}): call /cell/reset before a new print"
+                    ),
+                    stop_position: standing_position(&options.device, machine_at),
+                    ..PrintResult::default()
+                };
+                keep_finished(&mut finished, info, GoalStatusEnum::Aborted, result);
+                publish_statuses(&server, &running, &finished);
+                answers.push(client, goal_answer(request_id, true, stamp));
+                continue;
+            }
             // The next number no bag in the directory has yet: a restarted server does not
             // overwrite the last one's bags.
             let bag = loop {
@@ -303,35 +309,6 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                     break bag;
                 }
             };
-            if let Some(why) = &latched {
-                // Accepted, to say why it ends at once (a rejection carries no reason).
-                let info = GoalInfo {
-                    goal_id: request.goal_id,
-                    stamp,
-                };
-                finished.push(Finished {
-                    info,
-                    status: GoalStatusEnum::Aborted,
-                    result: PrintResult {
-                        ended: "aborted".into(),
-                        message: format!(
-                            "the cell is stopped ({why}): call /cell/reset before a new print"
-                        ),
-                        stop_position: match (&options.device, machine_at) {
-                            (None, Some([bed, arm, z])) => vec![bed, arm, z, 0.0],
-                            _ => vec![],
-                        },
-                        ..PrintResult::default()
-                    },
-                    ended_at: std::time::Instant::now(),
-                });
-                if finished.len() > MAX_RESULTS_KEPT {
-                    finished.remove(0);
-                }
-                publish_statuses(&server, &running, &finished);
-                answers.push(client, goal_answer(request_id, true, stamp));
-                continue;
-            }
             let goal = request.goal.0;
             let speed = if goal.speed > 0.0 {
                 goal.speed
@@ -464,7 +441,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
             );
             false
         });
-        answers.send_ready(&server);
+        send_ready(&mut answers, &server);
         // A finished goal is kept (in the status list, its result for get_result) for the
         // result timeout after it ended, as rcl keeps it; then it is unknown. (After the
         // answers above: a request waiting when the goal ended gets its result whatever the
@@ -483,6 +460,36 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
 /// Finished goals kept at most, whatever the result timeout (a client sending goals that
 /// fail at once must not grow the server without bound).
 const MAX_RESULTS_KEPT: usize = 64;
+
+/// Keep a goal that ended (the oldest goes beyond [`MAX_RESULTS_KEPT`]).
+fn keep_finished(
+    finished: &mut Vec<Finished>,
+    info: GoalInfo,
+    status: GoalStatusEnum,
+    result: PrintResult,
+) {
+    finished.push(Finished {
+        info,
+        status,
+        result,
+        ended_at: std::time::Instant::now(),
+    });
+    if finished.len() > MAX_RESULTS_KEPT {
+        finished.remove(0);
+    }
+}
+
+/// Where the machine stands for a goal that ended before its machine ran: where the last job
+/// left the virtual machine (home before any), home for an emulator (started per goal), and
+/// unknown (empty) for a real MCU that was not reached.
+fn standing_position(device: &Option<String>, machine_at: Option<[f64; 3]>) -> Vec<f64> {
+    match (device, machine_at) {
+        (None, Some([bed, arm, z])) => vec![bed, arm, z, 0.0],
+        (None, None) => vec![0.0; 4],
+        (Some(device), _) if device == "emulator" => vec![0.0; 4],
+        (Some(_), _) => vec![],
+    }
+}
 
 /// The answer to a goal request.
 fn goal_answer(
@@ -504,31 +511,18 @@ enum Answer {
 /// reader (at most `cell_runtime::service::REPLY_PATIENCE`): `ros2 action send_goal` sends
 /// its goal as soon as it sees the server, and an answer sent before the server saw the
 /// client's reader was lost (see `cell_runtime::service`).
-#[derive(Default)]
-struct Answers {
-    waiting: Vec<(Gid, Answer, std::time::Instant)>,
-}
+type Answers = cell_runtime::service::Waiting<Answer>;
 
-impl Answers {
-    fn push(&mut self, client: Gid, answer: Answer) {
-        let give_up_at = std::time::Instant::now() + cell_runtime::service::REPLY_PATIENCE;
-        self.waiting.push((client, answer, give_up_at));
-    }
-
-    /// Send what its client can hear now, or has waited long enough.
-    fn send_ready(&mut self, server: &Server) {
-        let now = std::time::Instant::now();
-        for (client, answer, give_up_at) in std::mem::take(&mut self.waiting) {
-            let matched = match answer {
-                Answer::Goal(..) => server.goal_client_matched(client),
-                Answer::Cancel(..) => server.cancel_client_matched(client),
-                Answer::Result(..) => server.result_client_matched(client),
-            };
-            if !matched && now < give_up_at {
-                self.waiting.push((client, answer, give_up_at));
-                continue;
-            }
-            if !matched {
+/// Send the answers whose clients can hear them now, or that have waited long enough.
+fn send_ready(answers: &mut Answers, server: &Server) {
+    answers.release(
+        |client, answer| match answer {
+            Answer::Goal(..) => server.goal_client_matched(client),
+            Answer::Cancel(..) => server.cancel_client_matched(client),
+            Answer::Result(..) => server.result_client_matched(client),
+        },
+        |answer, heard| {
+            if !heard {
                 eprintln!(
                     "serve: an action client's response reader was not seen in {} s: its answer may be lost",
                     cell_runtime::service::REPLY_PATIENCE.as_secs_f64()
@@ -539,8 +533,8 @@ impl Answers {
                 Answer::Cancel(id, response) => server.send_cancel_response(id, response),
                 Answer::Result(id, response) => server.send_result(id, response),
             };
-        }
-    }
+        },
+    );
 }
 
 /// The answer to a `/cell` service while no job runs.

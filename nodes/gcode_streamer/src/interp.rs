@@ -167,6 +167,11 @@ impl Interpreter {
         bytes: &[u8],
         out: &mut LineOutput,
     ) -> Result<(), GcodeError> {
+        // A file saved with a byte-order mark (Windows editors) starts with it.
+        let bytes = match bytes.strip_prefix(b"\xEF\xBB\xBF") {
+            Some(rest) if line_number == 1 => rest,
+            _ => bytes,
+        };
         let lexed = match self.lexer.lex(bytes) {
             Ok(l) => l,
             Err(LexError { column, kind }) => {
@@ -227,8 +232,15 @@ impl Interpreter {
                     }
                 },
             };
+            // After an M code, `T` names a tool for it (`M104 S200 T1`, `M204 P1250 T1250`,
+            // `M221 T0 S95`): a parameter, not a tool change.
+            let ends_command = |letter: u8| match letter {
+                b'G' | b'M' => true,
+                b'T' => command.letter != b'M',
+                _ => false,
+            };
             let mut end = params_start;
-            while end < words.len() && !matches!(words[end].letter, b'G' | b'M' | b'T') {
+            while end < words.len() && !ends_command(words[end].letter) {
                 end += 1;
             }
             if command.value.is_nan() {
@@ -238,7 +250,10 @@ impl Interpreter {
                     ErrorKind::ExpectedNumberAfter(command.letter as char),
                 ));
             }
-            let takes_flags = command.letter == b'G' && command.value == 28.0;
+            // `G28 X Y` homes the axes named; a command the streamer skips (`M84 X Y E`)
+            // may have flags it does not read.
+            let takes_flags = (command.letter == b'G' && command.value == 28.0)
+                || !acts_on(command.letter, command.value);
             let mut params = Params::new();
             for w in &words[params_start..end] {
                 if w.value.is_nan() && !takes_flags {
@@ -420,6 +435,19 @@ impl Interpreter {
                 Ok(())
             }
             (b'M', 221) => {
+                // The cell has one screw: a factor for another tool is not this one's.
+                if let Some(tool) = p.get(b'T').filter(|&t| t != self.tool as f64) {
+                    out.warnings.push(Warning {
+                        line,
+                        column: command.column,
+                        message: format!(
+                            "{} for tool {tool} ignored: the current tool is {}",
+                            name(),
+                            self.tool
+                        ),
+                    });
+                    return Ok(());
+                }
                 if let Some(s) = p.get(b'S') {
                     if s < 0.0 {
                         return Err(self.invalid(line, command.column, name(), "S must be >= 0"));
@@ -689,6 +717,18 @@ impl Interpreter {
 }
 
 /// 0-based column of the first non-blank byte, if the line has one before any comment.
+/// Whether the interpreter acts on `letter code` (the commands of [`Interpreter::execute`]):
+/// their parameters must be numbers (bar `G28`'s flags). Every other command is skipped or
+/// warned about, so a flag word among its parameters is no error.
+fn acts_on(letter: u8, code: f64) -> bool {
+    code.fract() == 0.0
+        && (0.0..1e6).contains(&code)
+        && matches!(
+            (letter, code as u32),
+            (b'G', 0..=4 | 17..=21 | 28 | 90..=92) | (b'M', 82 | 83 | 220 | 221) | (b'T', _)
+        )
+}
+
 fn first_word_column(bytes: &[u8]) -> Option<u32> {
     let i = bytes.iter().position(|&b| b != b' ' && b != b'\t')?;
     (bytes[i].is_ascii_alphabetic()).then_some(i as u32 + 1)

@@ -16,8 +16,17 @@ pub struct Word {
     pub column: u32,
 }
 
-/// Commands whose argument is free text up to the end of the line (or `;` comment).
-const TEXT_ARGUMENT_M_CODES: &[u32] = &[23, 28, 30, 32, 117, 118, 928];
+/// Commands whose argument is free text up to the end of the line (or `;` comment): file
+/// names, messages, and the slicers' object labels (`M486 AShape-Box`) and firmware checks
+/// (`M115 U3.13.2`), which the streamer skips but whose text is no `letter number` words.
+const TEXT_ARGUMENT_M_CODES: &[u32] = &[23, 28, 30, 32, 115, 117, 118, 486, 928];
+
+/// Whether `M<code>` takes free text: the codes above, and PrusaSlicer's printer checks
+/// `M862.1`…`M862.6` (`M862.3 P "MK3S"`).
+fn takes_text_argument(code: f64) -> bool {
+    (code.fract() == 0.0 && TEXT_ARGUMENT_M_CODES.contains(&(code as u32)))
+        || (code.trunc() == 862.0 && code > 862.0)
+}
 
 /// The lexed content of one line.
 #[derive(Debug, Default)]
@@ -131,12 +140,15 @@ fn lex_into<'a>(
                 }
                 let (value, end) = match parse_number(line, j) {
                     Some(parsed) => parsed,
-                    // A bare letter (`G28 X Y`) is a flag word; its value is NaN and only the
-                    // commands that take flags accept it (see the interpreter).
+                    // A bare letter (`G28 X Y`, `M84 X Y E`) is a flag word; its value is NaN
+                    // and only the commands that take flags, or that are skipped, accept it
+                    // (see the interpreter). A line's first word is never one: a line of text
+                    // is no command.
                     None if matches!(
                         line.get(j),
                         None | Some(b' ' | b'\t' | b';' | b'(' | b'*')
-                    ) =>
+                    ) || (!words.is_empty()
+                        && line.get(j).is_some_and(|b| b.is_ascii_alphabetic())) =>
                     {
                         (f64::NAN, j)
                     }
@@ -163,11 +175,7 @@ fn lex_into<'a>(
                     value,
                     column: word_col,
                 });
-                if letter == b'M'
-                    && words.len() == 1
-                    && value.fract() == 0.0
-                    && TEXT_ARGUMENT_M_CODES.contains(&(value as u32))
-                {
+                if letter == b'M' && words.len() == 1 && takes_text_argument(value) {
                     let rest = &line[i..];
                     let stop = rest
                         .iter()
@@ -392,5 +400,55 @@ mod tests {
         let err = lex("G1 X=1").unwrap_err();
         assert_eq!(err.kind, ErrorKind::ExpectedNumberAfter('X'));
         assert_eq!(err.column, 5);
+    }
+
+    fn is_flag(word: (char, f64), letter: char) -> bool {
+        word.0 == letter && word.1.is_nan()
+    }
+
+    /// Cura's Creality end code (`M84 X Y E`) and `G28 X Y`: bare letters before another word.
+    #[test]
+    fn flag_words_followed_by_other_words() {
+        let words = lex("M84 X Y E ;Disable all steppers but Z").unwrap();
+        assert_eq!(words.len(), 4);
+        assert_eq!(words[0], ('M', 84.0));
+        for (w, letter) in words[1..].iter().zip(['X', 'Y', 'E']) {
+            assert!(is_flag(*w, letter), "{words:?}");
+        }
+        let words = lex("G28 XY Z0").unwrap();
+        assert!(
+            is_flag(words[1], 'X') && is_flag(words[2], 'Y'),
+            "{words:?}"
+        );
+        assert_eq!(words[3], ('Z', 0.0));
+        // A line's first word is never a flag: text is no command.
+        let err = lex("Hello world").unwrap_err();
+        assert_eq!(err.kind, ErrorKind::ExpectedNumberAfter('H'));
+        assert_eq!(err.column, 2);
+        // A letter before a character that starts no word is still an error.
+        assert_eq!(
+            lex("G1 X=1 Y").unwrap_err().kind,
+            ErrorKind::ExpectedNumberAfter('X')
+        );
+    }
+
+    /// PrusaSlicer's object labels and printer checks carry text, not words.
+    #[test]
+    fn object_labels_and_printer_checks_are_text() {
+        let mut lexer = Lexer::default();
+        for (line, text) in [
+            ("M486 AShape-Box", "AShape-Box"),
+            ("M486 S-1", "S-1"),
+            ("M115 U3.13.2 ; tell the firmware version", "U3.13.2"),
+            ("M862.3 P \"MK3S\"", "P \"MK3S\""),
+            ("M862.1 P0.4", "P0.4"),
+        ] {
+            let l = lexer.lex(line.as_bytes()).unwrap();
+            assert_eq!(l.words.len(), 1, "{line}");
+            assert_eq!(l.text, Some(text.as_bytes()), "{line}");
+            lexer.recycle(l);
+        }
+        // Not a text command: its words are lexed.
+        assert_eq!(lex("M862 P1").unwrap(), [('M', 862.0), ('P', 1.0)]);
     }
 }

@@ -205,6 +205,54 @@ fn unknown_commands_warn_with_their_line() {
     assert!(warnings[0].message.contains("M999"));
 }
 
+/// Lines real slicers write (Cura's Creality end code, PrusaSlicer's machine limits, object
+/// labels and printer checks) load: flags of skipped commands, `T` as an M code's parameter.
+#[test]
+fn slicer_preambles_and_end_codes_load() {
+    let src = "\u{feff}M862.3 P \"MK3S\" ; printer model check\n\
+               M115 U3.13.2\n\
+               M204 P1250 R1250 T1250\n\
+               M104 S200 T0\n\
+               G28 X Y\n\
+               M486 S0\n\
+               M486 AShape-Box\n\
+               M221 T0 S95\n\
+               G1 X10 E1 F600\n\
+               M486 T3\n\
+               M84 X Y E ;Disable all steppers but Z\n";
+    let (m, warnings) = parse_all(
+        src.as_bytes(),
+        "slicer.gcode",
+        InterpreterOptions::default(),
+    )
+    .unwrap();
+    // Only the model check is unknown (warned); nothing else changed the tool.
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert!(warnings[0].message.contains("M862.3"), "{warnings:?}");
+    assert_eq!(warnings[0].line, 1);
+    assert_eq!(m.len(), 2);
+    assert_eq!(m[0].kind, GcodeMove::KIND_HOME);
+    assert_eq!(m[0].axes, GcodeMove::AXIS_X | GcodeMove::AXIS_Y);
+    assert_eq!(m[1].tool, 0);
+    // M221 T0 S95 scaled the current tool's flow.
+    assert!(close(m[1].delta_e_m, 0.00095, 1e-15), "{:?}", m[1]);
+    // A factor for another tool is not applied, and said.
+    let (m, warnings) = parse_all(
+        b"M221 T1 S50\nG1 X10 E1 F600\n",
+        "t.gcode",
+        InterpreterOptions::default(),
+    )
+    .unwrap();
+    assert!(close(m[0].delta_e_m, 0.001, 1e-15), "{:?}", m[0]);
+    assert!(warnings[0].message.contains("tool 1"), "{warnings:?}");
+    // A byte-order mark is only skipped where a file starts.
+    let e = error_of("G1 X1\n\u{feff}G1 X2\n");
+    assert_eq!((e.line, e.column), (2, 1));
+    // An acted-on command still refuses a flag.
+    let e = error_of("G28 X Y\nG1 X Y\n");
+    assert_eq!((e.line, e.kind), (2, ErrorKind::ExpectedNumberAfter('X')));
+}
+
 /// Independent truth: motion command counts from `grep` over the fixtures
 /// (`grep -cE '^G[01]( |$)'`, `grep -c '^G28'`, `grep -c '^G92'`).
 #[test]

@@ -348,6 +348,14 @@ impl Stream {
                 self.moves.pop_front().expect("not empty"),
                 self.plans.pop_front().expect("not empty"),
             );
+            if self.carried.base_ns.is_none() {
+                // The print's first move starts where the plan starts, which is not the
+                // origin when the machine stood elsewhere (a print after a cancel, an MCU
+                // that reports its position): the lengths, and so the rpm, count from there.
+                if let Some(start) = plan_start_m(&trajectory) {
+                    self.paired_from_m = start;
+                }
+            }
             let base = *self
                 .carried
                 .base_ns
@@ -655,6 +663,15 @@ impl Checkpoint {
 
 /// A digest of everything that shapes the commands ([`checkpoint::options_digest`]). The cut
 /// sizes are not in it: they change where chunks end, not what a chunk left.
+/// Where a trajectory starts, Cartesian (m): its first point's joints (bed θ rad, arm r m,
+/// z m) through the polar forward kinematics.
+fn plan_start_m(trajectory: &JointTrajectory) -> Option<[f64; 3]> {
+    match trajectory.points.first()?.positions[..] {
+        [theta, r, z] => Some([r * theta.cos(), r * theta.sin(), z]),
+        _ => None,
+    }
+}
+
 pub fn options_digest(options: &StreamOptions) -> u64 {
     checkpoint::options_digest(&format!(
         "{:?} {:?} {:?}",

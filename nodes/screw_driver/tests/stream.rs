@@ -327,3 +327,70 @@ proptest::proptest! {
         let _ = Checkpoint::from_bytes(&bytes, 0, 0);
     }
 }
+
+/// A print that starts where the machine stands, away from home (a print after a cancel, an
+/// MCU reporting its position), before any `G28`: a prime there and the path after it feed
+/// the file's material. The stream used to measure the first move from the origin, which
+/// made the prime a path move at speed 0 (no material) and scaled the next one's rpm.
+#[test]
+fn a_print_started_away_from_home_feeds_its_material() {
+    let joints = [0.5, 0.04, 0.001];
+    let [x, y, z] = polar_planner::path::forward(joints).map(|v| v * 1e3);
+    let gcode = "M83\nG1 E2 F120\nG1 X10 Y35 E1.5 F600\nG1 X10 Y45 E0.5\n";
+    let (moves, _) = gcode_streamer::parse_all(
+        gcode.as_bytes(),
+        "away.gcode",
+        gcode_streamer::InterpreterOptions {
+            start_position_mm: [x, y, z],
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let mut planner = Planner::new(PlannerOptions {
+        initial_joints: joints,
+        ..PlannerOptions::default()
+    })
+    .unwrap();
+    let mut plans = Vec::new();
+    for m in &moves {
+        planner.push(m, &mut plans).unwrap();
+    }
+    planner.flush(&mut plans);
+    let options = StreamOptions {
+        screw: ScrewOptions::default(),
+        command_period_s: 0.0,
+        joint_state_period_s: 0.0,
+        max_buffer_s: 60.0,
+        max_buffer_moves: 64,
+    };
+    let screw_driver::screw::RpmModel::PolarSpeed { e_per_rev_m } = options.screw.model else {
+        unreachable!("the default model is polar_speed")
+    };
+    let mut stream = Stream::new(options);
+    for (m, p) in moves.iter().zip(&plans) {
+        stream.on_move(m.clone());
+        stream
+            .on_trajectory(trajectory_message(p, EPOCH_NS))
+            .unwrap();
+    }
+    let commands = stream.cut(Cut::All).unwrap().commands;
+    // The raw breakpoints run linearly between each other: the material is their integral.
+    let fed_per_line = |line: u32| -> f64 {
+        commands
+            .windows(2)
+            .filter(|w| w[0].source_line == line && w[1].source_line == line)
+            .map(|w| {
+                let dt =
+                    (w[1].header.stamp.as_nanos() - w[0].header.stamp.as_nanos()) as f64 * 1e-9;
+                (w[0].rpm + w[1].rpm) / 2.0 / 60.0 * e_per_rev_m * dt
+            })
+            .sum()
+    };
+    for (line, e_mm) in [(2, 2.0), (3, 1.5)] {
+        let fed_mm = fed_per_line(line) * 1e3;
+        assert!(
+            (fed_mm - e_mm).abs() < 1e-6,
+            "line {line}: {fed_mm} mm of {e_mm}"
+        );
+    }
+}

@@ -34,10 +34,10 @@ struct Args {
     #[arg(long, default_value_t = 0)]
     offset_ticks: u64,
     /// Crystal rate error (ppm).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     rate_ppm: f64,
     /// Crystal drift (ppm per second).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     drift_ppm_per_s: f64,
     /// Probability per byte of a corrupted byte.
     #[arg(long, default_value_t = 0.0)]
@@ -89,11 +89,37 @@ fn rate(name: &str, p: f64) -> Result<f64> {
     Ok(p)
 }
 
+/// The crystal's parameters, checked: an MCU counts whole ticks of a timer it reports as a
+/// 32-bit rate, and a crystal runs forwards.
+fn check_crystal(args: &Args) -> Result<()> {
+    let hz = args.timer_hz;
+    if !(hz.is_finite() && hz.fract() == 0.0 && (1.0..=u32::MAX as f64).contains(&hz)) {
+        bail!(
+            "--timer-hz {hz}: must be a whole number of Hz from 1 to {}",
+            u32::MAX
+        );
+    }
+    if !(args.rate_ppm.is_finite() && args.rate_ppm.abs() <= 1e5) {
+        bail!(
+            "--rate-ppm {}: a crystal's rate error must lie within ±100000 ppm",
+            args.rate_ppm
+        );
+    }
+    if !(args.drift_ppm_per_s.is_finite() && args.drift_ppm_per_s.abs() <= 1e3) {
+        bail!(
+            "--drift-ppm-per-s {}: must lie within ±1000 ppm/s",
+            args.drift_ppm_per_s
+        );
+    }
+    Ok(())
+}
+
 fn main() -> Result<()> {
     let args = Args::parse();
     if !(args.speed > 0.0 && args.speed.is_finite()) {
         bail!("--speed {}: must be a positive number", args.speed);
     }
+    check_crystal(&args)?;
     let options = EmulatorOptions {
         crystal: Crystal {
             timer_hz: args.timer_hz,
@@ -160,11 +186,34 @@ fn main() -> Result<()> {
     }
 }
 
+/// Removes what an earlier emulator left at `path`: only a socket nobody listens on. Any
+/// other file there is the user's, and a live socket another emulator's.
+fn remove_stale_socket(path: &std::path::Path) -> Result<()> {
+    use std::os::unix::fs::FileTypeExt;
+    let Ok(metadata) = std::fs::symlink_metadata(path) else {
+        return Ok(());
+    };
+    if !metadata.file_type().is_socket() {
+        bail!(
+            "--socket {}: a file that is not a socket is there; not removing it",
+            path.display()
+        );
+    }
+    if UnixStream::connect(path).is_ok() {
+        bail!(
+            "--socket {}: another process listens there (an emulator already running?)",
+            path.display()
+        );
+    }
+    std::fs::remove_file(path)
+        .with_context(|| format!("removing the stale socket {}", path.display()))
+}
+
 fn open_port(args: &Args) -> Result<Port> {
     let mut stdout = std::io::stdout().lock();
     let port = match &args.socket {
         Some(path) => {
-            let _ = std::fs::remove_file(path);
+            remove_stale_socket(path)?;
             let listener = UnixListener::bind(path)
                 .with_context(|| format!("binding the socket {}", path.display()))?;
             listener.set_nonblocking(true)?;

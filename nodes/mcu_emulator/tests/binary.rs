@@ -270,3 +270,52 @@ fn a_silent_host_stops_the_machine() {
     );
     assert!(state.position_steps[0] > 0 && state.position_steps[0] < 100_000);
 }
+
+/// The emulator's exit status and standard error for `args` (it must refuse to start).
+fn refused(args: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_mcu_emulator"))
+        .args(args)
+        .stdout(Stdio::null())
+        .output()
+        .unwrap();
+    assert!(!out.status.success(), "{args:?} started");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// `--socket` removes only a socket nobody listens on: never a file of the user's, never a
+/// running emulator's socket; and a crystal it cannot be is refused by name.
+#[test]
+fn the_socket_path_and_the_crystal_are_checked() {
+    let dir = std::env::temp_dir().join(format!("mcu_emulator_refusals_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("out.mcap");
+    std::fs::write(&file, b"a bag").unwrap();
+    let why = refused(&["--socket", file.to_str().unwrap()]);
+    assert!(why.contains("not a socket"), "{why}");
+    assert_eq!(std::fs::read(&file).unwrap(), b"a bag");
+
+    let socket = dir.join("mcu.sock");
+    let socket_arg = socket.display().to_string();
+    let first = Emulator::start(&["--socket", &socket_arg]);
+    assert_eq!(first.port, format!("socket {socket_arg}"));
+    let why = refused(&["--socket", &socket_arg]);
+    assert!(why.contains("another process listens"), "{why}");
+    drop(first);
+    // The killed emulator's socket is stale: the next one takes its place.
+    let second = Emulator::start(&["--socket", &socket_arg]);
+    assert_eq!(second.port, format!("socket {socket_arg}"));
+    drop(second);
+
+    for (args, names) in [
+        (&["--timer-hz", "0"][..], "--timer-hz 0"),
+        (&["--timer-hz", "NaN"], "--timer-hz NaN"),
+        (&["--timer-hz", "1000000.5"], "--timer-hz 1000000.5"),
+        (&["--timer-hz", "5e9"], "--timer-hz 5000000000"),
+        (&["--rate-ppm", "-2000000"], "--rate-ppm -2000000"),
+        (&["--drift-ppm-per-s", "inf"], "--drift-ppm-per-s inf"),
+    ] {
+        let why = refused(args);
+        assert!(why.contains(names), "{args:?}: {why}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -139,7 +139,7 @@ pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> any
             .is_some_and(|suite| suite.qos.transient_local);
         let qos = match t.qos.map(|q| q.durability) {
             Some(Durability::TransientLocal) => {
-                transient_local_qos(t.qos.map_or(1, |q| q.depth as usize))
+                transient_local_qos(t.qos.map_or(1, |q| q.latched_depth(t.message_count)))
             }
             _ if latched_now => transient_local_qos(10_000),
             _ => reliable_qos(10_000),

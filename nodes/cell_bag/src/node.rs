@@ -402,6 +402,22 @@ fn parse_topic(entry: &str) -> anyhow::Result<(String, String)> {
         })
 }
 
+/// The topics to record, each once (as `ros2 bag record` takes a topic named twice): one
+/// subscription per topic, so no sample is written twice. A topic given two types is refused.
+fn unique_topics(topics: Vec<(String, String)>) -> anyhow::Result<Vec<(String, String)>> {
+    let mut unique: Vec<(String, String)> = Vec::with_capacity(topics.len());
+    for (name, type_name) in topics {
+        match unique.iter().find(|(n, _)| *n == name) {
+            Some((_, known)) if *known == type_name => {}
+            Some((_, known)) => {
+                bail!("topic {name} is given twice, as {known} and as {type_name}")
+            }
+            None => unique.push((name, type_name)),
+        }
+    }
+    Ok(unique)
+}
+
 macro_rules! with_message_type {
     ($type_name:expr, $f:ident ( $($arg:expr),* )) => {
         match $type_name {
@@ -604,6 +620,9 @@ fn spawn_moves_consumer(
         let mut tick = tokio::time::interval(TICK);
         let mut idle_ticks = 0u32;
         let mut unrecorded = 0u64;
+        // What the streamer says it published: a recorder that matched its writer too late
+        // for any move still learns from a progress report that its bag lacks them.
+        let mut streamer_published = 0u64;
         loop {
             tokio::select! {
                 taken = moves.async_take() => match taken {
@@ -630,6 +649,7 @@ fn spawn_moves_consumer(
                     if !producer.admits(&info) {
                         continue;
                     }
+                    streamer_published = streamer_published.max(p.moves_published);
                     if tracker.on_progress(&p.consumers, &p.consumer_next_expected) {
                         // Confirm the resume point: the streamer starts sending on this.
                         if let Some(ack) = tracker.ack_due(true) {
@@ -657,6 +677,9 @@ fn spawn_moves_consumer(
                 },
                 _ = stop.changed() => {
                     while let Ok(Some((p, info))) = progress.take() {
+                        if producer.admits(&info) {
+                            streamer_published = streamer_published.max(p.moves_published);
+                        }
                         if let Some(channel) = progress_channel {
                             forward(&tx, channel, &p, &info).await;
                         }
@@ -664,8 +687,9 @@ fn spawn_moves_consumer(
                     // Moves came but the streamer never named this recorder among its
                     // consumers (so never told it where to start, nor waited for it): the
                     // bag lacks them. Said, not an empty topic and a success.
-                    return (tracker.needs_hello() && unrecorded > 0)
-                        .then(|| (MOVES_TOPIC.to_string(), unrecorded));
+                    let lacking = unrecorded.max(streamer_published);
+                    return (tracker.needs_hello() && lacking > 0)
+                        .then(|| (MOVES_TOPIC.to_string(), lacking));
                 }
             }
         }
@@ -681,6 +705,20 @@ impl Recorder {
             "lz4" => Compression::Lz4,
             other => bail!("parameter compression: `{other}` is not zstd or lz4"),
         };
+        // Every topic checked before the disk is touched: a mistyped topic must not leave
+        // an empty bag in the place of the one the user meant to keep.
+        let topics = unique_topics(
+            params
+                .strings("topics")
+                .iter()
+                .map(|t| parse_topic(t))
+                .collect::<anyhow::Result<_>>()?,
+        )?;
+        for (topic, type_name) in &topics {
+            if polar_cell_msgs::find(type_name).is_none() {
+                bail!("topic {topic}: unknown message type {type_name}");
+            }
+        }
         let output = PathBuf::from(params.string("output"));
         let directory = params.bool("bag_directory");
         let file_path = if directory {
@@ -711,11 +749,6 @@ impl Recorder {
         };
         let mut bag = BagWriter::new(BufWriter::with_capacity(1 << 20, file), &options)
             .map_err(|e| cannot_write(&bag_path, e.into()))?;
-        let topics: Vec<(String, String)> = params
-            .strings("topics")
-            .iter()
-            .map(|t| parse_topic(t))
-            .collect::<anyhow::Result<_>>()?;
         // Written through now, so a bag that cannot be written (a full device) is refused
         // before anything moves, not at the first flush a second into the print.
         bag.flush().map_err(|e| cannot_write(&bag_path, e.into()))?;
@@ -1077,6 +1110,20 @@ pub fn mcap_file_of(path: &Path) -> anyhow::Result<PathBuf> {
             .filter(|p| p.extension().is_some_and(|x| x == "mcap"))
             .collect();
         files.sort();
+        // A bag split by size (`ros2 bag record --max-bag-size`) has several: reading only
+        // one of them would drop the rest without a word.
+        if files.len() > 1 {
+            let names: Vec<String> = files
+                .iter()
+                .filter_map(|f| f.file_name().map(|n| n.to_string_lossy().into_owned()))
+                .collect();
+            bail!(
+                "{}: a bag split into {} files ({}); give one of them as the bag",
+                path.display(),
+                files.len(),
+                names.join(", ")
+            );
+        }
         files
             .into_iter()
             .next()
@@ -1144,6 +1191,36 @@ pub fn cdr_publisher(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_topic_named_twice_is_recorded_once_and_two_types_are_refused() {
+        let t = |n: &str, ty: &str| (n.to_string(), ty.to_string());
+        let tf = "tf2_msgs/msg/TFMessage";
+        let kept = unique_topics(vec![
+            t("/tf", tf),
+            t("/a", "std_msgs/msg/String"),
+            t("/tf", tf),
+        ])
+        .unwrap();
+        assert_eq!(kept, [t("/tf", tf), t("/a", "std_msgs/msg/String")]);
+        let e = unique_topics(vec![t("/tf", tf), t("/tf", "std_msgs/msg/String")]).unwrap_err();
+        assert!(e.to_string().contains("given twice"), "{e}");
+    }
+
+    #[test]
+    fn a_split_bag_directory_is_refused_with_its_files() {
+        let dir = std::env::temp_dir().join(format!("cell_bag_split_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("bag_0.mcap"), b"").unwrap();
+        assert_eq!(mcap_file_of(&dir).unwrap(), dir.join("bag_0.mcap"));
+        std::fs::write(dir.join("bag_1.mcap"), b"").unwrap();
+        let e = mcap_file_of(&dir).unwrap_err().to_string();
+        assert!(
+            e.contains("split into 2 files (bag_0.mcap, bag_1.mcap)"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     /// Chunks (whose indexes the writer keeps until the end) grow with the logarithm of a
     /// print's length, not with it; the first quarter hour is flushed every second.

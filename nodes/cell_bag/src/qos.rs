@@ -40,6 +40,17 @@ impl QosRecord {
         )
     }
 
+    /// The history a player keeps for late joiners of a transient-local topic that has
+    /// `message_count` samples in the bag: the depth recorded, or, where the recorder did not
+    /// know it (rosbag2 writes depth 0, history "unknown": discovery does not carry it), every
+    /// sample the bag has, up to 10,000.
+    pub fn latched_depth(&self, message_count: u64) -> usize {
+        match self.depth {
+            0 => message_count.clamp(1, 10_000) as usize,
+            depth => depth as usize,
+        }
+    }
+
     /// Read back the first profile of an `offered_qos_profiles` YAML list: with integer
     /// policies (rosbag2 before metadata version 9, and ours) or named ones ("reliable",
     /// "transient_local": what Jazzy's `ros2 bag record` writes in an MCAP file's channels).
@@ -90,6 +101,23 @@ mod tests {
             QosRecord::from_yaml(&QosRecord::ROS_DEFAULT.to_yaml()),
             Some(QosRecord::ROS_DEFAULT)
         );
+    }
+
+    #[test]
+    fn an_unknown_depth_keeps_every_latched_sample_for_late_joiners() {
+        let mut q = QosRecord {
+            reliability: Reliability::Reliable,
+            durability: Durability::TransientLocal,
+            depth: 0,
+        };
+        assert_eq!(q.latched_depth(3), 3);
+        assert_eq!(q.latched_depth(0), 1);
+        assert_eq!(q.latched_depth(1 << 40), 10_000);
+        q.depth = 1;
+        assert_eq!(q.latched_depth(3), 1);
+        // As Jazzy's `ros2 bag record` writes /tf_static's profile.
+        let recorded = "- history: unknown\n  depth: 0\n  reliability: reliable\n  durability: transient_local";
+        assert_eq!(QosRecord::from_yaml(recorded).unwrap().latched_depth(2), 2);
     }
 
     #[test]

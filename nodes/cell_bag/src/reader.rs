@@ -72,6 +72,29 @@ pub(crate) fn guarded<T>(
     })
 }
 
+/// The message counts and times of a bag whose summary has no Statistics record, from its
+/// messages (chunk by chunk: memory does not grow with the bag).
+fn count_messages(bytes: &[u8]) -> Result<mcap::records::Statistics, BagError> {
+    let mut stats = mcap::records::Statistics {
+        message_start_time: u64::MAX,
+        ..Default::default()
+    };
+    for message in mcap::read::RawMessageStream::new(bytes)? {
+        let header = message?.header;
+        stats.message_count += 1;
+        stats.message_start_time = stats.message_start_time.min(header.log_time);
+        stats.message_end_time = stats.message_end_time.max(header.log_time);
+        *stats
+            .channel_message_counts
+            .entry(header.channel_id)
+            .or_default() += 1;
+    }
+    if stats.message_count == 0 {
+        stats.message_start_time = 0;
+    }
+    Ok(stats)
+}
+
 /// Read a bag's summary (the bytes of the whole file).
 pub fn read_bag(bytes: &[u8]) -> Result<BagContents<'_>, BagError> {
     guarded("reading the summary", || read_summary(bytes))
@@ -88,7 +111,12 @@ fn read_summary(bytes: &[u8]) -> Result<BagContents<'_>, BagError> {
         )));
     }
     let summary = mcap::Summary::read(bytes)?.ok_or(BagError::NoSummary)?;
-    let stats = summary.stats.clone().unwrap_or_default();
+    // The Statistics record is optional in MCAP: without it the messages are counted, not
+    // taken for none.
+    let stats = match summary.stats.clone() {
+        Some(stats) => stats,
+        None => count_messages(bytes)?,
+    };
     let mut topics: Vec<TopicInfo> = summary
         .channels
         .values()

@@ -187,3 +187,47 @@ fn the_file_carries_rosbag2_metadata_of_the_version_its_qos_is_written_in() {
         );
     }
 }
+
+/// MCAP makes the Statistics record optional: a bag without one (written here by the `mcap`
+/// crate itself, not by our writer) reads with its messages counted, not as empty.
+#[test]
+fn a_bag_without_statistics_is_counted_from_its_messages() {
+    let mut writer = mcap::WriteOptions::new()
+        .profile("ros2")
+        .emit_statistics(false)
+        .chunk_size(Some(256))
+        .create(Cursor::new(Vec::new()))
+        .unwrap();
+    let schema = writer
+        .add_schema(
+            &StringMsg::TYPE.full_name(),
+            "ros2msg",
+            StringMsg::TYPE.schema_text().unwrap().as_bytes(),
+        )
+        .unwrap();
+    let metadata = Default::default();
+    let a = writer.add_channel(schema, "/a", "cdr", &metadata).unwrap();
+    let b = writer.add_channel(schema, "/b", "cdr", &metadata).unwrap();
+    let data = cdr::encode(&StringMsg { data: "x".into() }).unwrap();
+    for (i, channel) in [a, b, a, a, b].into_iter().enumerate() {
+        let header = mcap::records::MessageHeader {
+            channel_id: channel,
+            sequence: i as u32,
+            log_time: 5_000 + 10 * i as u64,
+            publish_time: 0,
+        };
+        writer.write_to_known_channel(&header, &data).unwrap();
+    }
+    writer.finish().unwrap();
+    let bytes = writer.into_inner().into_inner();
+    let bag = read_bag(&bytes).unwrap();
+    assert_eq!(bag.info.message_count, 5);
+    assert_eq!((bag.info.start_ns, bag.info.end_ns), (5_000, 5_040));
+    let counts: Vec<(&str, u64)> = bag
+        .info
+        .topics
+        .iter()
+        .map(|t| (t.name.as_str(), t.message_count))
+        .collect();
+    assert_eq!(counts, [("/a", 3), ("/b", 2)]);
+}

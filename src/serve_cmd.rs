@@ -345,7 +345,13 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 } else {
                     print_cmd::run_job(&file, &job_options, &args, io).await
                 };
-                (report, bag.display().to_string())
+                // A goal that ended before its recorder started names no bag.
+                let recorded = if bag.exists() {
+                    bag.display().to_string()
+                } else {
+                    String::new()
+                };
+                (report, recorded)
             });
             let accepted = GoalInfo {
                 goal_id: request.goal_id,

@@ -358,6 +358,9 @@ def test_cancel_rules_goal_ids_result_timeout_and_shutdown_as_rcl_has_them(tmp_p
         result = result_of(missing, 30)
         assert result.status == ABORTED, result
         assert list(result.result.stop_position[:3]) == stop, (result.result.stop_position, stop)
+        # It recorded nothing, so it names no bag (print-3.mcap was never written).
+        assert result.result.bag == "", result.result.bag
+        assert not os.path.exists(tmp_path / "bags" / "print-3.mcap")
         # "-" would read the server's own standard input: refused, saying why.
         stdin_goal = new_id()
         assert goal(stdin_goal, "-").accepted

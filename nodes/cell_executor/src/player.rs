@@ -217,7 +217,7 @@ impl Player {
 
     /// Begin a feed hold: decelerate along the path to rest and stay there.
     pub fn pause(&mut self) {
-        if self.hold != Some(HoldReason::Cancel) {
+        if self.hold != Some(HoldReason::Cancel) && self.state != PlayerState::Stopped {
             self.hold = Some(HoldReason::Pause);
             if self.state == PlayerState::Idle {
                 // At rest already: held there, so a plan that arrives does not start (it
@@ -304,15 +304,27 @@ impl Player {
 
     /// The σ̇ interval at the current point of the plan (per second of machine time).
     fn feed_rate_bounds(&self) -> (f64, f64) {
-        let Some(active) = self
+        // The stepping segment whose constraints hold now: the one playing; during one
+        // without steps (a dwell at rest, or a piece of a move shorter than half a step on
+        // every axis, inside motion) the next that steps, from its start.
+        let upcoming;
+        let train = match self
             .active
             .as_ref()
             .filter(|a| a.job.segment.dominant_steps() > 0)
-        else {
-            return (f64::NEG_INFINITY, f64::INFINITY); // at rest in the plan: no constraint
+        {
+            Some(active) => &active.train,
+            None => match self.queue.iter().find(|j| j.segment.dominant_steps() > 0) {
+                Some(job) => {
+                    upcoming = PulseTrain::new(&job.segment);
+                    &upcoming
+                }
+                // Nothing steps before the plan ends: at rest there, no constraint.
+                None => return (f64::NEG_INFINITY, f64::INFINITY),
+            },
         };
-        let seg = &active.job.segment;
-        let rate = self.dominant_rate(active);
+        let seg = train.segment();
+        let rate = 1.0 / q32_to_seconds(train.period_q32().into(), self.options.steps.timer_hz);
         let total = seg.dominant_steps() as f64;
         let mut limit = f64::INFINITY;
         for k in 0..MAX_AXES {
@@ -321,12 +333,19 @@ impl Player {
                 limit = limit.min(a * total / seg.step_counts[k] as f64);
             }
         }
+        let s2 = self.feed * self.feed;
+        if total <= 1.0 || train.is_done() {
+            // A segment of one step (the planner times the steps nearest rest one by one, as
+            // cruises) or the tail after a segment's last pulse says nothing of the plan's
+            // acceleration, which may be anything within the limit: σ̇ keeps the sum within
+            // it whatever it is, |σ̇·rate| + σ²·limit ≤ limit.
+            let room = limit * (1.0 - s2) / rate;
+            return (-room, room);
+        }
         // r·p² (dimensionless) times the rate² is the dominant acceleration in steps/s².
-        let accel = active.train.ramp_q62() as f64 / (1u64 << 62) as f64
-            * rate
-            * rate
-            * active.train.phase() as f64;
-        let s2a = self.feed * self.feed * accel;
+        let accel =
+            train.ramp_q62() as f64 / (1u64 << 62) as f64 * rate * rate * train.phase() as f64;
+        let s2a = s2 * accel;
         (
             ((-limit - s2a) / rate).min(0.0),
             ((limit - s2a) / rate).max(0.0),
@@ -336,6 +355,11 @@ impl Player {
     /// Plan time a hold begun now with σ̇ = `lo` would still consume before rest, with a
     /// margin (the constraint ahead may be tighter than here), in Q32 ticks.
     fn stopping_plan_q32(&self, lo: f64) -> u128 {
+        if lo == f64::NEG_INFINITY {
+            // At rest in the plan, stopping costs nothing: a hold begins just before the
+            // plan runs out (so resuming waits for the pin's delay), not after.
+            return self.ticks_q32(2.0 * self.options.control_period_s);
+        }
         if !lo.is_finite() || lo >= 0.0 {
             return 0;
         }
@@ -363,8 +387,18 @@ impl Player {
         let period_q32 = self.ticks_q32(self.options.control_period_s).max(1);
         while self.now_q32 < now_q32 && self.state != PlayerState::Stopped {
             if !self.ensure_active() {
-                if !self.input_finished && self.feed > 0.0 {
-                    self.underruns += 1; // ran dry while moving: a hold came too late
+                // Ran dry while moving: a hold came too late. (Not a cancel's end: its plan
+                // was dropped on purpose.)
+                if self.state == PlayerState::Running
+                    && !self.input_finished
+                    && self.hold != Some(HoldReason::Cancel)
+                {
+                    self.underruns += 1;
+                }
+                if self.hold == Some(HoldReason::Cancel) {
+                    // The plan ended before the cancel's hold came to rest: nothing is left
+                    // to drop, and the cancel must not drop the next plan.
+                    self.drop_plan();
                 }
                 self.state = PlayerState::Idle;
                 break;
@@ -508,6 +542,7 @@ impl Player {
         if self.state == PlayerState::Stopped {
             self.state = PlayerState::Idle;
             self.feed = 1.0;
+            self.hold = None;
             self.input_finished = false;
         }
     }

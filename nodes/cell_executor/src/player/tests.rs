@@ -485,3 +485,159 @@ fn a_plan_longer_than_two_to_the_32_ticks_plays_on_exactly() {
     assert_eq!(player.plan_time_q32(), 5_000_000_000 * Q32);
     assert_eq!(player.state(), PlayerState::Idle);
 }
+
+/// A segment without steps lasting `ticks`: a dwell, or a piece of a move shorter than half a
+/// step on every axis.
+fn no_steps(ticks: u64, sequence: u64) -> SegmentJob {
+    let segment = Segment::from_fields(&step_core::SegmentFields {
+        directions: [1; MAX_AXES],
+        ..Default::default()
+    })
+    .unwrap();
+    SegmentJob {
+        segment,
+        duration_q32: u128::from(ticks) * Q32,
+        move_sequence: sequence,
+        source_line: sequence as u32 + 10,
+    }
+}
+
+/// Worst |Δσ|/Δt over 1 ms periods times the plan's dominant speed, as a fraction of the
+/// bed's limit (the plans below cruise on the bed, so the machine's acceleration is σ̇·v).
+fn worst_feed_acceleration(feeds: &[f64], plan_rate_steps_per_s: f64) -> f64 {
+    let spu = StepOptions::default().steps_per_unit[0];
+    feeds
+        .windows(2)
+        .map(|w| (w[1] - w[0]).abs() / 1e-3 * plan_rate_steps_per_s / spu / LIMITS[0])
+        .fold(0.0, f64::max)
+}
+
+/// A pause whose first period begins inside a segment without steps in the middle of motion
+/// keeps to the limit of the motion around it. It used to take such a segment for rest in
+/// the plan: σ fell from 1 to 0 in one period, and the next segment's steps stopped within a
+/// millisecond (here 3,900 rad/s² against 40).
+#[test]
+fn a_pause_inside_a_stepless_piece_of_motion_keeps_to_the_limit() {
+    let mut player = Player::new(options());
+    player.push(cruise(0, 20_000, 50, false, 1)).unwrap();
+    player.push(no_steps(2_000, 2)).unwrap();
+    player.push(cruise(0, 20_000, 50, false, 3)).unwrap();
+    player.finish_input();
+    collect(&mut player, 0);
+    let mut feeds = vec![1.0];
+    let (edges, _) = play(&mut player, 0, 1_500_000, |p, t| {
+        if t == 1_000_000 {
+            assert_eq!(p.current().unwrap().0, 2, "the stepless piece plays now");
+            p.pause();
+        }
+        feeds.push(p.feed());
+    });
+    assert_eq!(player.state(), PlayerState::Held);
+    assert!(worst_feed_acceleration(&feeds, 20_000.0) <= 1.0 + 1e-9);
+    // Braking from 20,000 steps/s at the limit takes v/A ≈ 98 ms and 49 ms of plan, the
+    // first 2 ms of it the stepless piece: ~942 steps.
+    let after = edges.len() - 20_000;
+    assert!((920..965).contains(&after), "{after} steps after the pause");
+}
+
+/// One-step segments (the planner times the steps nearest rest so) say nothing of the plan's
+/// acceleration: a pause there does not brake until it can within the limit whatever that
+/// acceleration is; σ falls in the ramp after them.
+#[test]
+fn a_pause_in_one_step_segments_waits_for_a_segment_that_tells_its_acceleration() {
+    let mut player = Player::new(options());
+    for k in 0..5 {
+        player
+            .push(cruise(0, 1, 2_000 - 300 * k, false, 1))
+            .unwrap();
+    }
+    player.push(cruise(0, 20_000, 50, false, 2)).unwrap();
+    player.finish_input();
+    collect(&mut player, 0);
+    player.pause();
+    let mut feeds = Vec::new();
+    play(&mut player, 0, 400_000, |p, _| feeds.push(p.feed()));
+    // The five steps take 7 ms: σ stays 1 through them, then falls.
+    assert!(feeds[..5].iter().all(|&f| f == 1.0), "{:?}", &feeds[..8]);
+    assert!(feeds[20] < 1.0 && *feeds.last().unwrap() == 0.0);
+}
+
+/// The upstream stalls with a dwell last in the queue: the machine holds before the plan
+/// runs out (an underrun hold, at rest), so the move that comes later waits for the pin's
+/// delay. It used to run dry, idle with the pin closed, and start the next move at once:
+/// the first 0.25 s of its material missing.
+#[test]
+fn a_stall_after_a_dwell_holds_and_the_next_move_waits_for_the_pin() {
+    let mut player = Player::new(options());
+    player.push(cruise(0, 1_000, 50, false, 1)).unwrap();
+    player.push(no_steps(300_000, 2)).unwrap();
+    collect(&mut player, 0);
+    play(&mut player, 0, 400_000, |_, _| {});
+    assert_eq!(player.hold(), Some(HoldReason::Underrun));
+    assert_eq!(player.state(), PlayerState::Held);
+    assert_eq!(player.underruns(), 1);
+    player.push(cruise(0, 20_000, 50, false, 3)).unwrap();
+    player.finish_input();
+    let (edges, _) = play(&mut player, 400_000, 1_000_000, |_, _| {});
+    let first = edges.first().expect("the move played").time_q32;
+    assert!(
+        first >= (400_000 + 250_000) * Q32,
+        "first step {} µs",
+        first / Q32
+    );
+    assert_eq!(player.underruns(), 1);
+}
+
+/// A cancel is no underrun, however long the periods the caller plays in; and a cancel
+/// whose plan ends before it comes to rest leaves nothing pending for the next plan.
+#[test]
+fn a_cancel_counts_no_underrun_and_leaves_nothing_behind() {
+    let mut player = Player::new(options());
+    player.push(cruise(0, 20_000, 50, false, 1)).unwrap();
+    player.push(cruise(0, 20_000, 50, false, 2)).unwrap();
+    collect(&mut player, 0);
+    collect(&mut player, 300_000);
+    player.cancel();
+    for t in (320_000..1_000_000).step_by(20_000) {
+        collect(&mut player, t);
+    }
+    assert_eq!(player.state(), PlayerState::Idle);
+    assert_eq!(player.underruns(), 0);
+
+    let mut player = Player::new(options());
+    player.push(cruise(0, 100, 50, false, 1)).unwrap();
+    player.finish_input();
+    collect(&mut player, 0);
+    collect(&mut player, 1_000);
+    player.cancel();
+    collect(&mut player, 10_000);
+    assert_eq!(player.state(), PlayerState::Idle);
+    assert_eq!(player.hold(), None);
+    player.push(cruise(0, 10, 100, false, 2)).unwrap();
+    player.finish_input();
+    let before = player.position_steps()[0];
+    collect(&mut player, 20_000);
+    collect(&mut player, 30_000);
+    assert_eq!(
+        player.position_steps()[0],
+        before + 10,
+        "the next plan played"
+    );
+}
+
+/// A pause asked while stopped is no pause after the reset.
+#[test]
+fn a_reset_leaves_no_pause_behind() {
+    let mut player = Player::new(options());
+    player.push(cruise(0, 1_000, 50, false, 1)).unwrap();
+    collect(&mut player, 0);
+    player.emergency_stop();
+    player.pause();
+    player.reset();
+    assert_eq!(player.hold(), None);
+    player.push(cruise(0, 10, 100, false, 2)).unwrap();
+    player.finish_input();
+    collect(&mut player, 10_000);
+    collect(&mut player, 20_000);
+    assert_eq!(player.feed(), 1.0);
+}

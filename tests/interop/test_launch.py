@@ -40,6 +40,48 @@ def test_cell_sh_prints_a_fixture_with_one_process_per_node(tmp_path):
     assert counts["/joint_states"] >= 124.9 / 0.02, counts["/joint_states"]
 
 
+def test_cell_sh_stopped_mid_print_stops_the_machine_on_the_path(tmp_path):
+    """`kill -INT` (or -TERM) to cell.sh mid-print, as a service manager stops it: every node
+    goes, and the machine first stops on the path. It used to be dropped mid-move (a real
+    MCU's bridge dropped e-stops it), so the bag ended with the machine at speed."""
+    bag = tmp_path / "cell.mcap"
+    env = {"POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin", "POLAR_CELL_SPEED": "4"}
+    cell = subprocess.Popen([str(LAUNCH / "cell.sh"), str(FIXTURES / "finger.gcode"), str(bag)],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    try:
+        time.sleep(7.0)
+        cell.send_signal(signal.SIGINT)
+        output, _ = cell.communicate(timeout=60)
+    finally:
+        if cell.poll() is None:
+            os.killpg(cell.pid, signal.SIGKILL)
+            cell.wait(timeout=10)
+    leftover = subprocess.run(["pgrep", "-s", str(cell.pid)], capture_output=True, text=True)
+    assert leftover.stdout.strip() == "", ("nodes left running", leftover.stdout, output)
+    assert "stopping on the path" in output, output
+    messages, _, _ = read_with_mcap_ros2(bag)
+    states = messages["/joint_states"]
+    # It printed for a while, then came to rest: its last state stands still, away from home.
+    assert len(states) > 100, len(states)
+    assert all(abs(v) < 1e-9 for v in states[-1].velocity), states[-1].velocity
+    assert states[-1].position[1] > 0.01, states[-1].position
+
+
+def test_cell_sh_ends_when_the_planner_refuses_a_move(tmp_path):
+    """A move beyond the arm's reach: the planner says so and exits 1. cell.sh used to watch
+    only the machine and the streamer, which both wait for the plan for ever: it hung. It
+    ends with the planner's status and stops every node."""
+    gcode = tmp_path / "far.gcode"
+    gcode.write_text("G28\nG1 X10 Y10 F600\nG1 X400 Y0 F600\n")
+    env = {"POLAR_CELL_BIN_DIR": str(BIN_DIR), "PATH": "/usr/bin:/bin", "POLAR_CELL_SPEED": "25"}
+    proc = subprocess.run([str(LAUNCH / "cell.sh"), str(gcode), str(tmp_path / "far.mcap")],
+                          env=env, capture_output=True, text=True, timeout=60,
+                          start_new_session=True)
+    assert proc.returncode == 1, (proc.returncode, proc.stdout, proc.stderr)
+    assert "polar_planner ended with exit status 1" in proc.stderr, proc.stderr
+
+
 def test_launch_xml_names_existing_binaries_and_parameter_file():
     root = ET.parse(LAUNCH / "cell.launch.xml").getroot()
     args = {a.get("name"): a.get("default") for a in root.iter("arg")}

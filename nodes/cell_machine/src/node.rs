@@ -109,7 +109,8 @@ pub struct Status {
     pub underruns: u64,
     /// The plan is complete (the stream finished) and all of it has been executed.
     pub done: bool,
-    /// A cancel came to rest and the plan was dropped.
+    /// A cancel was taken: the plan is being, or has been, dropped (at rest once `state` is
+    /// not Running).
     pub cancelled: bool,
     pub positions: [f64; 4],
     pub fault: Option<String>,
@@ -1103,20 +1104,83 @@ pub type RunFn = for<'a> fn(
     Box<dyn std::future::Future<Output = anyhow::Result<()>> + 'a>,
 >;
 
+/// Whether the machine has a plan under way: it moves, or holds on the path with more to
+/// run. Stopping such a machine is a stop on the path, not letting go of it.
+fn plan_under_way(s: &Status) -> bool {
+    // (`cancelled` is set as the cancel is taken: the stop is over once nothing runs.)
+    let cancelled_at_rest = s.cancelled && s.state != Some(PlayerState::Running);
+    s.first_motion_s.is_some()
+        && !s.done
+        && !cancelled_at_rest
+        && s.fault.is_none()
+        && s.state != Some(PlayerState::Stopped)
+}
+
 /// A machine node as its own process: started from its command line, run until an error or
 /// SIGINT/SIGTERM (nobody else in the process sends commands or watches the status).
+///
+/// A signal while a plan is under way (`ros2 launch`'s Ctrl-C, a script's `kill`) stops the
+/// machine on the path first, as `/cell/cancel` does, and ends the node once at rest: a
+/// machine let go mid-move would stop at once (an MCU's bridge dropped sends its emergency
+/// stop). The same signal again is the emergency stop (Ctrl-C twice); SIGTERM after SIGINT
+/// is not (a launcher escalating, or a script stopping its nodes after a terminal's Ctrl-C
+/// reached them as well): the stop on the path goes on.
 pub async fn main_with_args(
     name: &str,
     specs: &[ParamSpec],
     argv: Vec<String>,
     run: RunFn,
 ) -> anyhow::Result<()> {
+    /// How long the last samples at rest get to go out, and an emergency stop to act.
+    const LINGER: Duration = Duration::from_millis(150);
+    let mut signals = cell_runtime::ShutdownSignals::new().context("signal handlers")?;
     let mut node = CellNode::start_from_argv(name, specs, &argv)?;
-    let (_commands, receiver) = mpsc::unbounded_channel();
-    let (status, _) = watch::channel(Status::default());
-    tokio::select! {
-        result = run(&mut node, receiver, status) => result,
-        _ = cell_runtime::shutdown_signal() => Ok(()),
+    let (commands, receiver) = mpsc::unbounded_channel();
+    let (status_tx, status) = watch::channel(Status::default());
+    let running = run(&mut node, receiver, status_tx);
+    tokio::pin!(running);
+    let mut stopping: Option<cell_runtime::ShutdownSignal> = None;
+    // When the node ends: once a stop has come to rest (and its samples are out).
+    let mut end_at: Option<tokio::time::Instant> = None;
+    let mut look = tokio::time::interval(Duration::from_millis(10));
+    loop {
+        tokio::select! {
+            result = &mut running => {
+                // The stop asked for here ended the plan: no error of the node's.
+                return match result {
+                    Err(_) if stopping.is_some() && !plan_under_way(&status.borrow()) => Ok(()),
+                    other => other,
+                };
+            }
+            signal = signals.next_kind() => {
+                let under_way = plan_under_way(&status.borrow());
+                match stopping {
+                    None if under_way => {
+                        eprintln!(
+                            "{name}: stopping on the path (the same signal again: emergency stop)"
+                        );
+                        let _ = commands.send(Command::Cancel);
+                        stopping = Some(signal);
+                    }
+                    None => return Ok(()),
+                    Some(first) if first == signal && under_way && end_at.is_none() => {
+                        eprintln!("{name}: emergency stop");
+                        let _ = commands.send(Command::EmergencyStop);
+                        end_at = Some(tokio::time::Instant::now() + LINGER);
+                    }
+                    Some(first) if first == signal && !under_way => return Ok(()),
+                    Some(_) => {}
+                }
+            }
+            _ = look.tick(), if stopping.is_some() => {
+                if end_at.is_none() && !plan_under_way(&status.borrow()) {
+                    end_at = Some(tokio::time::Instant::now() + LINGER);
+                }
+                if end_at.is_some_and(|at| tokio::time::Instant::now() >= at) {
+                    return Ok(());
+                }
+            }
+        }
     }
 }
 

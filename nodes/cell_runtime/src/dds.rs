@@ -686,11 +686,25 @@ impl ShutdownSignals {
 
     /// The next signal (at once if one came since the last call).
     pub async fn next(&mut self) {
+        self.next_kind().await;
+    }
+
+    /// The next signal and which it was.
+    pub async fn next_kind(&mut self) -> ShutdownSignal {
         tokio::select! {
-            _ = self.interrupt.recv() => {}
-            _ = self.terminate.recv() => {}
+            _ = self.interrupt.recv() => ShutdownSignal::Interrupt,
+            _ = self.terminate.recv() => ShutdownSignal::Terminate,
         }
     }
+}
+
+/// Which shutdown signal came.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ShutdownSignal {
+    /// SIGINT: Ctrl-C, or `ros2 launch` stopping its nodes.
+    Interrupt,
+    /// SIGTERM: a script, a service manager, a launcher escalating after SIGINT.
+    Terminate,
 }
 
 /// Resolves when the process gets SIGINT or SIGTERM.

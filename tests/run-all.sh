@@ -6,7 +6,8 @@
 # DDS tests run inside a private network namespace (loopback only) so they never touch a real
 # network: as root, this script re-executes itself under `unshare -n`.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+self=$(realpath "$0")
+cd "$(dirname "$self")/.."
 root=$(pwd)
 
 if [[ "${POLAR_CELL_NETNS:-}" != "1" ]]; then
@@ -26,7 +27,7 @@ if [[ "${POLAR_CELL_NETNS:-}" != "1" ]]; then
     RUSTC_BOOTSTRAP=1 cargo fuzz build --fuzz-dir tests/fuzz -O
   fi
   if [[ $(id -u) == 0 ]] && unshare -n true 2>/dev/null; then
-    exec env POLAR_CELL_NETNS=1 unshare -n "$0" "$@"
+    exec env POLAR_CELL_NETNS=1 unshare -n "$self" "$@"
   fi
   echo "WARNING: cannot create a network namespace (needs root); DDS tests use the host's loopback" >&2
   export POLAR_CELL_NETNS=host

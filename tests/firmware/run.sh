@@ -28,7 +28,8 @@
 # re-runs itself in a private network namespace (loopback only) for the prints, like
 # tests/run-all.sh. Inside a namespace already (POLAR_CELL_NETNS set) it builds nothing.
 set -euo pipefail
-cd "$(dirname "$0")/../.."
+self=$(realpath "$0")
+cd "$(dirname "$self")/../.."
 original_args=("$@")
 speed=0.5
 profile=()
@@ -65,7 +66,7 @@ fi
 if [[ "${POLAR_CELL_NETNS:-}" == "" ]]; then
   build
   if [[ $(id -u) == 0 ]] && unshare -n true 2>/dev/null; then
-    exec env POLAR_CELL_NETNS=1 unshare -n "$0" "${original_args[@]}"
+    exec env POLAR_CELL_NETNS=1 unshare -n "$self" "${original_args[@]}"
   fi
   export POLAR_CELL_NETNS=host
 fi

@@ -306,7 +306,8 @@ impl Player {
     fn feed_rate_bounds(&self) -> (f64, f64) {
         // The stepping segment whose constraints hold now: the one playing; during one
         // without steps (a dwell at rest, or a piece of a move shorter than half a step on
-        // every axis, inside motion) the next that steps, from its start.
+        // every axis, inside motion) the next that steps, from its start. (At rest that is a
+        // move's first step, slow: σ may then change within milliseconds, and nothing moves.)
         let upcoming;
         let train = match self
             .active
@@ -333,19 +334,10 @@ impl Player {
                 limit = limit.min(a * total / seg.step_counts[k] as f64);
             }
         }
-        let s2 = self.feed * self.feed;
-        if total <= 1.0 || train.is_done() {
-            // A segment of one step (the planner times the steps nearest rest one by one, as
-            // cruises) or the tail after a segment's last pulse says nothing of the plan's
-            // acceleration, which may be anything within the limit: σ̇ keeps the sum within
-            // it whatever it is, |σ̇·rate| + σ²·limit ≤ limit.
-            let room = limit * (1.0 - s2) / rate;
-            return (-room, room);
-        }
         // r·p² (dimensionless) times the rate² is the dominant acceleration in steps/s².
         let accel =
             train.ramp_q62() as f64 / (1u64 << 62) as f64 * rate * rate * train.phase() as f64;
-        let s2a = s2 * accel;
+        let s2a = self.feed * self.feed * accel;
         (
             ((-limit - s2a) / rate).min(0.0),
             ((limit - s2a) / rate).max(0.0),

@@ -540,28 +540,6 @@ fn a_pause_inside_a_stepless_piece_of_motion_keeps_to_the_limit() {
     assert!((920..965).contains(&after), "{after} steps after the pause");
 }
 
-/// One-step segments (the planner times the steps nearest rest so) say nothing of the plan's
-/// acceleration: a pause there does not brake until it can within the limit whatever that
-/// acceleration is; σ falls in the ramp after them.
-#[test]
-fn a_pause_in_one_step_segments_waits_for_a_segment_that_tells_its_acceleration() {
-    let mut player = Player::new(options());
-    for k in 0..5 {
-        player
-            .push(cruise(0, 1, 2_000 - 300 * k, false, 1))
-            .unwrap();
-    }
-    player.push(cruise(0, 20_000, 50, false, 2)).unwrap();
-    player.finish_input();
-    collect(&mut player, 0);
-    player.pause();
-    let mut feeds = Vec::new();
-    play(&mut player, 0, 400_000, |p, _| feeds.push(p.feed()));
-    // The five steps take 7 ms: σ stays 1 through them, then falls.
-    assert!(feeds[..5].iter().all(|&f| f == 1.0), "{:?}", &feeds[..8]);
-    assert!(feeds[20] < 1.0 && *feeds.last().unwrap() == 0.0);
-}
-
 /// The upstream stalls with a dwell last in the queue: the machine holds before the plan
 /// runs out (an underrun hold, at rest), so the move that comes later waits for the pin's
 /// delay. It used to run dry, idle with the pin closed, and start the next move at once:
@@ -640,4 +618,28 @@ fn a_reset_leaves_no_pause_behind() {
     collect(&mut player, 10_000);
     collect(&mut player, 20_000);
     assert_eq!(player.feed(), 1.0);
+}
+
+/// A pause during a dwell at rest holds within milliseconds: the next move's first step from
+/// rest is slow, so its limit lets σ fall at once, and nothing steps after the pause.
+#[test]
+fn a_pause_during_a_dwell_holds_at_once() {
+    let mut player = Player::new(options());
+    player.push(cruise(0, 1_000, 50, false, 1)).unwrap();
+    player.push(no_steps(30_000_000, 2)).unwrap();
+    player.push(cruise(0, 1, 2_000, false, 3)).unwrap();
+    player.push(cruise(0, 1_000, 50, false, 3)).unwrap();
+    player.finish_input();
+    collect(&mut player, 0);
+    let (edges, _) = play(&mut player, 0, 200_000, |p, t| {
+        if t == 100_000 {
+            p.pause();
+        }
+    });
+    assert_eq!(edges.len(), 1_000);
+    let (more, _) = play(&mut player, 200_000, 31_000_000, |_, _| {});
+    assert_eq!(player.state(), PlayerState::Held);
+    assert!(more.is_empty(), "{} steps after the pause", more.len());
+    // Held at plan time ~0.1 s: the dwell's rest of 29.9 s is still ahead.
+    assert!(player.ahead_q32() > 29 * 1_000_000 * Q32);
 }

@@ -55,10 +55,14 @@ stop_nodes() {
   # Stopping goes to its end: a second Ctrl-C reaches the nodes themselves (the machine's
   # emergency stop), not this.
   trap '' INT TERM
-  # shellcheck disable=SC2086
-  kill -TERM $executor $screw $planner $streamer 2>/dev/null || true
-  # shellcheck disable=SC2086
-  wait $executor $screw $planner $streamer 2>/dev/null || true
+  local running="$executor $screw $planner $streamer"
+  if [[ -n ${running// /} ]]; then
+    # shellcheck disable=SC2086
+    kill -TERM $running 2>/dev/null || true
+    # shellcheck disable=SC2086
+    wait $running 2>/dev/null || true
+  fi
+  executor= screw= planner= streamer=
   if [[ -n $recorder ]]; then
     kill -TERM "$recorder" 2>/dev/null || true
     wait "$recorder" || recorder_status=$?
@@ -112,6 +116,7 @@ while true; do
   wait -n -p ended $executor $streamer $planner $screw $recorder || status=$?
   case $ended in
     "$executor")
+      executor=
       [[ $status == 0 ]] || failed "$machine" "$status"
       break ;;
     "$streamer")

@@ -23,7 +23,7 @@ use cell_runtime::replay::{Joined, Numbered};
 use cell_runtime::topics::{publisher_qos, suite_topic};
 use cell_runtime::{
     now_ns, parse_service_mapping, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
-    Wire,
+    ShutdownSignal, Wire,
 };
 use polar_cell_msgs::{
     DiagnosticStatus, GcodeProgress, Header, Hold, JointState, PlanCredit, ScrewCommand,
@@ -1122,9 +1122,9 @@ fn plan_under_way(s: &Status) -> bool {
 /// A signal while a plan is under way (`ros2 launch`'s Ctrl-C, a script's `kill`) stops the
 /// machine on the path first, as `/cell/cancel` does, and ends the node once at rest: a
 /// machine let go mid-move would stop at once (an MCU's bridge dropped sends its emergency
-/// stop). The same signal again is the emergency stop (Ctrl-C twice); SIGTERM after SIGINT
-/// is not (a launcher escalating, or a script stopping its nodes after a terminal's Ctrl-C
-/// reached them as well): the stop on the path goes on.
+/// stop). A second signal is the emergency stop (Ctrl-C twice), except SIGTERM after SIGINT
+/// (a launcher escalating, or a script stopping its nodes after a terminal's Ctrl-C reached
+/// them as well): the stop on the path goes on.
 pub async fn main_with_args(
     name: &str,
     specs: &[ParamSpec],
@@ -1139,7 +1139,7 @@ pub async fn main_with_args(
     let (status_tx, status) = watch::channel(Status::default());
     let running = run(&mut node, receiver, status_tx);
     tokio::pin!(running);
-    let mut stopping: Option<cell_runtime::ShutdownSignal> = None;
+    let mut stopping: Option<ShutdownSignal> = None;
     // When the node ends: once a stop has come to rest (and its samples are out).
     let mut end_at: Option<tokio::time::Instant> = None;
     let mut look = tokio::time::interval(Duration::from_millis(10));
@@ -1147,8 +1147,13 @@ pub async fn main_with_args(
         tokio::select! {
             result = &mut running => {
                 // The stop asked for here ended the plan: no error of the node's.
+                // (A fault during that stop is the node's error all the same.)
+                let asked = stopping.is_some() && {
+                    let s = status.borrow();
+                    !plan_under_way(&s) && s.fault.is_none()
+                };
                 return match result {
-                    Err(_) if stopping.is_some() && !plan_under_way(&status.borrow()) => Ok(()),
+                    Err(_) if asked => Ok(()),
                     other => other,
                 };
             }
@@ -1157,18 +1162,21 @@ pub async fn main_with_args(
                 match stopping {
                     None if under_way => {
                         eprintln!(
-                            "{name}: stopping on the path (the same signal again: emergency stop)"
+                            "{name}: stopping on the path (Ctrl-C again: emergency stop)"
                         );
                         let _ = commands.send(Command::Cancel);
                         stopping = Some(signal);
                     }
                     None => return Ok(()),
-                    Some(first) if first == signal && under_way && end_at.is_none() => {
+                    // SIGTERM after SIGINT: a launcher escalating, or a script stopping its
+                    // nodes after a terminal's Ctrl-C reached them too. Not a second stop.
+                    Some(ShutdownSignal::Interrupt) if signal == ShutdownSignal::Terminate => {}
+                    Some(_) if under_way && end_at.is_none() => {
                         eprintln!("{name}: emergency stop");
                         let _ = commands.send(Command::EmergencyStop);
                         end_at = Some(tokio::time::Instant::now() + LINGER);
                     }
-                    Some(first) if first == signal && !under_way => return Ok(()),
+                    Some(_) if !under_way => return Ok(()),
                     Some(_) => {}
                 }
             }

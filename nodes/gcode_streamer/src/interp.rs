@@ -716,7 +716,6 @@ impl Interpreter {
     }
 }
 
-/// 0-based column of the first non-blank byte, if the line has one before any comment.
 /// Whether the interpreter acts on `letter code` (the commands of [`Interpreter::execute`]):
 /// their parameters must be numbers (bar `G28`'s flags). Every other command is skipped or
 /// warned about, so a flag word among its parameters is no error.
@@ -729,6 +728,7 @@ fn acts_on(letter: u8, code: f64) -> bool {
         )
 }
 
+/// 0-based column of the first non-blank byte, if the line has one before any comment.
 fn first_word_column(bytes: &[u8]) -> Option<u32> {
     let i = bytes.iter().position(|&b| b != b' ' && b != b'\t')?;
     (bytes[i].is_ascii_alphabetic()).then_some(i as u32 + 1)

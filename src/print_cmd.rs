@@ -1037,7 +1037,7 @@ async fn machine_failed(
             if s.state == Some(cell_executor::PlayerState::Stopped) {
                 return anyhow::anyhow!("emergency stop (/cell/estop) during the print");
             }
-            if s.cancelled && s.state != Some(cell_executor::PlayerState::Running) {
+            if s.cancelled_at_rest() {
                 return anyhow::anyhow!(stop_text(
                     "cancelled (/cell/cancel): stopped on the path",
                     &s
@@ -1100,7 +1100,7 @@ async fn stop_machine(
         loop {
             {
                 let s = watch.borrow_and_update();
-                if (s.cancelled && s.state != Some(PlayerState::Running))
+                if s.cancelled_at_rest()
                     || s.state == Some(PlayerState::Stopped)
                     || s.state.is_none()
                 {

@@ -714,11 +714,15 @@ impl Recorder {
                 .map(|t| parse_topic(t))
                 .collect::<anyhow::Result<_>>()?,
         )?;
-        for (topic, type_name) in &topics {
-            if polar_cell_msgs::find(type_name).is_none() {
-                bail!("topic {topic}: unknown message type {type_name}");
-            }
-        }
+        let topics: Vec<(String, String, &'static polar_cell_msgs::MsgType)> = topics
+            .into_iter()
+            .map(
+                |(topic, type_name)| match polar_cell_msgs::find(&type_name) {
+                    Some(msg_type) => Ok((topic, type_name, msg_type)),
+                    None => Err(anyhow!("topic {topic}: unknown message type {type_name}")),
+                },
+            )
+            .collect::<anyhow::Result<_>>()?;
         let output = PathBuf::from(params.string("output"));
         let directory = params.bool("bag_directory");
         let file_path = if directory {
@@ -767,9 +771,7 @@ impl Recorder {
         let mut credit_channel = None;
         let grant_credit = params.bool("grant_credit");
         let mut frontiers: Vec<Frontier> = Vec::new();
-        for (topic, type_name) in &topics {
-            let msg_type = polar_cell_msgs::find(type_name)
-                .ok_or_else(|| anyhow!("topic {topic}: unknown message type {type_name}"))?;
+        for (topic, type_name, msg_type) in &topics {
             let (qos, record) = if cell_runtime::topics::suite_topic(topic).is_some() {
                 qos_for(topic, reader_depth)
             } else {

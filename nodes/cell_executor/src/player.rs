@@ -277,12 +277,9 @@ impl Player {
         seconds_to_q32(seconds, self.options.steps.timer_hz)
     }
 
-    /// The dominant axis's step rate in plan time (steps/s) of a playing segment.
-    fn dominant_rate(&self, active: &Active) -> f64 {
-        1.0 / q32_to_seconds(
-            active.train.period_q32().into(),
-            self.options.steps.timer_hz,
-        )
+    /// The dominant axis's step rate in plan time (steps/s) at a pulse train's current period.
+    fn dominant_rate(&self, train: &PulseTrain) -> f64 {
+        1.0 / q32_to_seconds(train.period_q32().into(), self.options.steps.timer_hz)
     }
 
     /// Start the next queued segment if none is playing; false if there is none.
@@ -325,7 +322,7 @@ impl Player {
             },
         };
         let seg = train.segment();
-        let rate = 1.0 / q32_to_seconds(train.period_q32().into(), self.options.steps.timer_hz);
+        let rate = self.dominant_rate(train);
         let total = seg.dominant_steps() as f64;
         let mut limit = f64::INFINITY;
         for k in 0..MAX_AXES {
@@ -567,7 +564,7 @@ impl Player {
             return [0.0; MAX_AXES];
         };
         let seg = &active.job.segment;
-        let dominant_rate = self.feed * self.dominant_rate(active);
+        let dominant_rate = self.feed * self.dominant_rate(&active.train);
         let total = seg.dominant_steps() as f64;
         std::array::from_fn(|k| {
             let rate = dominant_rate * seg.step_counts[k] as f64 / total;

@@ -140,6 +140,11 @@ impl Status {
             _ => "waiting",
         }
     }
+
+    /// A cancel was taken and nothing runs any more: the stop on the path is over.
+    pub fn cancelled_at_rest(&self) -> bool {
+        self.cancelled && self.state != Some(PlayerState::Running)
+    }
 }
 
 /// What every machine node is told by its parameters.
@@ -1107,11 +1112,9 @@ pub type RunFn = for<'a> fn(
 /// Whether the machine has a plan under way: it moves, or holds on the path with more to
 /// run. Stopping such a machine is a stop on the path, not letting go of it.
 fn plan_under_way(s: &Status) -> bool {
-    // (`cancelled` is set as the cancel is taken: the stop is over once nothing runs.)
-    let cancelled_at_rest = s.cancelled && s.state != Some(PlayerState::Running);
     s.first_motion_s.is_some()
         && !s.done
-        && !cancelled_at_rest
+        && !s.cancelled_at_rest()
         && s.fault.is_none()
         && s.state != Some(PlayerState::Stopped)
 }

@@ -133,38 +133,71 @@ pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, S
 
 use crate::messages::trajectory_message;
 
-/// Joint states sampled from plans every `period` of plan time, continuing from `next_t`.
-pub fn sample_joint_states(
-    plan: &PlannedMove,
+/// Joint states sampled from a plan every `period` of plan time, from `next_t` on, made one
+/// at a time as they are taken: a long dwell or slow move has millions of them (a 10-hour
+/// `G4` held 1.8 million here, 0.7 GB with the screw driver's), and collecting them first
+/// would make memory grow with the length of the print.
+pub struct PlanSamples<'a> {
+    plan: &'a PlannedMove,
     period: f64,
-    next_t: &mut f64,
+    /// Plan time of the next sample.
+    next_t: f64,
     epoch_ns: i64,
-    out: &mut Vec<JointState>,
-) {
-    if period <= 0.0 {
-        return;
-    }
-    for w in plan.points.windows(2) {
-        let (a, b) = (&w[0], &w[1]);
-        while *next_t <= b.t && b.t > a.t {
-            if *next_t >= a.t {
-                let f = (*next_t - a.t) / (b.t - a.t);
-                let lerp = |x: [f64; 3], y: [f64; 3]| -> Vec<f64> {
-                    (0..3).map(|j| x[j] + (y[j] - x[j]) * f).collect()
-                };
-                out.push(JointState {
-                    header: Header {
-                        stamp: Time::after(epoch_ns, *next_t),
-                        frame_id: String::new(),
-                    },
-                    name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
-                    position: lerp(a.q, b.q),
-                    velocity: lerp(a.qd, b.qd),
-                    effort: vec![],
-                });
-            }
-            *next_t += period;
+    /// The window of `plan.points` the next sample falls in.
+    window: usize,
+}
+
+impl<'a> PlanSamples<'a> {
+    /// Samples of `plan` every `period` (≤ 0: none) from plan time `next_t` on.
+    pub fn new(plan: &'a PlannedMove, period: f64, next_t: f64, epoch_ns: i64) -> Self {
+        PlanSamples {
+            plan,
+            period,
+            next_t,
+            epoch_ns,
+            window: 0,
         }
+    }
+
+    /// Plan time of the first sample after this plan's (where the next plan's start).
+    pub fn next_t(&self) -> f64 {
+        self.next_t
+    }
+}
+
+impl Iterator for PlanSamples<'_> {
+    type Item = JointState;
+
+    fn next(&mut self) -> Option<JointState> {
+        if self.period <= 0.0 {
+            return None;
+        }
+        while let [a, b] = self.plan.points.get(self.window..self.window + 2)? {
+            if self.next_t > b.t || b.t <= a.t {
+                self.window += 1;
+                continue;
+            }
+            let t = self.next_t;
+            self.next_t += self.period;
+            if t < a.t {
+                continue;
+            }
+            let f = (t - a.t) / (b.t - a.t);
+            let lerp = |x: [f64; 3], y: [f64; 3]| -> Vec<f64> {
+                (0..3).map(|j| x[j] + (y[j] - x[j]) * f).collect()
+            };
+            return Some(JointState {
+                header: Header {
+                    stamp: Time::after(self.epoch_ns, t),
+                    frame_id: String::new(),
+                },
+                name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+                position: lerp(a.q, b.q),
+                velocity: lerp(a.qd, b.qd),
+                effort: vec![],
+            });
+        }
+        None
     }
 }
 
@@ -221,7 +254,6 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         cell_runtime::graph::Producer::named(node, "credit_producer", follow_execution)?;
     let mut planned = Vec::new();
     let mut segments = Vec::new();
-    let mut states = Vec::new();
     let mut next_state_t = 0.0;
     // What may be acknowledged: every move before `planned_until` is published, and the
     // checkpoint after each of them. Acknowledged is `published`, except that zero-time moves
@@ -371,12 +403,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                             .context("/polar/steps")?;
                     }
                 }
-                sample_joint_states(&plan, js_period, &mut next_state_t, epoch_ns, &mut states);
-                for s in states.drain(..) {
+                let mut samples = PlanSamples::new(&plan, js_period, next_state_t, epoch_ns);
+                for s in samples.by_ref() {
                     publish(&joint_states_pub, s, PUBLISH_PATIENCE)
                         .await
                         .context("/polar/planned_joint_states")?;
                 }
+                next_state_t = samples.next_t();
                 moves_planned += 1;
                 plan_time = plan.end_time();
                 pending = pending.saturating_sub(1);
@@ -445,6 +478,75 @@ mod tests {
             closed,
             ..PlanCredit::default()
         }
+    }
+
+    fn point(t: f64, r: f64, rd: f64) -> crate::TrajPoint {
+        crate::TrajPoint {
+            t,
+            q: [0.0, r, 0.0],
+            qd: [0.0, rd, 0.0],
+            ..Default::default()
+        }
+    }
+
+    /// Samples fall on one grid across plans (a plan's first sample continues the last
+    /// one's), interpolate between points, skip a corner's repeated instant, and a long plan
+    /// with two points yields all of its samples lazily.
+    #[test]
+    fn samples_follow_one_grid_across_plans() {
+        let first = PlannedMove {
+            points: vec![
+                point(0.0, 0.0, 0.1),
+                point(0.5, 0.05, 0.1),
+                point(0.5, 0.05, 0.2),
+            ],
+            ..Default::default()
+        };
+        let second = PlannedMove {
+            points: vec![point(0.5, 0.05, 0.2), point(1.0, 0.15, 0.2)],
+            ..Default::default()
+        };
+        let mut samples = PlanSamples::new(&first, 0.2, 0.0, 1_000);
+        let taken: Vec<JointState> = samples.by_ref().collect();
+        let next_t = samples.next_t();
+        assert!((next_t - 0.6).abs() < 1e-12, "{next_t}");
+        let taken_after: Vec<JointState> = PlanSamples::new(&second, 0.2, next_t, 1_000).collect();
+        let r: Vec<f64> = taken
+            .iter()
+            .chain(&taken_after)
+            .map(|s| s.position[1])
+            .collect();
+        let expected = [0.0, 0.02, 0.04, 0.07, 0.11, 0.15];
+        assert_eq!(r.len(), expected.len(), "{r:?}");
+        for (got, want) in r.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-12, "{r:?}");
+        }
+        let stamps: Vec<i64> = taken
+            .iter()
+            .chain(&taken_after)
+            .map(|s| s.header.stamp.as_nanos())
+            .collect();
+        assert_eq!(
+            stamps,
+            [
+                1_000,
+                200_001_000,
+                400_001_000,
+                600_001_000,
+                800_001_000,
+                1_000_001_000
+            ]
+        );
+        assert_eq!(PlanSamples::new(&first, 0.0, 0.0, 0).count(), 0);
+        let dwell = PlannedMove {
+            points: vec![point(0.0, 0.1, 0.0), point(36_000.0, 0.1, 0.0)],
+            ..Default::default()
+        };
+        let dwell_samples = PlanSamples::new(&dwell, 0.02, 0.0, 0).count();
+        assert!(
+            (1_800_000..=1_800_001).contains(&dwell_samples),
+            "{dwell_samples}"
+        );
     }
 
     /// No executor heard from, or one that closed: nothing. Before the executor has a

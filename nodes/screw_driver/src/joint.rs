@@ -74,33 +74,26 @@ impl ScrewAngle {
     /// Extend by the next chunk of commands (in time order), pushing the samples that fall
     /// before its last command.
     pub fn extend(&mut self, commands: &[Command], out: &mut Vec<ScrewSample>) {
-        for &c in commands {
-            let Some((a, angle_a)) = self.last else {
-                self.origin_t = c.t;
-                self.next_index = 0;
-                self.last = Some((c, 0.0));
-                continue;
-            };
-            let mut angle_c = angle_a;
-            if c.t > a.t {
-                loop {
-                    let t = self.origin_t + self.next_index as f64 * self.period_s;
-                    if t >= c.t {
-                        break;
-                    }
-                    if t >= a.t {
-                        let (rpm, rpm_s) = self.run(&a, &c, t - a.t);
-                        out.push(ScrewSample {
-                            t,
-                            angle_rad: angle_a + rpm_s * RAD_PER_S_PER_RPM,
-                            velocity_rad_per_s: rpm * RAD_PER_S_PER_RPM,
-                        });
-                    }
-                    self.next_index += 1;
-                }
-                angle_c += self.run(&a, &c, c.t - a.t).1 * RAD_PER_S_PER_RPM;
-            }
-            self.last = Some((c, angle_c));
+        let mut samples = self.clone().samples(commands.to_vec());
+        out.extend(&mut samples);
+        *self = samples.angle;
+    }
+
+    /// Move past `commands` as [`ScrewAngle::extend`] does, keeping no sample.
+    pub fn advance(&mut self, commands: &[Command]) {
+        let mut samples = self.clone().samples(commands.to_vec());
+        samples.by_ref().for_each(drop);
+        *self = samples.angle;
+    }
+
+    /// The samples [`ScrewAngle::extend`] would push for `commands`, made one at a time as
+    /// they are taken: a long dwell or a slow move has millions of them, and a chunk that
+    /// held them all would make memory grow with the length of the print.
+    pub fn samples(self, commands: Vec<Command>) -> ScrewSamples {
+        ScrewSamples {
+            angle: self,
+            commands,
+            next_command: 0,
         }
     }
 
@@ -112,6 +105,52 @@ impl ScrewAngle {
                 let slope = (b.rpm - a.rpm) / (b.t - a.t);
                 (a.rpm + slope * dt, a.rpm * dt + 0.5 * slope * dt * dt)
             }
+        }
+    }
+}
+
+/// The samples of one chunk of commands, in time order ([`ScrewAngle::samples`]); the angle
+/// it holds has advanced past them once the iterator is exhausted.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScrewSamples {
+    angle: ScrewAngle,
+    commands: Vec<Command>,
+    next_command: usize,
+}
+
+impl Iterator for ScrewSamples {
+    type Item = ScrewSample;
+
+    fn next(&mut self) -> Option<ScrewSample> {
+        loop {
+            let c = *self.commands.get(self.next_command)?;
+            let angle = &mut self.angle;
+            let Some((a, angle_a)) = angle.last else {
+                angle.origin_t = c.t;
+                angle.next_index = 0;
+                angle.last = Some((c, 0.0));
+                self.next_command += 1;
+                continue;
+            };
+            let mut angle_c = angle_a;
+            if c.t > a.t {
+                let t = angle.origin_t + angle.next_index as f64 * angle.period_s;
+                if t < c.t {
+                    angle.next_index += 1;
+                    if t >= a.t {
+                        let (rpm, rpm_s) = angle.run(&a, &c, t - a.t);
+                        return Some(ScrewSample {
+                            t,
+                            angle_rad: angle_a + rpm_s * RAD_PER_S_PER_RPM,
+                            velocity_rad_per_s: rpm * RAD_PER_S_PER_RPM,
+                        });
+                    }
+                    continue;
+                }
+                angle_c += angle.run(&a, &c, c.t - a.t).1 * RAD_PER_S_PER_RPM;
+            }
+            angle.last = Some((c, angle_c));
+            self.next_command += 1;
         }
     }
 }

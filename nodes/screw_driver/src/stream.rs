@@ -38,7 +38,7 @@ use polar_cell_msgs::{
 use serde::{Deserialize, Serialize};
 
 use crate::compensation::CompensatorState;
-use crate::joint::{Hold, ScrewAngle, ScrewSample};
+use crate::joint::{Hold, ScrewAngle, ScrewSample, ScrewSamples};
 use crate::screw::{
     chunk_commands, position_after, Command, PinState, RepeatFilter, RpmModel, ScrewOptions,
     TimedMove,
@@ -129,7 +129,24 @@ pub enum Cut {
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Chunk {
     pub commands: Vec<ScrewCommand>,
-    pub joint_states: Vec<JointState>,
+    pub joint_states: JointStates,
+}
+
+/// A chunk's screw joint states, made one at a time as they are taken: a long dwell has
+/// millions of them (a 10-hour `G4` held 1.8 million here, 0.7 GB with the planner's).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct JointStates {
+    samples: Option<ScrewSamples>,
+    base_ns: i64,
+}
+
+impl Iterator for JointStates {
+    type Item = JointState;
+
+    fn next(&mut self) -> Option<JointState> {
+        let sample = self.samples.as_mut()?.next()?;
+        Some(joint_state_message(&sample, self.base_ns))
+    }
 }
 
 /// What became of a trajectory ([`Stream::on_trajectory`]).
@@ -498,12 +515,12 @@ impl Stream {
             chunk.commands.push(message);
         }
         if let Some(angle) = c.angle.as_mut() {
-            let mut samples = Vec::new();
-            angle.extend(&commands, &mut samples);
-            chunk.joint_states = samples
-                .iter()
-                .map(|s| joint_state_message(s, base))
-                .collect();
+            chunk.joint_states = JointStates {
+                samples: Some(angle.clone().samples(commands.clone())),
+                base_ns: base,
+            };
+            // The stream's own angle is past the chunk at once: its checkpoint.
+            angle.advance(&commands);
         }
         Some(chunk)
     }

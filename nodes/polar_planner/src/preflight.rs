@@ -28,12 +28,8 @@ pub struct PreflightReport {
 pub enum PreflightError {
     #[error(transparent)]
     Plan(#[from] PlanError),
-    #[error("move {sequence} (line {line}): its steps cannot be played: {source}")]
-    Steps {
-        sequence: u64,
-        line: u32,
-        source: step_core::SegmentError,
-    },
+    #[error("its steps cannot be played: {0}")]
+    Steps(#[from] polar_cell_msgs::UnplayableSegment),
 }
 
 /// Plans moves one by one and forgets them.
@@ -43,12 +39,16 @@ pub struct Preflight {
     report: PreflightReport,
     planned: Vec<PlannedMove>,
     segments: Vec<StepSegment>,
+    /// The step timer the segments are timed for (and must fit).
+    timer_hz: f64,
 }
 
 impl Preflight {
     pub fn new(options: PlannerOptions, steps: StepOptions) -> Result<Preflight, PlanError> {
         let initial = options.initial_joints;
+        let timer_hz = steps.timer_hz;
         Ok(Preflight {
+            timer_hz,
             planner: Planner::new(options)?,
             generator: StepGenerator::new(steps, initial),
             report: PreflightReport {
@@ -87,11 +87,8 @@ impl Preflight {
             self.segments.clear();
             self.generator.segments(&plan, &mut self.segments);
             for seg in &self.segments {
-                seg.compile().map_err(|source| PreflightError::Steps {
-                    sequence: plan.sequence,
-                    line: plan.source_line,
-                    source,
-                })?;
+                // What the machine will refuse when it gets there: the same check.
+                seg.playable(self.timer_hz)?;
                 for (total, &count) in self.report.steps.iter_mut().zip(&seg.step_counts) {
                     *total += count as u64;
                 }
@@ -150,5 +147,41 @@ mod tests {
         assert_eq!(report.steps[1], 12_000, "{report:?}");
         let (lo, hi) = report.joint_ranges[1];
         assert!(lo.abs() < 1e-12 && (hi - 0.05).abs() < 1e-12, "{report:?}");
+    }
+
+    /// A segment the machine's step clock cannot time (2³¹ ticks: 2.15 s at 1 GHz) is
+    /// refused before the print, naming its line, as the machine would refuse it there; a
+    /// long dwell is not (it comes in pieces).
+    #[test]
+    fn a_segment_too_long_for_the_step_clock_is_refused_before_the_print() {
+        let steps = StepOptions {
+            timer_hz: 1e9,
+            ..StepOptions::default()
+        };
+        let mut preflight = Preflight::new(PlannerOptions::default(), steps).unwrap();
+        preflight.push(&line(0, 0.05, 0.0, 1)).unwrap();
+        let dwell = GcodeMove {
+            sequence: 1,
+            source_line: 2,
+            kind: M::KIND_DWELL,
+            dwell_s: 3600.0,
+            ..GcodeMove::default()
+        };
+        preflight.push(&dwell).unwrap();
+        let crawl = GcodeMove {
+            feedrate_m_per_s: 1e-4,
+            ..line(2, 0.06, 0.0, 3)
+        };
+        let text = match preflight
+            .push(&crawl)
+            .and_then(|()| preflight.finish().map(drop))
+        {
+            Err(e) => e.to_string(),
+            Ok(()) => panic!("a 0.1 mm/s crawl at 1 GHz passed"),
+        };
+        assert!(
+            text.contains("line 3") && text.contains("cannot be played"),
+            "{text}"
+        );
     }
 }

@@ -72,7 +72,15 @@ impl StepGenerator {
                 ..StepSegment::default()
             };
             if n == 0.0 {
-                out.push(seg);
+                // A machine plays segments shorter than 2³¹ ticks (its step core's clock):
+                // a long dwell or rest is cut into equal pieces of at most half that.
+                let pieces = (dt * f / MAX_PAUSE_TICKS).ceil().max(1.0);
+                for _ in 0..pieces as u64 {
+                    out.push(StepSegment {
+                        duration_s: dt / pieces,
+                        ..seg.clone()
+                    });
+                }
                 continue;
             }
             // Dominant rates from the plan, scaled so the N steps take exactly dt.
@@ -104,6 +112,10 @@ impl StepGenerator {
         }
     }
 }
+
+/// The longest stepless segment, in timer ticks: half of what a machine can play (2³¹), so
+/// rounding never takes a piece to the limit.
+const MAX_PAUSE_TICKS: f64 = (1u64 << 30) as f64;
 
 /// Steps where `2a/v² > MAX_RAMP_X` are timed exactly one by one: there the Taylor recurrence
 /// (an expansion in `x = 2a/v²`) is not accurate, i.e. the first steps from rest and the last
@@ -359,6 +371,42 @@ mod tests {
         let e1 = ((first_order - exact) / exact).abs();
         let e2 = ((corrected - exact) / exact).abs();
         assert!(e2 < e1 / 2.0, "first order {e1}, corrected {e2}");
+    }
+
+    /// A dwell longer than a machine's step clock can time in one segment (2³¹ ticks:
+    /// 2147.5 s at 1 MHz) comes as equal playable pieces that add up to it.
+    #[test]
+    fn a_long_dwell_is_cut_into_playable_pieces() {
+        let point = |t: f64| crate::TrajPoint {
+            t,
+            q: [0.1, 0.05, 0.0],
+            ..Default::default()
+        };
+        for (dwell_s, timer_hz, expected_pieces) in [
+            (2200.0, 1e6, 3),
+            (1000.0, 1e6, 1),
+            (36_000.0, 1e6, 34),
+            (10.0, 1e9, 10),
+        ] {
+            let options = StepOptions {
+                timer_hz,
+                ..StepOptions::default()
+            };
+            let mut generator = StepGenerator::new(options, [0.1, 0.05, 0.0]);
+            let plan = PlannedMove {
+                points: vec![point(5.0), point(5.0 + dwell_s)],
+                ..Default::default()
+            };
+            let mut out = Vec::new();
+            generator.segments(&plan, &mut out);
+            assert_eq!(out.len(), expected_pieces, "{dwell_s} s at {timer_hz} Hz");
+            let total: f64 = out.iter().map(|s| s.duration_s).sum();
+            assert!((total - dwell_s).abs() < 1e-9 * dwell_s, "{total}");
+            for seg in &out {
+                assert_eq!(seg.step_counts, [0, 0, 0]);
+                seg.playable(timer_hz).unwrap();
+            }
+        }
     }
 
     #[test]

@@ -278,10 +278,11 @@ impl<L: McuLink> McuMachine<L> {
         if self.hold != Some(HoldReason::Cancel) {
             return Ok(());
         }
-        let at_rest = self
-            .session
-            .state()
-            .is_some_and(|s| matches!(s.mode, Mode::Held | Mode::Idle | Mode::Fault));
+        // (Idle from before the last segments arrived is not at rest: a drop then finds the
+        // MCU moving, and it faults.)
+        let at_rest = self.session.state().is_some_and(|s| {
+            matches!(s.mode, Mode::Held | Mode::Fault) || self.session.idle_after_last_sent(s)
+        });
         if at_rest {
             self.session.drop_plan()?;
             self.forget();

@@ -96,6 +96,12 @@ pub fn param_specs() -> Vec<ParamSpec> {
         )
         .range(0.01, 60.0),
         ParamSpec::new(
+            "answer_timeout_s",
+            ParamValue::Double(5.0),
+            "the host faults when the MCU is not ready (linked, identified, clock fitted, reporting) this long after the session began (wall seconds)",
+        )
+        .range(0.1, 600.0),
+        ParamSpec::new(
             "screw_port",
             ParamValue::String(String::new()),
             "the screw's servo amplifier on an ASCII serial line (a tty or pseudo-terminal path); empty: the MCU drives the screw",
@@ -401,6 +407,7 @@ pub fn session_options(node: &CellNode, params: &MachineParams) -> SessionOption
     options.clock_query_settled_period_s = p.f64("clock_query_settled_period_s");
     options.host_timeout_s = p.f64("host_timeout_s") * wall;
     options.silence_s = p.f64("silence_s") * wall;
+    options.answer_timeout_s = p.f64("answer_timeout_s") * wall;
     options.retransmit_timeout_s = p.f64("retransmit_timeout_s") * wall;
     options.pack_s = p.f64("pack_s");
     options.screw_hold = params.screw_hold;

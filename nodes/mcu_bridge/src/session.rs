@@ -55,6 +55,10 @@ pub struct SessionOptions {
     pub state_period_s: f64,
     /// The host gives up on an MCU silent this long (and at least ten state periods) (s).
     pub silence_s: f64,
+    /// The host gives up on an MCU not ready (linked, identified, clock fitted, reporting)
+    /// this long after the session's first tick (s): a wrong device or baud rate otherwise
+    /// waits for ever with nothing said.
+    pub answer_timeout_s: f64,
     pub retransmit_timeout_s: f64,
     /// How long continuing segments and screw commands may wait for more to fill their frame
     /// (machine s): they go a horizon ahead, and each frame costs 8 bytes of framing. A
@@ -87,6 +91,7 @@ impl SessionOptions {
             host_timeout_s: 1.0,
             state_period_s: 0.02,
             silence_s: 0.25,
+            answer_timeout_s: 5.0,
             retransmit_timeout_s: 0.05,
             pack_s: 0.1,
             screw_hold: Hold::ZeroOrder,
@@ -112,6 +117,11 @@ pub enum SessionError {
     Restarted { lost: usize },
     #[error("the MCU has been silent for {silent_s:.3} s (no state since)")]
     Silent { silent_s: f64 },
+    #[error("the MCU was not ready {waited_s:.1} s after the session began: {missing}")]
+    NoAnswer {
+        waited_s: f64,
+        missing: &'static str,
+    },
     #[error(
         "the MCU's fault {code:?} did not clear: it still reports it {waited_s:.3} s after RESET"
     )]
@@ -138,6 +148,9 @@ pub struct McuSession {
     clock: ClockSync,
     identity: Option<Identity>,
     configured: bool,
+    /// The session's first tick, and whether it has been ready since.
+    first_tick_us: Option<u64>,
+    was_ready: bool,
     /// Outstanding clock queries: token and send time.
     queries: VecDeque<(u32, u64)>,
     next_token: u32,
@@ -218,6 +231,8 @@ impl McuSession {
             clock: ClockSync::new(1e6, CLOCK_SAMPLES),
             identity: None,
             configured: false,
+            first_tick_us: None,
+            was_ready: false,
             queries: VecDeque::new(),
             next_token: 1,
             next_query_us: 0,
@@ -295,6 +310,23 @@ impl McuSession {
             && self.reset == ResetProgress::Done
     }
 
+    /// The first thing [`McuSession::is_ready`] still waits for, as a user would look for it.
+    fn missing_for_ready(&self) -> &'static str {
+        if !self.endpoint.link().is_synced() {
+            "its link never synchronised (no answer to SYNC_REQUEST: is this the MCU, at this baud rate?)"
+        } else if self.identity.is_none() {
+            "no answer to IDENTIFY"
+        } else if !self.configured {
+            "not configured (its protocol version is not ours)"
+        } else if self.clock.fit().is_none() {
+            "too few answers to clock queries for a clock fit"
+        } else if self.state.is_none() {
+            "no state report"
+        } else {
+            "its RESET was not acted on"
+        }
+    }
+
     /// Segments and screw ramps converted and not yet sent.
     pub fn waiting(&self) -> (usize, usize) {
         (self.segments.len(), self.screw.len())
@@ -304,8 +336,19 @@ impl McuSession {
     pub fn is_drained(&self) -> bool {
         self.segments.is_empty()
             && self.state().is_some_and(|s| {
-                s.mode == Mode::Idle && self.last_sent_tag.is_none_or(|t| s.done_tag == t)
+                self.idle_after_last_sent(s) && self.last_sent_tag.is_none_or(|t| s.done_tag == t)
             })
+    }
+
+    /// Whether `state` shows the MCU idle with the last segment sent taken up and played,
+    /// not idle from before it arrived: a state can be a period old, and an MCU keeps its
+    /// done tag across runs (the same file printed twice ends on the same tag). Its plan
+    /// clock tells: a segment is sent to start ahead of the plan clock the MCU had then.
+    pub fn idle_after_last_sent(&self, state: &McuState) -> bool {
+        state.mode == Mode::Idle
+            && self
+                .last_sent_start
+                .is_none_or(|start| state.plan_clock >= start)
     }
 
     /// MCU plan clock at which the last segment sent starts.
@@ -596,13 +639,28 @@ impl McuSession {
 
     /// Periodic work at `now_us`: identify and configure, clock queries, feed the plan.
     pub fn tick(&mut self, now_us: u64) -> Result<(), LinkError> {
+        let first_tick_us = *self.first_tick_us.get_or_insert(now_us);
+        if self.is_ready() {
+            self.was_ready = true;
+        } else if !self.was_ready && self.error.is_none() {
+            let waited_s = now_us.saturating_sub(first_tick_us) as f64 * 1e-6;
+            if waited_s > self.options.answer_timeout_s {
+                let missing = self.missing_for_ready();
+                self.fail(SessionError::NoAnswer { waited_s, missing });
+            }
+        }
         // An MCU that stops reporting (hung, unplugged) cannot be trusted to be moving as
         // planned: after ten state periods (at least `silence_s`), it is a fault.
         if let Some((_, at)) = self.state {
             let silent_s = now_us.saturating_sub(at) as f64 * 1e-6;
             let bound_s = (10.0 * self.options.state_period_s).max(self.options.silence_s);
-            if self.configured && silent_s > bound_s {
+            if self.configured && silent_s > bound_s && self.error.is_none() {
                 self.fail(SessionError::Silent { silent_s });
+                // Unheard is not stopped: an MCU whose reports no longer arrive (its TX
+                // wire, its USB endpoint) may still hear us and play its queue; our clock
+                // queries would feed its watchdog while it runs dry at speed. Stop it, as
+                // often as the stop goes unconfirmed.
+                self.emergency_stop();
             }
         }
         if !self.endpoint.link().is_synced() {
@@ -790,7 +848,7 @@ impl McuSession {
                 s.fault != FaultCode::None
                     && self
                         .emergency_sent_us
-                        .is_some_and(|sent| *received_us >= sent)
+                        .is_some_and(|sent| *received_us > sent)
             });
             let due = self.emergency_sent_us.is_none_or(|at| {
                 now_us.saturating_sub(at) >= (self.options.retransmit_timeout_s * 1e6) as u64

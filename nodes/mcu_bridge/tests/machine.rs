@@ -443,6 +443,53 @@ fn pause_resume_and_cancel_work_through_the_machine_interface() {
     assert!(rig.machine.session().error().is_none());
 }
 
+/// A cancel moments after the first segments went out: the MCU's last state (idle, from
+/// before they arrived) is not rest, so the plan is dropped only once the hold has the MCU
+/// at rest (dropping it at once found the MCU taking a segment up and it faulted
+/// DROP_WHILE_MOVING).
+#[test]
+fn a_cancel_as_the_print_starts_ends_at_rest_without_a_fault() {
+    let segments = finger_start(300);
+    for delay_ms in [0, 5, 40] {
+        let mut rig = Rig::new(EmulatorOptions::default());
+        while rig.machine.session().sent_until_clock().is_none() {
+            rig.ms(&segments).unwrap();
+            assert!(rig.now_ns < 10_000_000_000, "nothing sent in 10 s");
+        }
+        rig.run_for(&segments, delay_ms as f64 * 1e-3);
+        rig.machine.cancel();
+        let mut waited_ms = 0;
+        while !rig.machine.is_drained() {
+            rig.now_ns += 1_000_000;
+            rig.machine.on_tick(rig.now_ns).unwrap();
+            waited_ms += 1;
+            assert!(
+                waited_ms < 3000,
+                "{delay_ms} ms: the cancel never came to rest"
+            );
+        }
+        for _ in 0..200 {
+            rig.now_ns += 1_000_000;
+            rig.machine.on_tick(rig.now_ns).unwrap();
+        }
+        assert!(
+            rig.machine.session().error().is_none(),
+            "{delay_ms} ms: {:?}",
+            rig.machine.session().error()
+        );
+        assert_ne!(
+            rig.machine.state().state,
+            PlayerState::Stopped,
+            "{delay_ms} ms"
+        );
+        assert_eq!(
+            rig.machine.epoch_ns(),
+            None,
+            "{delay_ms} ms: the plan is dropped"
+        );
+    }
+}
+
 /// A pause while a cancel decelerates leaves it a cancel: at rest the plan is dropped, and a
 /// resume then plays nothing (the pause used to replace the cancel's hold, so the plan was
 /// kept, and a resume played the "cancelled" plan).

@@ -38,6 +38,8 @@ struct Rig {
     edges: Vec<cell_firmware_core::StepEdge>,
     /// Largest lead of a sent segment's start over the MCU's plan clock (ticks).
     worst_lead: u64,
+    /// From this instant the MCU's bytes never reach the host (a broken TX wire).
+    deaf_from_us: u64,
 }
 
 impl Rig {
@@ -60,6 +62,7 @@ impl Rig {
             now_us: 0,
             edges: Vec::new(),
             worst_lead: 0,
+            deaf_from_us: u64::MAX,
         }
     }
 
@@ -73,7 +76,9 @@ impl Rig {
         let mut bytes = Vec::new();
         let edges = &mut self.edges;
         self.mcu.run_until(t, &mut |e| edges.push(e), &mut bytes);
-        self.session.receive(&bytes, self.now_us);
+        if self.now_us < self.deaf_from_us {
+            self.session.receive(&bytes, self.now_us);
+        }
         if let (Some(state), Some(sent)) = (self.session.state(), self.session.sent_until_clock()) {
             self.worst_lead = self.worst_lead.max(sent.saturating_sub(state.plan_clock));
         }
@@ -285,6 +290,37 @@ fn a_restarted_or_silent_mcu_is_a_fault_of_the_print() {
         other => panic!("{other:?}"),
     }
     assert!(rig.now_us < 4_300_000, "noticed at {} µs", rig.now_us);
+
+    // The MCU's reports stop reaching the host (its TX wire broken) while it prints: the
+    // host's frames still reach it, and one of them must stop it. (Before, the host only
+    // gave up: its clock queries kept the MCU's watchdog fed, and it played its whole queue
+    // into an underrun at speed.)
+    let mut rig = printing(EmulatorOptions::default(), &finger_start(300));
+    rig.deaf_from_us = rig.now_us + 3_000_000;
+    while rig.session.error().is_none() && rig.now_us < 10_000_000 {
+        rig.round();
+    }
+    assert!(matches!(
+        rig.session.error(),
+        Some(SessionError::Silent { .. })
+    ));
+    let noticed_us = rig.now_us;
+    let edges_then = rig.edges.len();
+    for _ in 0..100 {
+        rig.round();
+    }
+    let machine = rig.mcu.endpoint().machine();
+    assert_eq!(
+        machine.fault(),
+        FaultCode::EmergencyStop,
+        "at {noticed_us} µs"
+    );
+    assert!(!machine.pin_open());
+    assert!(
+        rig.edges.len() - edges_then < 200,
+        "{} steps after the host gave up",
+        rig.edges.len() - edges_then
+    );
 }
 
 /// Paused mid-print and resumed: the MCU comes to rest on the path quickly and holds still,
@@ -392,4 +428,83 @@ fn a_screw_command_too_late_for_its_start_starts_when_the_mcu_can_take_it() {
     // It was due 0.4 s and more before it could go; it went out the margin ahead instead.
     let late_s = rig.session.screw_late_worst_ticks as f64 * 1e-6;
     assert!((0.4..0.5).contains(&late_s), "late by {late_s} s");
+}
+
+/// The same moves printed twice end on the same tag, and the MCU keeps its done tag: right
+/// after the second plan is sent, the last state (idle, done with that tag, from before the
+/// segments arrived) must not pass for the plan played (a node took the print as done at
+/// once and left the MCU printing unattended until its watchdog cut it off).
+#[test]
+fn a_state_from_before_the_last_segments_is_not_the_end_of_the_plan() {
+    // A short plan (well under the feed's horizon): 3 mm out and back.
+    let moves = parse_all(
+        b"G91\nG1 X3 F1200\nG1 X-3\n",
+        "short.gcode",
+        InterpreterOptions::default(),
+    )
+    .unwrap()
+    .0;
+    let plan = plan_program(&moves, PlannerOptions::default(), StepOptions::default())
+        .unwrap()
+        .segments;
+    let mut rig = printing(EmulatorOptions::default(), &plan);
+    while !rig.session.is_drained() && rig.now_us < 30_000_000 {
+        rig.round();
+    }
+    assert!(rig.session.is_drained());
+    let first_run_edges = rig.edges.len();
+    assert!(first_run_edges > 100, "{first_run_edges}");
+    rig.session.drop_plan().unwrap();
+    for _ in 0..50 {
+        rig.round();
+    }
+    for seg in &plan {
+        rig.session.on_segment(seg, rig.now_us).unwrap();
+    }
+    rig.session.tick(rig.now_us).unwrap();
+    let mut out = [0; MAX_WIRE_FRAME];
+    while let Some(len) = rig.session.poll_transmit(rig.now_us, &mut out) {
+        rig.mcu.receive(&out[..len], rig.now_us as f64 * 1e-6);
+    }
+    assert_eq!(rig.session.waiting().0, 0, "the plan went out in one feed");
+    let stale = rig.session.state().unwrap();
+    assert_eq!(stale.mode, Mode::Idle);
+    assert!(!rig.session.is_drained(), "done before it began: {stale:?}");
+    while !rig.session.is_drained() && rig.now_us < 60_000_000 {
+        rig.round();
+    }
+    assert_eq!(
+        rig.edges.len(),
+        2 * first_run_edges,
+        "the second run played whole"
+    );
+}
+
+/// Nothing answers (a wrong device, a wrong baud rate): the session fails after its answer
+/// timeout, saying what it waited for, instead of offering no room for ever.
+#[test]
+fn a_device_that_never_answers_fails_the_session_with_what_is_missing() {
+    let mut session = McuSession::new(session_options(), 7);
+    let mut out = [0; MAX_WIRE_FRAME];
+    let mut now_us = 1_000_000;
+    while session.error().is_none() && now_us < 20_000_000 {
+        session.tick(now_us).unwrap();
+        while session.poll_transmit(now_us, &mut out).is_some() {}
+        session.receive(b"garbage, not frames", now_us);
+        now_us += 10_000;
+    }
+    match session.error() {
+        Some(SessionError::NoAnswer { waited_s, missing }) => {
+            assert!((5.0..5.1).contains(waited_s), "{waited_s}");
+            assert!(missing.contains("SYNC_REQUEST"), "{missing}");
+        }
+        other => panic!("{other:?}"),
+    }
+    // An MCU that answers is ready well within the bound, and stays free of the error.
+    let mut rig = Rig::new();
+    for _ in 0..10_000 {
+        rig.round();
+    }
+    assert!(rig.session.is_ready());
+    assert!(rig.session.error().is_none(), "{:?}", rig.session.error());
 }

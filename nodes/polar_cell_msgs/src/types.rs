@@ -333,6 +333,11 @@ pub struct GcodeMove {
 ros_message!(GcodeMove => schema::GCODE_MOVE);
 
 impl GcodeMove {
+    /// A move whose target is closer than this (1 nm) to where it starts goes nowhere: a
+    /// start position converted between mm and m differs from the same point computed in m
+    /// in the last bit, and a prime there became a 1e-19 m line planned in no time (and fed
+    /// at an rpm without bound). Far below any step.
+    pub const NO_PATH_M: f64 = 1e-9;
     pub const KIND_RAPID: u8 = 0;
     pub const KIND_LINEAR: u8 = 1;
     pub const KIND_ARC_CW: u8 = 2;

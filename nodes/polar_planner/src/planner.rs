@@ -542,7 +542,7 @@ impl Planner {
                 }
                 let feeds = m.extrude && m.delta_e_m > 0.0;
                 let screw = self.options.screw.filter(|_| feeds);
-                if length == 0.0 {
+                if length < GcodeMove::NO_PATH_M {
                     if m.delta_e_m != 0.0 {
                         // Extruder only (retract, prime): the stage rests for the E motion,
                         // at least as long as the screw needs to feed it.

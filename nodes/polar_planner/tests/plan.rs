@@ -823,3 +823,36 @@ fn a_start_outside_the_joint_limits_is_refused_by_name() {
     };
     assert!(Planner::new(at_limit).is_ok());
 }
+
+/// A print started away from home (an MCU's reported position, `--start-joints`): the
+/// streamer starts from that point in mm, the planner from the same joints in m, and the two
+/// differ in the last bit. A prime there is still a prime: the stage rests for ΔE/F (it was
+/// planned as a 1e-19 m line over in no time).
+#[test]
+fn a_prime_where_a_print_starts_away_from_home_rests_for_its_feed() {
+    let joints = [0.038, 0.05, 0.0];
+    let options = PlannerOptions {
+        initial_joints: joints,
+        ..PlannerOptions::default()
+    };
+    let start_m = Planner::start_point(&options).p_m;
+    let start_mm = start_m.map(|v| v * 1e3);
+    assert!(
+        (0..3).any(|j| start_mm[j] / 1e3 != start_m[j]),
+        "this start converts exactly: the test shows nothing"
+    );
+    let interp = InterpreterOptions {
+        start_position_mm: start_mm,
+        ..InterpreterOptions::default()
+    };
+    let moves = parse_all(b"M83\nG1 E2 F1800\n", "prime", interp).unwrap().0;
+    let planned = plan(&moves, options);
+    let prime = planned.iter().find(|p| p.delta_e_m > 0.0).unwrap();
+    let duration = prime.end_time() - prime.start_time();
+    assert!((duration - 2.0 / 30.0).abs() < 1e-9, "{duration} s");
+    assert!(
+        prime.points.iter().all(|p| p.q == joints),
+        "{:?}",
+        prime.points
+    );
+}

@@ -134,6 +134,14 @@ impl TimedMove {
         let to = [m.x_m, m.y_m, m.z_m];
         let d = [to[0] - from[0], to[1] - from[1], to[2] - from[2]];
         let mid = [(to[0] + from[0]) / 2.0, (to[1] + from[1]) / 2.0];
+        // (As the planner has it: closer than NO_PATH_M is no path, and feeds in place.)
+        let path = |length_m: f64| {
+            if length_m < polar_cell_msgs::GcodeMove::NO_PATH_M {
+                0.0
+            } else {
+                length_m
+            }
+        };
         TimedMove {
             sequence: m.sequence,
             source_line: m.source_line,
@@ -141,8 +149,8 @@ impl TimedMove {
             // publisher can send one) must not run the screw backwards with the pin open.
             extrude: m.extrude && m.delta_e_m > 0.0,
             delta_e_m: m.delta_e_m,
-            length_m: (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(),
-            length_xy_m: d[0].hypot(d[1]),
+            length_m: path((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()),
+            length_xy_m: path(d[0].hypot(d[1])),
             feedrate_m_per_s: m.feedrate_m_per_s,
             mid_radius_m: mid[0].hypot(mid[1]),
             t,
@@ -754,6 +762,48 @@ mod tests {
         let commands = breakpoints(&[timed], &ScrewOptions::default());
         assert!(
             commands.iter().any(|c| c.rpm > 0.0 && c.pin_open),
+            "{commands:?}"
+        );
+    }
+
+    /// A prime where the tool starts away from home: the move's target (from mm) and the
+    /// start (in m) differ in the last bit. It feeds in place, as a prime (it was taken for a
+    /// 1e-19 m line the tool rests on, and fed nothing).
+    #[test]
+    fn a_prime_a_last_bit_away_from_its_start_feeds_in_place() {
+        use polar_cell_msgs::{Duration, GcodeMove, JointTrajectory, JointTrajectoryPoint};
+        let (theta, r) = (0.038f64, 0.05f64);
+        let from = [r * theta.cos(), r * theta.sin(), 0.0];
+        let target = from.map(|v| (v * 1e3) / 1e3);
+        assert_ne!(from, target, "exact conversion: the test shows nothing");
+        let point = |t: f64| JointTrajectoryPoint {
+            positions: vec![theta, r, 0.0],
+            velocities: vec![0.0; 3],
+            time_from_start: Duration::from_secs_f64(t),
+            ..Default::default()
+        };
+        let trajectory = JointTrajectory {
+            points: vec![point(0.0), point(0.2)],
+            ..Default::default()
+        };
+        let m = GcodeMove {
+            x_m: target[0],
+            y_m: target[1],
+            delta_e_m: 0.002,
+            feedrate_m_per_s: 0.01,
+            extrude: true,
+            ..Default::default()
+        };
+        let timed = TimedMove::from_trajectory(&m, from, &trajectory, 0);
+        assert_eq!((timed.length_m, timed.length_xy_m), (0.0, 0.0));
+        let options = ScrewOptions::default();
+        let commands = breakpoints(&[timed], &options);
+        let fed = integral(&commands, 0.0, 0.2);
+        let RpmModel::PolarSpeed { e_per_rev_m } = options.model else {
+            panic!("the default model feeds primes")
+        };
+        assert!(
+            (fed / 60.0 * e_per_rev_m - 0.002).abs() < 1e-9,
             "{commands:?}"
         );
     }

@@ -757,7 +757,10 @@ impl Planner {
         let cross = a[0] * ab[1] - a[1] * ab[0];
         let d = cross.abs() / xy_len2.sqrt();
         let t_closest = -(a[0] * ab[0] + a[1] * ab[1]) / xy_len2;
-        let through = d <= self.options.center_radius_m;
+        // A line the radial test below would take for one through the centre is through it,
+        // whatever the centre zone (with none, rounding leaves such a line 1e-19 m off).
+        let radial = d <= 1e-15 * (1.0 + xy_len2.sqrt());
+        let through = radial || d <= self.options.center_radius_m;
         if at_centre {
             // Leaving the centre: point the arm at the target first (θ is free at r = 0).
             let reference = self.q_end[0];
@@ -801,7 +804,6 @@ impl Planner {
             }
             return;
         }
-        let radial = d <= 1e-15 * (1.0 + xy_len2.sqrt());
         let sign = r_a.signum_or_one();
         self.push_path(seq, target, feed, radial, sign, true, out);
     }

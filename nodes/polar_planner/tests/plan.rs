@@ -856,3 +856,33 @@ fn a_prime_where_a_print_starts_away_from_home_rests_for_its_feed() {
         prime.points
     );
 }
+
+/// With no centre zone (`center_radius_m` 0, in the node's range), a line through the
+/// centre whose cross product rounds to a sliver above 0 is still through it: the arm stops
+/// at r = 0 and the bed turns, r never negative (it ran the arm out to −r along the line,
+/// below the URDF's lower limit, with negative radii not allowed).
+#[test]
+fn without_a_centre_zone_lines_through_the_centre_never_make_r_negative() {
+    let options = PlannerOptions {
+        center_radius_m: 0.0,
+        ..PlannerOptions::default()
+    };
+    let mut src = String::from("G90\n");
+    for k in 0..60 {
+        let phi = k as f64 * 0.1047;
+        let (x, y) = (40.0 * phi.cos(), 40.0 * phi.sin());
+        src += &format!(
+            "G1 X{x:.6} Y{y:.6} F3000\nG1 X{:.6} Y{:.6}\n",
+            -0.75 * x,
+            -0.75 * y
+        );
+    }
+    let moves = moves_of(src.as_bytes());
+    let planned = plan(&moves, options);
+    let lowest = planned
+        .iter()
+        .flat_map(|p| &p.points)
+        .map(|p| p.q[1])
+        .fold(f64::INFINITY, f64::min);
+    assert!(lowest > -1e-12, "r went down to {lowest} m");
+}

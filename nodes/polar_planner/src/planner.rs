@@ -499,6 +499,28 @@ impl Planner {
                 | GcodeMove::KIND_ARC_CW
                 | GcodeMove::KIND_ARC_CCW
         );
+        // A move goes somewhere at a feed: both checked before anything of it is emitted
+        // (a refused move must leave no pin-open dwell behind, nor the pin state changed).
+        let goes = !matches!(m.kind, GcodeMove::KIND_DWELL | GcodeMove::KIND_SET_POSITION);
+        let feed = if m.kind == GcodeMove::KIND_HOME {
+            self.options.homing_speed_m_per_s
+        } else {
+            m.feedrate_m_per_s
+        };
+        if goes && (feed.is_nan() || feed < MIN_FEED_M_PER_S) {
+            self.moves.pop_back();
+            return Err(PlanError::BadFeedrate {
+                sequence: seq,
+                line: m.source_line,
+                feed,
+            });
+        }
+        if goes {
+            if let Err(e) = self.check_range(m, target) {
+                self.moves.pop_back();
+                return Err(e);
+            }
+        }
         if moves_or_feeds
             && m.extrude
             && !self.previous_extruding
@@ -523,23 +545,6 @@ impl Planner {
                 out,
             ),
             _ => {
-                let feed = if m.kind == GcodeMove::KIND_HOME {
-                    self.options.homing_speed_m_per_s
-                } else {
-                    m.feedrate_m_per_s
-                };
-                if feed.is_nan() || feed < MIN_FEED_M_PER_S {
-                    self.moves.pop_back();
-                    return Err(PlanError::BadFeedrate {
-                        sequence: seq,
-                        line: m.source_line,
-                        feed,
-                    });
-                }
-                if let Err(e) = self.check_range(m, target) {
-                    self.moves.pop_back();
-                    return Err(e);
-                }
                 let feeds = m.extrude && m.delta_e_m > 0.0;
                 let screw = self.options.screw.filter(|_| feeds);
                 if length < GcodeMove::NO_PATH_M {

@@ -450,3 +450,58 @@ def test_forged_moves_and_progress_from_a_foreign_participant_change_nothing(pol
         recorded = [m for _, _, _, m in reader.iter_decoded_messages(topics=["/gcode/moves"])]
     assert [m.sequence for m in recorded] == list(range(1778))
     assert max(abs(m.x_m) for m in recorded) < 1.0  # no forged 9 m move
+
+
+def undecodable_type(typename):
+    """A type that carries `typename` but one byte: every sample of it is too short for the
+    message of that name, as from another build's layout or a truncated forgery."""
+
+    @dataclass
+    @annotate.final
+    class Short(IdlStruct, typename=typename):
+        byte: t.uint8
+
+    return Short
+
+
+def test_undecodable_samples_on_every_link_are_counted_and_the_print_goes_on(polar_cell, tmp_path):
+    """While finger prints at 20x, a Cyclone participant writes, every 5 ms, a sample that
+    cannot be decoded on each link of the pipeline: /gcode/moves, /gcode/ack,
+    /polar/trajectory, /polar/steps, /screw/command (a one-byte payload under the right type
+    name). Each node that reads them skips them, says so once and counts them; the machine
+    plays exactly the plan. (One such sample ended the machine node mid-print before, and
+    likewise the planner, the screw driver and the streamer.)"""
+    participant = DomainParticipant(0)
+    writers = []
+    for topic, typename in [
+        ("gcode/moves", "polar_cell_msgs::msg::dds_::GcodeMove_"),
+        ("gcode/ack", "polar_cell_msgs::msg::dds_::GcodeAck_"),
+        ("polar/steps", "polar_cell_msgs::msg::dds_::StepSegment_"),
+        ("screw/command", "polar_cell_msgs::msg::dds_::ScrewCommand_"),
+        ("polar/trajectory", "trajectory_msgs::msg::dds_::JointTrajectory_"),
+    ]:
+        short = undecodable_type(typename)
+        # (The plans are latched: a volatile writer would match none of their readers.)
+        qos = ros_qos(transient_local=topic == "polar/trajectory")
+        writers.append((DataWriter(participant, Topic(participant, f"rt/{topic}", short), qos=qos), short))
+
+    def forge():
+        for writer, short in writers:
+            writer.write(short(7))
+        return len(writers)
+
+    err, by_topic, logs, _ = print_beside_a_forger(
+        polar_cell, tmp_path / "undecodable.mcap", forge, "finger.gcode", ("--speed", "20"))
+    executed = next(line for line in err.splitlines() if " executed " in line)
+    assert "executed 4074 step segments" in executed, executed
+    assert "(168.055 s; planned 168.055 s), 0 underruns" in executed, executed
+    for topic in ("/gcode/moves", "/gcode/ack", "/polar/trajectory", "/polar/steps", "/screw/command"):
+        assert any(f"ignored a {topic} sample that cannot be decoded" in m for m in logs), (topic, logs[-20:])
+    with open(tmp_path / "undecodable.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        machine = [
+            {kv.key: kv.value for kv in s.values}
+            for _, _, _, d in reader.iter_decoded_messages(topics=["/diagnostics"])
+            for s in d.status if s.name == "/cell_executor"
+        ]
+    assert int(machine[-1]["undecodable_samples"]) > 100, machine[-1]

@@ -501,6 +501,7 @@ fn spawn_tap<T: Recordable>(
         let mut gaps = SequenceGaps::default();
         let mut plan_end = PlanEnd::default();
         let mut replayed = judges_repeats::<T>(&topic).then(Repeats::default);
+        let mut unreadable = 0u64;
         loop {
             tokio::select! {
                 taken = sub.async_take() => match taken {
@@ -515,7 +516,14 @@ fn spawn_tap<T: Recordable>(
                             frontier.fetch_max(end_ns, std::sync::atomic::Ordering::Relaxed);
                         }
                     }
-                    Err(e) => tracing::warn!("recorder: read error: {e:?}"),
+                    // (A sample that cannot be decoded: any participant can write one. The
+                    // reader has moved past it; said once, not once per sample.)
+                    Err(e) => {
+                        unreadable += 1;
+                        if unreadable == 1 {
+                            tracing::warn!("recorder: {topic}: a sample that cannot be read ({e}); any more are counted");
+                        }
+                    }
                 },
                 _ = stop.changed() => {
                     while let Ok(Some((m, info))) = sub.take() {
@@ -532,6 +540,9 @@ fn spawn_tap<T: Recordable>(
         let repeats = replayed.as_ref().map_or(0, Repeats::repeats);
         if repeats > 0 {
             tracing::info!("recorder: {topic}: {repeats} repeats of a restarted producer left out");
+        }
+        if unreadable > 1 {
+            tracing::warn!("recorder: {topic}: {unreadable} samples could not be read");
         }
         if gaps.out_of_order() > 0 {
             tracing::warn!(
@@ -623,6 +634,7 @@ fn spawn_moves_consumer(
         // What the streamer says it published: a recorder that matched its writer too late
         // for any move still learns from a progress report that its bag lacks them.
         let mut streamer_published = 0u64;
+        let mut unreadable = 0u64;
         loop {
             tokio::select! {
                 taken = moves.async_take() => match taken {
@@ -643,7 +655,13 @@ fn spawn_moves_consumer(
                             let _ = acks.publish(GcodeAck::from(ack));
                         }
                     }
-                    Err(e) => tracing::warn!("recorder: /gcode/moves read error: {e:?}"),
+                    // (Said once: see the taps.)
+                    Err(e) => {
+                        unreadable += 1;
+                        if unreadable == 1 {
+                            tracing::warn!("recorder: /gcode/moves: a sample that cannot be read ({e}); any more are counted");
+                        }
+                    }
                 },
                 taken = progress.async_take() => if let Ok((p, info)) = taken {
                     if !producer.admits(&info) {

@@ -388,6 +388,7 @@ pub async fn run<M: Machine>(
     let mut fault_at_ns: Option<i64> = None;
     let mut finished_at_ns: Option<i64> = None;
     let mut ignored = IgnoredWriters::default();
+    let mut undecodable = cell_runtime::Undecodable::default();
     // A reader keeps at most its depth of samples not taken yet and drops the oldest beyond
     // it. A move is handed over whole, so one credit can bring thousands of screw commands
     // at once (seed 001's bench rig: all 5,944 of its file within 100 ms), more than the
@@ -501,8 +502,10 @@ pub async fn run<M: Machine>(
         let mut requested: Option<(Command, Option<(usize, cell_runtime::service::Request)>)> =
             None;
         tokio::select! {
-            taken = steps_sub.async_take() => {
-                let (s, info) = taken.map_err(|e| anyhow!("/polar/steps: {e:?}"))?;
+            taken = steps_sub.async_take() => { 'steps: {
+                let Some((s, info)) = undecodable.take(node, "/polar/steps", taken)? else {
+                    break 'steps;
+                };
                 let over = input_finished && executor.is_drained();
                 let admitted = steps_from.admits(&info);
                 // From another process than the planner's first (or adopted) one.
@@ -548,9 +551,11 @@ pub async fn run<M: Machine>(
                         }
                     }
                 }
-            }
-            taken = screw_sub.async_take() => {
-                let (c, info) = taken.map_err(|e| anyhow!("/screw/command: {e:?}"))?;
+            }}
+            taken = screw_sub.async_take() => { 'screw: {
+                let Some((c, info)) = undecodable.take(node, "/screw/command", taken)? else {
+                    break 'screw;
+                };
                 if !screw_from.admits(&info) {
                     ignored.note(
                         node,
@@ -603,7 +608,7 @@ pub async fn run<M: Machine>(
                         }
                     }
                 }
-            }
+            }}
             taken = progress_sub.async_take() => {
                 if let Ok((p, info)) = taken {
                     if progress_from.admits(&info) {
@@ -1085,6 +1090,7 @@ pub async fn run<M: Machine>(
             for (&key, count) in &ignored.counts {
                 values.push((key, count.to_string()));
             }
+            values.push(("undecodable_samples", undecodable.total().to_string()));
             node.diagnose(level, &message, &values);
         }
     }

@@ -632,6 +632,50 @@ fn to_ros_parameter(v: &ParamValue) -> ParameterValue {
 /// enough for a recorder catching up after a million moves.
 pub const PUBLISH_PATIENCE: std::time::Duration = std::time::Duration::from_secs(30);
 
+/// Samples readers could not decode, by topic: counted, and said once per topic (a flood of
+/// them must not flood the log).
+#[derive(Debug, Default)]
+pub struct Undecodable {
+    counts: std::collections::BTreeMap<String, u64>,
+}
+
+impl Undecodable {
+    /// What a reader took: the sample, or `None` for one it could not decode (another build's
+    /// layout, a truncated or forged sample: any participant on the domain can write one),
+    /// counted. The reader has moved past it, so one bad sample must not end a node (a
+    /// machine ended mid-print); the reader's other errors (its DDS threads failed, it was
+    /// closed) remain errors.
+    pub fn take<T>(
+        &mut self,
+        node: &CellNode,
+        topic: &str,
+        taken: ros2_client::ReadResult<T>,
+    ) -> Result<Option<T>, RuntimeError> {
+        use ros2_client::ReadError;
+        match taken {
+            Ok(sample) => Ok(Some(sample)),
+            Err(e @ (ReadError::Deserialization { .. } | ReadError::Malformed)) => {
+                let count = self.counts.entry(topic.to_string()).or_default();
+                *count += 1;
+                if *count == 1 {
+                    crate::cell_log!(
+                        node,
+                        LogLevel::Warn,
+                        "ignored a {topic} sample that cannot be decoded ({e}); any more are counted in diagnostics"
+                    );
+                }
+                Ok(None)
+            }
+            Err(e) => Err(RuntimeError::Dds(format!("reading {topic}: {e}"))),
+        }
+    }
+
+    /// Undecodable samples so far, all topics.
+    pub fn total(&self) -> u64 {
+        self.counts.values().sum()
+    }
+}
+
 /// Publish, waiting while the reliable send window is full (back-pressure from a slow
 /// subscriber is not an error); gives up after `patience`.
 pub async fn publish<T: RosMessage>(

@@ -25,7 +25,7 @@ pub use args::{ArgsError, RosArgs};
 pub use dds::{
     best_effort_qos, now_ns, parse_service_mapping, publish, reliable_qos, resolve_node,
     ros_default_qos, shutdown_signal, transient_local_qos, wait_delivered, CellNode, Network,
-    Offered, ServiceMapping, ShutdownSignal, ShutdownSignals, Wire, PUBLISH_PATIENCE,
+    Offered, ServiceMapping, ShutdownSignal, ShutdownSignals, Undecodable, Wire, PUBLISH_PATIENCE,
 };
 pub use delivery::Undelivered;
 pub use names::{NameError, NameResolver};

@@ -205,6 +205,7 @@ pub async fn stream(
     // A consumer that (re)announces itself needs its resume point from /gcode/progress now.
     let mut progress_due = false;
     let mut ack_checks = AckChecks::new();
+    let mut undecodable = cell_runtime::Undecodable::default();
     cell_runtime::cell_log!(
         node,
         LogLevel::Info,
@@ -213,8 +214,14 @@ pub async fn stream(
     loop {
         let now = start.elapsed();
         // Acknowledgements.
-        while let Some((ack, info)) = acks.take().context("reading /gcode/ack")? {
-            progress_due |= apply_ack(node, &mut window, &mut ack_checks, &ack, &info, now);
+        loop {
+            match undecodable.take(node, "/gcode/ack", acks.take())? {
+                Some(Some((ack, info))) => {
+                    progress_due |= apply_ack(node, &mut window, &mut ack_checks, &ack, &info, now);
+                }
+                Some(None) => break,
+                None => {} // counted; the next one may be good
+            }
         }
         // Parser output into the window. With the window full, one move is taken ahead and
         // held: the end of the file is then known as soon as the parser reaches it, and a

@@ -252,6 +252,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     // Credit only from the machine (a forged credit would plan ahead of it, or stall it).
     let mut machine =
         cell_runtime::graph::Producer::named(node, "credit_producer", follow_execution)?;
+    let mut undecodable = cell_runtime::Undecodable::default();
     let mut planned = Vec::new();
     let mut segments = Vec::new();
     let mut next_state_t = 0.0;
@@ -277,7 +278,9 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     loop {
         tokio::select! {
             taken = moves_sub.async_take() => {
-                let (m, info) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
+                let Some((m, info)) = undecodable.take(node, "/gcode/moves", taken)? else {
+                    continue;
+                };
                 if producer.admits(&info)
                     && intake.accept(m.sequence)
                 {

@@ -180,6 +180,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     // Moves the streamer has published: with all of them paired and more to come, it waits
     // for our acknowledgement (its window is full), which waits for a chunk.
     let mut moves_published = 0u64;
+    let mut undecodable = cell_runtime::Undecodable::default();
     loop {
         let mut cut = Cut::IfFull;
         let mut look = false;
@@ -191,7 +192,9 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
             .filter(|_| stream.buffered_moves() > 0);
         tokio::select! {
             taken = moves_sub.async_take() => {
-                let (m, info) = taken.map_err(|e| anyhow!("/gcode/moves: {e:?}"))?;
+                let Some((m, info)) = undecodable.take(node, "/gcode/moves", taken)? else {
+                    continue;
+                };
                 if producer.admits(&info)
                     && intake.accept(m.sequence)
                 {
@@ -199,7 +202,11 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                 }
             }
             taken = trajectories.async_take() => {
-                let (trajectory, info) = taken.map_err(|e| anyhow!("/polar/trajectory: {e:?}"))?;
+                let Some((trajectory, info)) =
+                    undecodable.take(node, "/polar/trajectory", taken)?
+                else {
+                    continue;
+                };
                 last_input = Instant::now();
                 if replayed.admit(trajectory.span_ns(), info.publisher_gid()) == Admit::Repeat {
                     continue;

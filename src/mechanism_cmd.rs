@@ -513,13 +513,17 @@ pub fn run(command: MechanismCommand) -> anyhow::Result<()> {
                     .map_err(|err| anyhow!("{name}:{}: {err}", c.line))?;
                 worst_fk = worst_fk.max(e.fk_residual_mm);
                 worst_loop = worst_loop.max(e.loop_closure_residual_m);
-                let legs = match &calibration {
+                // With a calibration, its command whole: the legs and the table that absorbs
+                // the machine's X/Y error (the nominal table with corrected legs left the tip
+                // off by that error).
+                let (legs, table) = match &calibration {
                     Some(cal) => {
-                        cal.corrected_inverse(&geom, &c.target)
-                            .map_err(|err| anyhow!("{name}:{}: {err}", c.line))?
-                            .legs_mm
+                        let corrected = cal
+                            .corrected_inverse(&geom, &c.target)
+                            .map_err(|err| anyhow!("{name}:{}: {err}", c.line))?;
+                        (corrected.legs_mm, corrected.table_mm)
                     }
-                    None => e.solution.ik.legs_mm,
+                    None => (e.solution.ik.legs_mm, e.solution.table_mm),
                 };
                 if let Some(b) = bag.as_mut() {
                     b.push_solved(&c.target, &geom, &tree, &mut fk)?;
@@ -530,7 +534,7 @@ pub fn run(command: MechanismCommand) -> anyhow::Result<()> {
                     "tip_mm": [c.target.tip_mm.x, c.target.tip_mm.y, c.target.tip_mm.z],
                     "axis": [c.target.axis.x, c.target.axis.y, c.target.axis.z],
                     "leg_lengths_mm": legs,
-                    "table_mm": e.solution.table_mm,
+                    "table_mm": table,
                 }));
             }
             if let Some(b) = bag {

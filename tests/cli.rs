@@ -300,3 +300,82 @@ fn print_refuses_a_parameter_no_node_of_it_takes() {
         "{stderr}"
     );
 }
+
+/// `mechanism cl --calibration` gives each CL point the calibration's whole command, as
+/// `mechanism ik --calibration` does for the same tip: its legs and the table that absorbs
+/// the simulated machine's X/Y error (it paired corrected legs with the nominal table, the
+/// tip off by that error).
+#[test]
+fn mechanism_cl_with_a_calibration_commands_the_corrected_table() {
+    let dir = std::env::temp_dir().join(format!("polar-cell-cl-cal-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
+    let run = |args: &[&str]| -> String {
+        let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+            .arg("mechanism")
+            .args(args)
+            .env("RUST_BACKTRACE", "0")
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(
+            out.status.success(),
+            "{args:?}: {stdout}{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        stdout
+    };
+    let (measurements, calibration, cl) = (path("m.csv"), path("cal.json"), path("part.cl"));
+    run(&[
+        "simulate",
+        "--seed",
+        "3",
+        "--poses",
+        "40",
+        "--out",
+        &measurements,
+    ]);
+    run(&[
+        "calibrate",
+        "--measurements",
+        &measurements,
+        "--out",
+        &calibration,
+    ]);
+    std::fs::write(&cl, "5,5,250,0,0,-1,s\n6,5,250,0,0,-1,e\n").unwrap();
+    let json = |text: String| -> serde_json::Value { serde_json::from_str(&text).unwrap() };
+    let post = json(run(&["cl", &cl, "--calibration", &calibration, "--json"]));
+    let ik = json(run(&[
+        "ik",
+        "--tip-mm",
+        "5,5,250",
+        "--calibration",
+        &calibration,
+        "--json",
+    ]));
+    let work = post["commands"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["tip_mm"] == serde_json::json!([5.0, 5.0, 250.0]))
+        .unwrap_or_else(|| panic!("{post}"));
+    let table = |v: &serde_json::Value| -> Vec<f64> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    let corrected = table(&ik["calibrated"]["table_mm"]);
+    let nominal = table(&ik["table_mm"]);
+    assert!(
+        corrected
+            .iter()
+            .zip(&nominal)
+            .any(|(c, n)| (c - n).abs() > 0.01),
+        "the simulated machine has no X/Y error here: {corrected:?} {nominal:?}"
+    );
+    assert_eq!(table(&work["table_mm"]), corrected, "{work}");
+    assert_eq!(work["leg_lengths_mm"], ik["calibrated"]["leg_lengths_mm"]);
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -269,7 +269,14 @@ impl Geometry {
             ik.parasitic_xy_mm[0] - l * axis.x - target.tip_mm.x,
             ik.parasitic_xy_mm[1] - l * axis.y - target.tip_mm.y,
         ];
+        self.check_table(&table_mm)?;
+        Ok(ToolSolution { ik, table_mm })
+    }
+
+    /// The table's travel (and a finite position) on both axes.
+    pub(crate) fn check_table(&self, table_mm: &[f64; 2]) -> Result<(), KinError> {
         for (k, &t) in table_mm.iter().enumerate() {
+            finite("table position", t)?;
             if t.abs() > self.limits.table_max_mm {
                 return Err(KinError::TableLimit {
                     axis: ['X', 'Y'][k],
@@ -278,7 +285,7 @@ impl Geometry {
                 });
             }
         }
-        Ok(ToolSolution { ik, table_mm })
+        Ok(())
     }
 
     /// Every passive and active joint of the URDF tree for a solution and table position.

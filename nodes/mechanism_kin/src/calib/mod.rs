@@ -201,8 +201,11 @@ impl Calibration {
     pub fn from_json(text: &str) -> Result<Self, CalibError> {
         let cal: Calibration =
             serde_json::from_str(text).map_err(|e| CalibError::File(e.to_string()))?;
-        if let Calibration::Geometric { parameters, .. } = &cal {
-            cal.params_array(parameters)?;
+        match &cal {
+            Calibration::Geometric { parameters, .. } => {
+                cal.params_array(parameters)?;
+            }
+            Calibration::Rsm { surfaces, .. } => surfaces.check().map_err(CalibError::File)?,
         }
         Ok(cal)
     }
@@ -280,21 +283,25 @@ impl Calibration {
         geom: &Geometry,
         target: &ToolTarget,
     ) -> Result<CorrectedCommand, CalibError> {
-        match self {
+        let command = match self {
             Calibration::Geometric { parameters, .. } => {
                 let model = ErrorModel::new(geom, self.params_array(parameters)?);
                 let (legs_mm, reached) = model.inverse(geom, target.tip_mm.z, &target.axis)?;
-                geom.check_legs(&legs_mm)?;
-                Ok(CorrectedCommand {
+                CorrectedCommand {
                     legs_mm,
                     table_mm: [
                         reached.tip_mm.x - target.tip_mm.x,
                         reached.tip_mm.y - target.tip_mm.y,
                     ],
-                })
+                }
             }
-            Calibration::Rsm { surfaces, .. } => surfaces.solve(geom, target),
-        }
+            Calibration::Rsm { surfaces, .. } => surfaces.solve(geom, target)?,
+        };
+        // The corrected command is what the machine gets: within its strokes and travel
+        // (the nominal one passing says nothing about a table moved by the correction).
+        geom.check_legs(&command.legs_mm)?;
+        geom.check_table(&command.table_mm)?;
+        Ok(command)
     }
 
     /// Where this calibration predicts the tool goes for commanded legs (table at zero).
@@ -436,6 +443,84 @@ mod tests {
             matches!(refused, CalibError::Extrapolating { leverage, max_measured, .. } if leverage > 10.0 * max_measured),
             "{refused}"
         );
+    }
+
+    /// A calibration's command is what the machine gets, so its table is held to the
+    /// table's travel: a target whose nominal table is inside it but whose correction moves
+    /// the table past it is refused (it was returned, 2 mm beyond the travel here).
+    #[test]
+    fn a_corrected_table_beyond_its_travel_is_refused() {
+        let g = Geometry::default();
+        let cal = Calibration::Geometric {
+            parameters: (0..PARAMETER_COUNT)
+                .map(|k| {
+                    let error = if parameter_name(k) == "output_x_mm" {
+                        2.0
+                    } else {
+                        0.0
+                    };
+                    (parameter_name(k), error)
+                })
+                .collect(),
+            rank: PARAMETER_COUNT,
+            unidentifiable: vec![],
+            rms_tip_mm: 0.0,
+            rms_axis_rad: 0.0,
+            measurements: 40,
+        };
+        let mut refused = 0;
+        for x_mm in [74.5, -74.5] {
+            let target = ToolTarget {
+                tip_mm: Vector3::new(x_mm, 0.0, 250.0),
+                axis: Vector3::z(),
+            };
+            let nominal = g.inverse_tool(&target).unwrap();
+            assert!(nominal.table_mm[0].abs() < g.limits.table_max_mm);
+            match cal.corrected_inverse(&g, &target) {
+                Ok(c) => assert!(c.table_mm[0].abs() <= g.limits.table_max_mm, "{c:?}"),
+                Err(CalibError::Kinematics(KinError::TableLimit { position_mm, .. })) => {
+                    assert!((position_mm.abs() - 76.5).abs() < 0.1, "{position_mm}");
+                    refused += 1;
+                }
+                Err(e) => panic!("{e}"),
+            }
+        }
+        assert_eq!(refused, 1);
+    }
+
+    /// A response-surface file that is not what `calibrate` writes is refused when read,
+    /// naming what is wrong (a file without surfaces panicked at its first use).
+    #[test]
+    fn a_malformed_response_surface_file_is_refused_when_read() {
+        let file = |surfaces: &str| {
+            format!(
+                r#"{{"method":"rsm","measurements":20,"surfaces":{{"leg_centre_mm":[400,400,400],"leg_half_range_mm":[50,50,50],"surfaces":{surfaces},"region":{{"tip_z_mm":[0,1000],"theta1_deg":[-360,360],"theta2_deg":[-90,90]}},"significance":0.05,"theta1_reference_deg":0}}}}"#
+            )
+        };
+        let err = Calibration::from_json(&file("[]")).unwrap_err().to_string();
+        assert!(err.contains("0 surfaces; a calibration has 5"), "{err}");
+        let surface = |terms: &str| {
+            format!(
+                r#"{{"response":"r","terms":{terms},"coefficients":[1.0],"r2":1,"adjusted_r2":1,"mean_error":0,"sigma":0,"other_mean_error":0,"reduced":false}}"#
+            )
+        };
+        let five = |last: String| {
+            format!(
+                "[{},{},{},{},{last}]",
+                surface("[0]"),
+                surface("[0]"),
+                surface("[0]"),
+                surface("[0]")
+            )
+        };
+        let err = Calibration::from_json(&file(&five(surface("[12]"))))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("term 12; the quadratic has terms 0 to 9"),
+            "{err}"
+        );
+        Calibration::from_json(&file(&five(surface("[9]")))).unwrap();
     }
 
     #[test]

@@ -207,6 +207,59 @@ pub struct ResponseSurfaces {
     pub leverage: Option<LeverageLimit>,
 }
 
+impl ResponseSurfaces {
+    /// What a file must hold for [`ResponseSurfaces::solve`] to use it: one surface per
+    /// response, terms of the quadratic with one coefficient each, finite numbers, a scaling
+    /// that divides by something. (A hand-edited or truncated file indexed out of bounds.)
+    pub fn check(&self) -> Result<(), String> {
+        let finite = |what: &str, values: &[f64]| match values.iter().find(|v| !v.is_finite()) {
+            Some(v) => Err(format!("{what}: {v} is not a finite number")),
+            None => Ok(()),
+        };
+        finite("leg_centre_mm", &self.leg_centre_mm)?;
+        finite("leg_half_range_mm", &self.leg_half_range_mm)?;
+        if let Some(h) = self.leg_half_range_mm.iter().find(|h| **h <= 0.0) {
+            return Err(format!("leg_half_range_mm: {h} is not positive"));
+        }
+        if self.surfaces.len() != RESPONSES.len() {
+            return Err(format!(
+                "{} surfaces; a calibration has {} ({})",
+                self.surfaces.len(),
+                RESPONSES.len(),
+                RESPONSES.join(", ")
+            ));
+        }
+        for (s, name) in self.surfaces.iter().zip(RESPONSES) {
+            if let Some(k) = s.terms.iter().find(|&&k| k >= TERMS) {
+                return Err(format!(
+                    "surface {name}: term {k}; the quadratic has terms 0 to {}",
+                    TERMS - 1
+                ));
+            }
+            if s.coefficients.len() != s.terms.len() {
+                return Err(format!(
+                    "surface {name}: {} coefficients for {} terms",
+                    s.coefficients.len(),
+                    s.terms.len()
+                ));
+            }
+            finite(&format!("surface {name} coefficients"), &s.coefficients)?;
+            finite(&format!("surface {name} sigma"), &[s.sigma])?;
+        }
+        if let Some(limit) = &self.leverage {
+            if limit.moment_inverse.len() != TERMS * TERMS {
+                return Err(format!(
+                    "leverage: moment_inverse has {} entries, not {}",
+                    limit.moment_inverse.len(),
+                    TERMS * TERMS
+                ));
+            }
+            finite("leverage moment_inverse", &limit.moment_inverse)?;
+        }
+        Ok(())
+    }
+}
+
 /// How far from its data the full quadratic may be asked.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct LeverageLimit {

@@ -130,13 +130,7 @@ impl Geometry {
         finite("Z", pose.z_mm)?;
         finite("w_x", pose.tilt.wx_rad)?;
         finite("w_y", pose.tilt.wy_rad)?;
-        let tilt = pose.tilt.angle_rad();
-        if tilt > self.limits.tilt_max_rad + 1e-12 {
-            return Err(KinError::TiltLimit {
-                tilt_deg: tilt.to_degrees(),
-                max_deg: self.limits.tilt_max_rad.to_degrees(),
-            });
-        }
+        self.check_tilt(&pose.tilt)?;
         let sol = self.inverse_unchecked(pose);
         self.check_legs(&sol.legs_mm)?;
         self.check_swing(&sol)?;
@@ -176,15 +170,42 @@ impl Geometry {
 
     /// Swing of each spherical joint: angle between leg axis and platform normal.
     pub fn swing_rad(&self, sol: &IkSolution) -> [f64; 3] {
-        let n = sol.rotation.column(2).into_owned();
+        self.swing_of(&sol.rotation, &sol.sphere_centres_mm)
+    }
+
+    fn swing_of(&self, rotation: &Matrix3<f64>, sphere_centres_mm: &[Vector3<f64>; 3]) -> [f64; 3] {
+        let n = rotation.column(2).into_owned();
         std::array::from_fn(|i| {
-            let d = (sol.sphere_centres_mm[i] - self.base_points[i]).normalize();
+            let d = (sphere_centres_mm[i] - self.base_points[i]).normalize();
             d.dot(&n).clamp(-1.0, 1.0).acos()
         })
     }
 
     fn check_swing(&self, sol: &IkSolution) -> Result<(), KinError> {
-        for (i, s) in self.swing_rad(sol).into_iter().enumerate() {
+        self.check_swing_of(&sol.rotation, &sol.sphere_centres_mm)
+    }
+
+    fn check_tilt(&self, tilt: &Tilt) -> Result<(), KinError> {
+        let tilt = tilt.angle_rad();
+        if tilt > self.limits.tilt_max_rad + 1e-12 {
+            return Err(KinError::TiltLimit {
+                tilt_deg: tilt.to_degrees(),
+                max_deg: self.limits.tilt_max_rad.to_degrees(),
+            });
+        }
+        Ok(())
+    }
+
+    fn check_swing_of(
+        &self,
+        rotation: &Matrix3<f64>,
+        sphere_centres_mm: &[Vector3<f64>; 3],
+    ) -> Result<(), KinError> {
+        for (i, s) in self
+            .swing_of(rotation, sphere_centres_mm)
+            .into_iter()
+            .enumerate()
+        {
             if s > self.limits.swing_max_rad {
                 return Err(KinError::SwingLimit {
                     chain: i + 1,
@@ -380,18 +401,41 @@ impl ForwardSolver {
         self.warm = false;
     }
 
-    /// Solve forward kinematics for leg lengths `legs_mm`, checking the leg limits.
+    /// Solve forward kinematics for leg lengths `legs_mm`, checking the limits inverse
+    /// kinematics checks: the legs' strokes, and a pose within the tilt and every spherical
+    /// joint within its swing (legs inside their strokes can hold the platform where the
+    /// joints cannot go; such a pose is refused, and is no warm start for the next).
     pub fn solve(&mut self, geom: &Geometry, legs_mm: [f64; 3]) -> Result<FkSolution, KinError> {
         geom.check_legs(&legs_mm)?;
-        self.solve_unchecked(geom, legs_mm)
+        let fk = self.solve_unchecked(geom, legs_mm)?;
+        let within = geom
+            .check_tilt(&fk.pose.tilt)
+            .and_then(|()| geom.check_swing_of(&fk.rotation, &fk.sphere_centres_mm));
+        if let Err(e) = within {
+            self.warm = false;
+            return Err(e);
+        }
+        Ok(fk)
     }
 
-    /// Solve forward kinematics without leg limit checks.
+    /// Solve forward kinematics without limit checks. A warm start that fails (Newton from a
+    /// pose far from this one can leave its basin) is tried once more cold.
     pub fn solve_unchecked(
         &mut self,
         geom: &Geometry,
         legs_mm: [f64; 3],
     ) -> Result<FkSolution, KinError> {
+        let was_warm = self.warm;
+        match self.newton(geom, legs_mm) {
+            Err(_) if was_warm => {
+                self.warm = false;
+                self.newton(geom, legs_mm)
+            }
+            result => result,
+        }
+    }
+
+    fn newton(&mut self, geom: &Geometry, legs_mm: [f64; 3]) -> Result<FkSolution, KinError> {
         for &l in &legs_mm {
             finite("leg length", l)?;
         }
@@ -630,6 +674,41 @@ mod tests {
         assert!(worst_p < 1e-9, "P {worst_p:e} mm");
         assert!(worst_w < 1e-9, "w {worst_w:e} rad");
         assert!(max_iter <= 8, "iterations {max_iter}");
+    }
+
+    /// Legs inside their strokes that hold the platform where its joints cannot go are
+    /// refused as IK would refuse that pose (FK answered them: a 67.8° swing, a 47.4° tilt),
+    /// and such an answer leaves no warm start behind: the in-range pose after it solves (it
+    /// was "unreachable" at the first iteration, from the far warm start).
+    #[test]
+    fn fk_refuses_poses_beyond_the_joints_and_recovers_after_them() {
+        let g = Geometry::default();
+        let mut fk = ForwardSolver::default();
+        for legs in [[150.0, 520.0, 260.0], [525.718, 154.655, 300.467]] {
+            let raw = ForwardSolver::default().solve_unchecked(&g, legs).unwrap();
+            let swing = g.swing_of(&raw.rotation, &raw.sphere_centres_mm);
+            assert!(
+                raw.pose.tilt.angle_rad() > g.limits.tilt_max_rad
+                    || swing.iter().any(|s| *s > g.limits.swing_max_rad),
+                "{legs:?}: within the joints: the test shows nothing"
+            );
+            let err = fk.solve(&g, legs).unwrap_err();
+            assert!(
+                matches!(
+                    err,
+                    KinError::TiltLimit { .. } | KinError::SwingLimit { .. }
+                ),
+                "{legs:?}: {err:?}"
+            );
+        }
+        // Unchecked, the far pose is the warm start; the next solve is near-flat.
+        let mut fk = ForwardSolver::default();
+        fk.solve_unchecked(&g, [525.718, 154.655, 300.467]).unwrap();
+        let near = fk.solve_unchecked(&g, [343.053, 340.436, 340.203]).unwrap();
+        let cold = ForwardSolver::default()
+            .solve_unchecked(&g, [343.053, 340.436, 340.203])
+            .unwrap();
+        assert!((near.output_point_mm - cold.output_point_mm).norm() < 1e-9);
     }
 
     #[test]

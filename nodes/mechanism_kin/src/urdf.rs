@@ -326,8 +326,9 @@ impl UrdfTree {
             }
             Ok(j)
         };
+        // (Written so that NaN, which a URDF's numbers may be, is never near.)
         let near = |name: &str, what: &str, expected: f64, found: f64, tol: f64| {
-            if (expected - found).abs() > tol {
+            if !((expected - found).abs() <= tol) {
                 Err(UrdfError::Mismatch {
                     joint: name.into(),
                     expected: format!("{what} {expected}"),
@@ -335,6 +336,29 @@ impl UrdfTree {
                 })
             } else {
                 Ok(())
+            }
+        };
+        // Frames the solver takes as unrotated: the URDF's must be, or RViz draws another
+        // mechanism than the one solved.
+        let unrotated = |j: &TreeJoint| {
+            near(
+                &j.name,
+                "origin rotation (rad)",
+                0.0,
+                j.origin.rotation.angle(),
+                1e-9,
+            )
+        };
+        // The chain as the solver walks it: each joint's parent link is the last one's child.
+        let follows = |j: &TreeJoint, parent: &TreeJoint| {
+            if j.parent == parent.child {
+                Ok(())
+            } else {
+                Err(UrdfError::Mismatch {
+                    joint: j.name.clone(),
+                    expected: format!("parent `{}`", parent.child),
+                    found: format!("parent `{}`", j.parent),
+                })
             }
         };
         let mut radii = [0.0; 3];
@@ -356,11 +380,15 @@ impl UrdfTree {
             radii[i] = t.x.hypot(t.y);
             angles[i] = t.y.atan2(t.x);
             // The hinge frame must face along the chain's radius so its y axis is the tangent.
-            let (_, _, yaw) = hinge.origin.rotation.euler_angles();
+            let (roll, pitch, yaw) = hinge.origin.rotation.euler_angles();
+            near(&hinge.name, "rpy roll", 0.0, roll, 1e-9)?;
+            near(&hinge.name, "rpy pitch", 0.0, pitch, 1e-9)?;
             let d = (yaw - angles[i] + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI)
                 - std::f64::consts::PI;
             near(&hinge.name, "rpy yaw − atan2(y, x)", 0.0, d, 1e-9)?;
             let leg = expect(&format!("chain{c}_leg"), T::Prismatic, [0.0, 0.0, 1.0])?;
+            unrotated(leg)?;
+            follows(leg, hinge)?;
             near(
                 &leg.name,
                 "origin offset",
@@ -386,12 +414,16 @@ impl UrdfTree {
                     1e-12,
                 )?;
             }
+            let mut previous = leg;
             for (name, axis) in [
                 ("x", [1.0, 0.0, 0.0]),
                 ("y", [0.0, 1.0, 0.0]),
                 ("z", [0.0, 0.0, 1.0]),
             ] {
                 let ball = expect(&format!("chain{c}_ball_{name}"), T::Revolute, axis)?;
+                unrotated(ball)?;
+                follows(ball, previous)?;
+                previous = ball;
                 near(
                     &ball.name,
                     "origin offset",
@@ -422,6 +454,7 @@ impl UrdfTree {
             )?;
         }
         let mount = expect("platform_mount", T::Fixed, [0.0; 3])?;
+        unrotated(mount)?;
         if mount.parent != "chain1_ball" {
             return Err(UrdfError::Mismatch {
                 joint: "platform_mount".into(),
@@ -442,9 +475,17 @@ impl UrdfTree {
         )?;
         near("platform_mount", "origin z", 0.0, m.z, 1e-12)?;
         let tool = expect("tool_mount", T::Fixed, [0.0; 3])?;
+        unrotated(tool)?;
         let tv = tool.origin.translation.vector;
         near("tool_mount", "origin x", 0.0, tv.x, 1e-12)?;
         near("tool_mount", "origin y", 0.0, tv.y, 1e-12)?;
+        if !(tv.z < 0.0) {
+            return Err(UrdfError::Mismatch {
+                joint: "tool_mount".into(),
+                expected: "origin z below the platform (< 0: the tool's length)".into(),
+                found: format!("{}", tv.z),
+            });
+        }
         if tool.parent != "platform" {
             return Err(UrdfError::Mismatch {
                 joint: "tool_mount".into(),
@@ -454,6 +495,8 @@ impl UrdfTree {
         }
         let tx = expect("table_x", T::Prismatic, [1.0, 0.0, 0.0])?;
         let ty = expect("table_y", T::Prismatic, [0.0, 1.0, 0.0])?;
+        unrotated(tx)?;
+        unrotated(ty)?;
         let table = tx.upper.min(-tx.lower).min(ty.upper).min(-ty.lower);
         if !(leg_limits.0 > 0.0 && leg_limits.1 > leg_limits.0) {
             return Err(UrdfError::Mismatch {
@@ -573,6 +616,34 @@ mod tests {
             ),
         ];
         for (from, to, says) in cases {
+            assert!(good.contains(from), "{from}");
+            let bad = good.replacen(from, to, 1);
+            let err = load(&bad).unwrap_err().to_string();
+            assert!(err.contains(says), "{says}: {err}");
+        }
+        // Orientations the solver does not model, a NaN, a tool above the platform.
+        for (from, to, says) in [
+            (
+                "rpy=\"0.0 0.0 -1.5707963267948966\"",
+                "rpy=\"0.3 0.0 -1.5707963267948966\"",
+                "`chain1_hinge`: expected rpy roll 0",
+            ),
+            (
+                "<origin xyz=\"0.0 0.316 0.0\" rpy=\"0 0 0\"/>",
+                "<origin xyz=\"0.0 0.316 0.0\" rpy=\"0.2 0 0\"/>",
+                "`platform_mount`: expected origin rotation (rad) 0",
+            ),
+            (
+                "<origin xyz=\"0.0 0.316 0.0\" rpy=\"0 0 0\"/>",
+                "<origin xyz=\"0.0 0.316 nan\" rpy=\"0 0 0\"/>",
+                "`platform_mount`: expected origin z 0, found NaN",
+            ),
+            (
+                "<origin xyz=\"0 0 -0.1\" rpy=\"0 0 0\"/>",
+                "<origin xyz=\"0 0 0.1\" rpy=\"0 0 0\"/>",
+                "`tool_mount`: expected origin z below the platform",
+            ),
+        ] {
             assert!(good.contains(from), "{from}");
             let bad = good.replacen(from, to, 1);
             let err = load(&bad).unwrap_err().to_string();

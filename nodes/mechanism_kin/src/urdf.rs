@@ -328,7 +328,8 @@ impl UrdfTree {
         };
         // (Written so that NaN, which a URDF's numbers may be, is never near.)
         let near = |name: &str, what: &str, expected: f64, found: f64, tol: f64| {
-            if !((expected - found).abs() <= tol) {
+            let off = (expected - found).abs();
+            if off.is_nan() || off > tol {
                 Err(UrdfError::Mismatch {
                     joint: name.into(),
                     expected: format!("{what} {expected}"),
@@ -479,7 +480,7 @@ impl UrdfTree {
         let tv = tool.origin.translation.vector;
         near("tool_mount", "origin x", 0.0, tv.x, 1e-12)?;
         near("tool_mount", "origin y", 0.0, tv.y, 1e-12)?;
-        if !(tv.z < 0.0) {
+        if tv.z.is_nan() || tv.z >= 0.0 {
             return Err(UrdfError::Mismatch {
                 joint: "tool_mount".into(),
                 expected: "origin z below the platform (< 0: the tool's length)".into(),

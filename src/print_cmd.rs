@@ -202,12 +202,15 @@ pub fn mcu_position(device: &str, ros_args: &RosArgs) -> anyhow::Result<[f64; 3]
     let (_, bridge) =
         cell_runtime::resolve_node(name, &specs, &args_for(ros_args, name, &specs, vec![]))?;
     let params = cell_machine::node::MachineParams::from_params(&bridge)?;
-    let options = mcu_bridge::SessionOptions::new(
+    let mut options = mcu_bridge::SessionOptions::new(
         params.steps.steps_per_unit,
         params.joint_accelerations,
         params.pin_open_delay_s,
     );
-    let timeout = Duration::from_secs_f64(bridge.f64("open_timeout_s").max(5.0));
+    // As the bridge would wait: for the device to appear, then for the MCU to be ready.
+    let answer_timeout_s = bridge.f64("answer_timeout_s");
+    options.answer_timeout_s = answer_timeout_s;
+    let timeout = Duration::from_secs_f64(bridge.f64("open_timeout_s") + answer_timeout_s);
     let steps =
         mcu_bridge::node::probe_position(device, bridge.i64("baud") as u32, options, timeout)?;
     let u = params.steps.steps_per_unit;

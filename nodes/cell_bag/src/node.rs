@@ -486,6 +486,33 @@ fn is_repeat<T: Recordable>(
     }
 }
 
+/// Samples a reader could not decode (any participant can write one; the reader has moved
+/// past it): said once per topic, then counted, not once per sample.
+#[derive(Debug, Default)]
+struct Unreadable {
+    count: u64,
+}
+
+impl Unreadable {
+    fn note(&mut self, topic: &str, error: &ros2_client::ReadError) {
+        self.count += 1;
+        if self.count == 1 {
+            tracing::warn!(
+                "recorder: {topic}: a sample that cannot be read ({error}); any more are counted"
+            );
+        }
+    }
+
+    fn report(&self, topic: &str) {
+        if self.count > 1 {
+            tracing::warn!(
+                "recorder: {topic}: {} samples could not be read",
+                self.count
+            );
+        }
+    }
+}
+
 fn spawn_tap<T: Recordable>(
     node: &mut CellNode,
     topic: &str,
@@ -501,7 +528,7 @@ fn spawn_tap<T: Recordable>(
         let mut gaps = SequenceGaps::default();
         let mut plan_end = PlanEnd::default();
         let mut replayed = judges_repeats::<T>(&topic).then(Repeats::default);
-        let mut unreadable = 0u64;
+        let mut unreadable = Unreadable::default();
         loop {
             tokio::select! {
                 taken = sub.async_take() => match taken {
@@ -516,17 +543,18 @@ fn spawn_tap<T: Recordable>(
                             frontier.fetch_max(end_ns, std::sync::atomic::Ordering::Relaxed);
                         }
                     }
-                    // (A sample that cannot be decoded: any participant can write one. The
-                    // reader has moved past it; said once, not once per sample.)
-                    Err(e) => {
-                        unreadable += 1;
-                        if unreadable == 1 {
-                            tracing::warn!("recorder: {topic}: a sample that cannot be read ({e}); any more are counted");
-                        }
-                    }
+                    Err(e) => unreadable.note(&topic, &e),
                 },
                 _ = stop.changed() => {
-                    while let Ok(Some((m, info))) = sub.take() {
+                    loop {
+                        let (m, info) = match sub.take() {
+                            Ok(Some(taken)) => taken,
+                            Ok(None) => break,
+                            Err(e) => {
+                                unreadable.note(&topic, &e);
+                                continue;
+                            }
+                        };
                         gaps.observe(info.publisher_gid(), info.sequence_number());
                         if is_repeat(&mut replayed, &m, &info) {
                             continue;
@@ -541,9 +569,7 @@ fn spawn_tap<T: Recordable>(
         if repeats > 0 {
             tracing::info!("recorder: {topic}: {repeats} repeats of a restarted producer left out");
         }
-        if unreadable > 1 {
-            tracing::warn!("recorder: {topic}: {unreadable} samples could not be read");
-        }
+        unreadable.report(&topic);
         if gaps.out_of_order() > 0 {
             tracing::warn!(
                 "recorder: {topic}: {} samples arrived again or out of order",
@@ -634,7 +660,7 @@ fn spawn_moves_consumer(
         // What the streamer says it published: a recorder that matched its writer too late
         // for any move still learns from a progress report that its bag lacks them.
         let mut streamer_published = 0u64;
-        let mut unreadable = 0u64;
+        let mut unreadable = Unreadable::default();
         loop {
             tokio::select! {
                 taken = moves.async_take() => match taken {
@@ -655,13 +681,7 @@ fn spawn_moves_consumer(
                             let _ = acks.publish(GcodeAck::from(ack));
                         }
                     }
-                    // (Said once: see the taps.)
-                    Err(e) => {
-                        unreadable += 1;
-                        if unreadable == 1 {
-                            tracing::warn!("recorder: /gcode/moves: a sample that cannot be read ({e}); any more are counted");
-                        }
-                    }
+                    Err(e) => unreadable.note("/gcode/moves", &e),
                 },
                 taken = progress.async_take() => if let Ok((p, info)) = taken {
                     if !producer.admits(&info) {
@@ -694,7 +714,15 @@ fn spawn_moves_consumer(
                     }
                 },
                 _ = stop.changed() => {
-                    while let Ok(Some((p, info))) = progress.take() {
+                    loop {
+                        let (p, info) = match progress.take() {
+                            Ok(Some(taken)) => taken,
+                            Ok(None) => break,
+                            Err(e) => {
+                                unreadable.note("/gcode/progress", &e);
+                                continue;
+                            }
+                        };
                         if producer.admits(&info) {
                             streamer_published = streamer_published.max(p.moves_published);
                         }

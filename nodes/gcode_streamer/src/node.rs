@@ -370,9 +370,11 @@ pub async fn stream(
                 cell_runtime::flow::LOOK_PERIOD
             };
             let wait = tokio::time::timeout(patience, acks.async_take()).await;
-            if let Ok(Ok((ack, info))) = wait {
-                let now = start.elapsed();
-                progress_due |= apply_ack(node, &mut window, &mut ack_checks, &ack, &info, now);
+            if let Ok(taken) = wait {
+                if let Some((ack, info)) = undecodable.take(node, "/gcode/ack", taken)? {
+                    let now = start.elapsed();
+                    progress_due |= apply_ack(node, &mut window, &mut ack_checks, &ack, &info, now);
+                }
             }
         } else {
             tokio::task::yield_now().await;

@@ -477,6 +477,10 @@ pub fn probe_position(
         machine
             .on_tick(now_ns)
             .map_err(|e| anyhow::anyhow!("asking the MCU on {name} where it stands: {e}"))?;
+        // (An MCU that does not answer: the session says what it waited for.)
+        if let Some(e) = machine.session().error() {
+            anyhow::bail!("asking the MCU on {name} where it stands: {e}");
+        }
         // Room for a plan: identified, configured, reset acted on, clocks known, a state.
         if machine.free_slots().0 > 0 {
             if let Some(state) = machine.session().state() {

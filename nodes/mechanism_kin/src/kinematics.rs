@@ -700,6 +700,7 @@ mod tests {
                 ),
                 "{legs:?}: {err:?}"
             );
+            assert!(!fk.warm, "{legs:?}: a refused pose is no warm start");
         }
         // Unchecked, the far pose is the warm start; the next solve is near-flat.
         let mut fk = ForwardSolver::default();

@@ -239,9 +239,13 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         every
     });
+    let mut undecodable = cell_runtime::Undecodable::default();
     loop {
         let msg = tokio::select! {
-            taken = poses.async_take() => taken.map_err(|e| anyhow!("/mechanism/tool_pose: {e:?}"))?.0,
+            taken = poses.async_take() => match undecodable.take(node, "/mechanism/tool_pose", taken)? {
+                Some((pose, _)) => pose,
+                None => continue,
+            },
             _ = async { repeat.as_mut().unwrap().tick().await }, if repeat.is_some() => {
                 if let Some(values) = &holding {
                     let _ = tf.publish(transforms(&frames, values, now()));

@@ -494,7 +494,7 @@ mod tests {
 
     /// Samples fall on one grid across plans (a plan's first sample continues the last
     /// one's), interpolate between points, skip a corner's repeated instant, and a long plan
-    /// with two points yields all of its samples lazily.
+    /// with two points yields all of its samples.
     #[test]
     fn samples_follow_one_grid_across_plans() {
         let first = PlannedMove {

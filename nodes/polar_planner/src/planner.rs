@@ -521,6 +521,23 @@ impl Planner {
                 return Err(e);
             }
         }
+        let feeds = m.extrude && m.delta_e_m > 0.0;
+        let screw = self.options.screw.filter(|_| feeds);
+        // An extruder-only move (retract, prime) rests for the E motion, at least as long as
+        // the screw needs to feed it: its length is checked here too.
+        let rest_s = (goes && length < GcodeMove::NO_PATH_M && m.delta_e_m != 0.0).then(|| {
+            let duration = m.delta_e_m.abs() / feed;
+            let needed = screw.map_or(0.0, |screw| screw.min_duration(m.delta_e_m));
+            duration.max(needed)
+        });
+        if let Some(seconds) = rest_s.filter(|&s| s > MAX_REST_S) {
+            self.moves.pop_back();
+            return Err(PlanError::RestTooLong {
+                sequence: seq,
+                line: m.source_line,
+                seconds,
+            });
+        }
         if moves_or_feeds
             && m.extrude
             && !self.previous_extruding
@@ -545,27 +562,11 @@ impl Planner {
                 out,
             ),
             _ => {
-                let feeds = m.extrude && m.delta_e_m > 0.0;
-                let screw = self.options.screw.filter(|_| feeds);
                 if length < GcodeMove::NO_PATH_M {
-                    if m.delta_e_m != 0.0 {
-                        // Extruder only (retract, prime): the stage rests for the E motion,
-                        // at least as long as the screw needs to feed it.
-                        let mut duration = m.delta_e_m.abs() / feed;
-                        if let Some(screw) = screw {
-                            let needed = screw.min_duration(m.delta_e_m);
-                            if needed > duration {
-                                self.note_slowdown(needed / duration);
-                                duration = needed;
-                            }
-                        }
-                        if duration > MAX_REST_S {
-                            self.moves.pop_back();
-                            return Err(PlanError::RestTooLong {
-                                sequence: seq,
-                                line: m.source_line,
-                                seconds: duration,
-                            });
+                    if let Some(duration) = rest_s {
+                        let unslowed = m.delta_e_m.abs() / feed;
+                        if duration > unslowed {
+                            self.note_slowdown(duration / unslowed);
                         }
                         self.push_fixed(seq, self.rest_points(duration), true, out);
                     } else {

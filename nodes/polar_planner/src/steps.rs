@@ -1,4 +1,5 @@
-//! Step pulses for stepper drivers: one segment per piece of the plan.
+//! Step pulses for stepper drivers: one segment per piece of the plan (a rest longer than a
+//! machine's step clock can time: several).
 //!
 //! The axis with the most steps (dominant) is timed by a Leib ramp (seed 000 §6.2, Eiderman):
 //! periods in timer ticks follow `p[i+1] = p[i]·(1 + m·p[i]² + 1.5·(m·p[i]²)²)` with

@@ -887,26 +887,34 @@ fn without_a_centre_zone_lines_through_the_centre_never_make_r_negative() {
     assert!(lowest > -1e-12, "r went down to {lowest} m");
 }
 
-/// A move refused (beyond reach) leaves nothing of itself behind: no pin-open dwell in the
-/// plan, and the next extruding move still gets its dwell (the refused move's dwell was
-/// emitted before the check, and it counted as extruding).
+/// Moves refused (one beyond reach, a prime whose rest would last 2·10⁶ s) leave nothing of
+/// themselves behind: no pin-open dwell in the plan, and the next extruding move still gets
+/// its dwell (a refused move's dwell was emitted before the check, and it counted as
+/// extruding).
 #[test]
 fn a_refused_move_leaves_no_pin_dwell_and_the_next_extruding_move_gets_its_own() {
     let options = PlannerOptions {
         pin_open_dwell_s: 0.25,
         ..PlannerOptions::default()
     };
-    let moves = moves_of(b"M83\nG1 X20 Y0 F3000\nG1 X400 Y0 E5\nG1 X30 Y0 E1\n");
-    let [travel, beyond, extruding] = [&moves[0], &moves[1], &moves[2]];
-    assert!(beyond.extrude && extruding.extrude && !travel.extrude);
+    let moves =
+        moves_of(b"M83\nG1 X20 Y0 F3000\nG1 E2000 F0.06\nG1 X400 Y0 E5 F3000\nG1 X30 Y0 E1\n");
+    let [travel, prime, beyond, extruding] = [&moves[0], &moves[1], &moves[2], &moves[3]];
+    assert!(beyond.extrude && prime.extrude && extruding.extrude && !travel.extrude);
     let mut planner = Planner::new(options).unwrap();
     let mut out = Vec::new();
     planner.push(travel, &mut out).unwrap();
+    let err = planner.push(prime, &mut out).unwrap_err();
+    assert!(err.to_string().contains("longer than the 1e6 s"), "{err}");
     let err = planner.push(beyond, &mut out).unwrap_err();
     assert!(err.to_string().contains("arm_r"), "{err}");
     planner.push(extruding, &mut out).unwrap();
     planner.flush(&mut out);
-    assert!(out.iter().all(|p| p.sequence != beyond.sequence), "{out:?}");
+    assert!(
+        out.iter()
+            .all(|p| p.sequence != beyond.sequence && p.sequence != prime.sequence),
+        "{out:?}"
+    );
     let travel_end = out
         .iter()
         .find(|p| p.sequence == travel.sequence)

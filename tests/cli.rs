@@ -239,21 +239,8 @@ fn check_plans_with_the_prints_parameters() {
     let fixture =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/gcode/finger.gcode");
     let check = |ros_args: &[&str]| -> String {
-        let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
-            .arg("check")
-            .arg(&fixture)
-            .arg("--ros-args")
-            .args(ros_args)
-            .env("RUST_BACKTRACE", "0")
-            .output()
-            .unwrap();
-        let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-        assert!(
-            out.status.success(),
-            "{stdout}{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        stdout
+        let fixture = fixture.to_str().unwrap();
+        polar_cell_ok(&[&["check", fixture, "--ros-args"], ros_args].concat())
     };
     assert!(check(&["-p", "window:=3"]).contains("1778 moves, 0:02:48.055 of machine time"));
     assert!(check(&["-p", "screw_driver:max_rpm:=100"])
@@ -301,6 +288,22 @@ fn print_refuses_a_parameter_no_node_of_it_takes() {
     );
 }
 
+/// stdout of `polar-cell ARGS`, which must succeed (else its output is the failure).
+fn polar_cell_ok(args: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .args(args)
+        .env("RUST_BACKTRACE", "0")
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{args:?}: {stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
 /// `mechanism cl --calibration` gives each CL point the calibration's whole command, as
 /// `mechanism ik --calibration` does for the same tip: its legs and the table that absorbs
 /// the simulated machine's X/Y error (it paired corrected legs with the nominal table, the
@@ -310,21 +313,7 @@ fn mechanism_cl_with_a_calibration_commands_the_corrected_table() {
     let dir = std::env::temp_dir().join(format!("polar-cell-cl-cal-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
-    let run = |args: &[&str]| -> String {
-        let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
-            .arg("mechanism")
-            .args(args)
-            .env("RUST_BACKTRACE", "0")
-            .output()
-            .unwrap();
-        let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-        assert!(
-            out.status.success(),
-            "{args:?}: {stdout}{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        stdout
-    };
+    let run = |args: &[&str]| polar_cell_ok(&[&["mechanism"], args].concat());
     let (measurements, calibration, cl) = (path("m.csv"), path("cal.json"), path("part.cl"));
     run(&[
         "simulate",

@@ -379,6 +379,23 @@ class PlanCredit(IdlStruct, typename="polar_cell_msgs::msg::dds_::PlanCredit_"):
     closed: bool
 
 
+def finger_beside_a_forger_plays_exactly(polar_cell, bag, forge):
+    """finger at 20x beside `forge()`: the machine plays exactly the plan (4,074 segments,
+    168.055 s, no underrun). The bag's /rosout lines and the machine's diagnostics."""
+    err, _, logs, _ = print_beside_a_forger(polar_cell, bag, forge, "finger.gcode", ("--speed", "20"))
+    executed = next(line for line in err.splitlines() if " executed " in line)
+    assert "executed 4074 step segments" in executed, executed
+    assert "(168.055 s; planned 168.055 s), 0 underruns" in executed, executed
+    with open(bag, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        machine = [
+            {kv.key: kv.value for kv in s.values}
+            for _, _, _, d in reader.iter_decoded_messages(topics=["/diagnostics"])
+            for s in d.status if s.name == "/cell_executor"
+        ]
+    return logs, machine
+
+
 def test_forged_steps_and_screw_commands_from_a_foreign_participant_move_nothing(polar_cell, tmp_path):
     """While finger prints at 20x, a Cyclone participant publishes, every 5 ms, a step segment
     of 100,000 bed steps, a screw command of 500 rpm with the pin open, a progress report
@@ -406,20 +423,9 @@ def test_forged_steps_and_screw_commands_from_a_foreign_participant_move_nothing
         credit_w.write(PlanCredit(header, "forged", Time(0, 0), Time(0, 0), 0.0, True))
         return 4
 
-    err, by_topic, logs, _ = print_beside_a_forger(
-        polar_cell, tmp_path / "steps.mcap", forge, "finger.gcode", ("--speed", "20"))
-    executed = next(line for line in err.splitlines() if " executed " in line)
-    assert "executed 4074 step segments" in executed, executed
-    assert "(168.055 s; planned 168.055 s), 0 underruns" in executed, executed
+    logs, machine = finger_beside_a_forger_plays_exactly(polar_cell, tmp_path / "steps.mcap", forge)
     for topic in ("/polar/steps", "/screw/command", "/gcode/progress"):
         assert any(f"ignored {topic} from a writer" in m for m in logs), (topic, logs[-20:])
-    with open(tmp_path / "steps.mcap", "rb") as f:
-        reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        machine = [
-            {kv.key: kv.value for kv in s.values}
-            for _, _, _, d in reader.iter_decoded_messages(topics=["/diagnostics"])
-            for s in d.status if s.name == "/cell_executor"
-        ]
     assert int(machine[-1]["ignored_foreign_steps"]) > 100, machine[-1]
     assert int(machine[-1]["ignored_foreign_screw_commands"]) > 100, machine[-1]
 
@@ -490,18 +496,7 @@ def test_undecodable_samples_on_every_link_are_counted_and_the_print_goes_on(pol
             writer.write(short(7))
         return len(writers)
 
-    err, by_topic, logs, _ = print_beside_a_forger(
-        polar_cell, tmp_path / "undecodable.mcap", forge, "finger.gcode", ("--speed", "20"))
-    executed = next(line for line in err.splitlines() if " executed " in line)
-    assert "executed 4074 step segments" in executed, executed
-    assert "(168.055 s; planned 168.055 s), 0 underruns" in executed, executed
+    logs, machine = finger_beside_a_forger_plays_exactly(polar_cell, tmp_path / "undecodable.mcap", forge)
     for topic in ("/gcode/moves", "/gcode/ack", "/polar/trajectory", "/polar/steps", "/screw/command"):
         assert any(f"ignored a {topic} sample that cannot be decoded" in m for m in logs), (topic, logs[-20:])
-    with open(tmp_path / "undecodable.mcap", "rb") as f:
-        reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        machine = [
-            {kv.key: kv.value for kv in s.values}
-            for _, _, _, d in reader.iter_decoded_messages(topics=["/diagnostics"])
-            for s in d.status if s.name == "/cell_executor"
-        ]
     assert int(machine[-1]["undecodable_samples"]) > 100, machine[-1]

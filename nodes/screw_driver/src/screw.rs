@@ -728,21 +728,27 @@ mod tests {
         }
     }
 
-    /// Found by fuzzing (tests/fuzz, target move_stream): a prime flagged `extrude` with a
-    /// negative ΔE gave −1500 rpm with the pin open.
-    #[test]
-    fn a_move_that_takes_material_back_does_not_feed() {
-        use polar_cell_msgs::{Duration, GcodeMove, JointTrajectory, JointTrajectoryPoint};
+    /// A plan that rests at joints `q` for `duration_s` from its stamp.
+    fn resting(q: [f64; 3], duration_s: f64) -> polar_cell_msgs::JointTrajectory {
+        use polar_cell_msgs::{Duration, JointTrajectory, JointTrajectoryPoint};
         let point = |t: f64| JointTrajectoryPoint {
-            positions: vec![0.0, 0.05, 0.0],
+            positions: q.to_vec(),
             velocities: vec![0.0; 3],
             time_from_start: Duration::from_secs_f64(t),
             ..Default::default()
         };
-        let trajectory = JointTrajectory {
-            points: vec![point(0.0), point(0.2)],
+        JointTrajectory {
+            points: vec![point(0.0), point(duration_s)],
             ..Default::default()
-        };
+        }
+    }
+
+    /// Found by fuzzing (tests/fuzz, target move_stream): a prime flagged `extrude` with a
+    /// negative ΔE gave −1500 rpm with the pin open.
+    #[test]
+    fn a_move_that_takes_material_back_does_not_feed() {
+        use polar_cell_msgs::GcodeMove;
+        let trajectory = resting([0.0, 0.05, 0.0], 0.2);
         let mut m = GcodeMove {
             x_m: 0.05,
             delta_e_m: -0.01,
@@ -771,21 +777,12 @@ mod tests {
     /// 1e-19 m line the tool rests on, and fed nothing).
     #[test]
     fn a_prime_a_last_bit_away_from_its_start_feeds_in_place() {
-        use polar_cell_msgs::{Duration, GcodeMove, JointTrajectory, JointTrajectoryPoint};
+        use polar_cell_msgs::GcodeMove;
         let (theta, r) = (0.038f64, 0.05f64);
         let from = [r * theta.cos(), r * theta.sin(), 0.0];
         let target = from.map(|v| (v * 1e3) / 1e3);
         assert_ne!(from, target, "exact conversion: the test shows nothing");
-        let point = |t: f64| JointTrajectoryPoint {
-            positions: vec![theta, r, 0.0],
-            velocities: vec![0.0; 3],
-            time_from_start: Duration::from_secs_f64(t),
-            ..Default::default()
-        };
-        let trajectory = JointTrajectory {
-            points: vec![point(0.0), point(0.2)],
-            ..Default::default()
-        };
+        let trajectory = resting([theta, r, 0.0], 0.2);
         let m = GcodeMove {
             x_m: target[0],
             y_m: target[1],

@@ -74,15 +74,18 @@ impl ScrewAngle {
     /// Extend by the next chunk of commands (in time order), pushing the samples that fall
     /// before its last command.
     pub fn extend(&mut self, commands: &[Command], out: &mut Vec<ScrewSample>) {
-        let mut samples = self.clone().samples(commands.to_vec());
-        out.extend(&mut samples);
-        *self = samples.angle;
+        self.walk(commands, |s| out.push(s));
     }
 
     /// Move past `commands` as [`ScrewAngle::extend`] does, keeping no sample.
     pub fn advance(&mut self, commands: &[Command]) {
+        self.walk(commands, drop);
+    }
+
+    /// Move past `commands`, handing each sample to `sink`.
+    fn walk(&mut self, commands: &[Command], sink: impl FnMut(ScrewSample)) {
         let mut samples = self.clone().samples(commands.to_vec());
-        samples.by_ref().for_each(drop);
+        samples.by_ref().for_each(sink);
         *self = samples.angle;
     }
 

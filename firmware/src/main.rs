@@ -45,7 +45,7 @@ use core::cell::{RefCell, UnsafeCell};
 use core::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
 use cell_firmware_core::outputs::{EdgeWrites, Outputs};
-use cell_firmware_core::{Endpoint, MachineConfig, StepEdge};
+use cell_firmware_core::{Endpoint, Machine, MachineConfig, StepEdge};
 use cell_protocol::message::{FaultCode, Mode};
 use cell_protocol::{LinkOptions, MAX_WIRE_FRAME};
 use critical_section::Mutex;
@@ -314,6 +314,24 @@ fn wait_for_tick(tick: u64) {
 fn count_if_late(tick: u64, allowed_ticks: i32, counter: &AtomicU32) {
     if timer_low().wrapping_sub(tick as u32) as i32 > allowed_ticks {
         bump(counter, 1);
+    }
+}
+
+/// Queue the screw's outputs at the generator's clock if they changed (a full queue: tried
+/// again after the next chunk).
+fn sample_screw(
+    machine: &Machine<SEGMENT_QUEUE, SCREW_QUEUE>,
+    screw_output: &mut (i32, bool),
+    to_pins: &mut Producer<'static, Output>,
+) {
+    let screw = (machine.screw_millirpm(), machine.pin_open());
+    if screw != *screw_output && to_pins.ready() {
+        let _ = to_pins.enqueue(Output::Screw {
+            clock: machine.clock(),
+            duty: screw_duty(screw.0),
+            pin_open: screw.1,
+        });
+        *screw_output = screw;
     }
 }
 
@@ -770,8 +788,11 @@ fn main() -> ! {
             }
         }
         // At most one edge per tick: advancing by no more ticks than the queue has free
-        // places can never overflow it. A full queue holds the generator back (edges would
-        // then be late, which `LATE_STEP_OUTPUTS` counts) instead of losing an edge.
+        // places (less one, kept for the screw) can never overflow it. A full queue holds the
+        // generator back (edges would then be late, which `LATE_STEP_OUTPUTS` counts)
+        // instead of losing an edge. A chunk ends where the next screw command takes effect,
+        // so the screw's output carries that command's own tick: sampled once per pass it
+        // went out wherever the pass ended, up to the whole lead late after a long pass.
         loop {
             // What UART0 brought meanwhile first: an emergency stop acts between chunks, not
             // after a whole pass (a pass through a hold's ramp can outlast a control period).
@@ -782,7 +803,7 @@ fn main() -> ! {
                 break;
             }
             let generated_to = endpoint.machine().clock();
-            let free = (to_pins.capacity() - to_pins.len()) as u64;
+            let free = (to_pins.capacity() - to_pins.len()).saturating_sub(1) as u64;
             if generated_to >= generate_until || free == 0 {
                 break;
             }
@@ -791,28 +812,21 @@ fn main() -> ! {
             } else {
                 GENERATE_CHUNK_TICKS
             };
-            let until = generate_until
+            let mut until = generate_until
                 .min(generated_to + free)
                 .min(generated_to + chunk);
+            if let Some(ticks) = endpoint.machine().ticks_to_next_screw_command() {
+                until = until.min(generated_to + ticks.max(1));
+            }
             endpoint.advance(until, &mut |edge| {
                 let writes = outputs.edge(edge);
                 let queued = to_pins.enqueue(Output::Step { edge, writes });
                 debug_assert!(queued.is_ok(), "one edge per tick at most");
             });
+            sample_screw(endpoint.machine(), &mut screw_output, &mut to_pins);
         }
         let machine = endpoint.machine();
-        let screw = (machine.screw_millirpm(), machine.pin_open());
-        if screw != screw_output && !to_pins.ready() {
-            // Queue full: tried again next pass.
-        } else if screw != screw_output {
-            // Sampled where the generator stands (each pass moves it some 250 µs on).
-            let _ = to_pins.enqueue(Output::Screw {
-                clock: machine.clock(),
-                duty: screw_duty(screw.0),
-                pin_open: screw.1,
-            });
-            screw_output = screw;
-        }
+        sample_screw(machine, &mut screw_output, &mut to_pins);
         let faulted = machine.fault() != FaultCode::None;
         if faulted && !stopped {
             stop_outputs(endpoint, &mut outputs);

@@ -216,6 +216,16 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
         ((self.screw.millirpm() as i64 * self.sigma_q32 as i64) >> 32) as i32
     }
 
+    /// MCU ticks at least until the next queued screw command takes effect (0: at the next
+    /// advance), if one is queued. The plan clock runs at most as fast as the MCU's (σ ≤ 1),
+    /// so a generator that advances no further than this and then samples the screw puts
+    /// each command on its own tick, not wherever a generator pass happens to end.
+    pub fn ticks_to_next_screw_command(&self) -> Option<u64> {
+        self.screw
+            .next_start()
+            .map(|start| start.saturating_sub(self.plan_clock()))
+    }
+
     /// Pin output now: the schedule's, but closed while held at rest. While a hold slows
     /// the machine the screw turns at σ·rpm through the open pin, so every length of path
     /// gets its material, as in the virtual executor; a resume from rest opens it at once,

@@ -153,6 +153,11 @@ impl<const S: usize> Screw<S> {
         (twice / (2 * 60 * timer_hz as i64)) as i32
     }
 
+    /// Plan tick at which the next queued command takes effect, if any.
+    pub fn next_start(&self) -> Option<u64> {
+        self.queue.front().map(|c| c.start_clock)
+    }
+
     /// Commands queued and not yet in force.
     pub fn queued(&self) -> usize {
         self.queue.len()

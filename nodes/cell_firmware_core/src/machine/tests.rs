@@ -295,6 +295,82 @@ fn a_late_screw_command_starts_at_arrival_without_a_fault() {
     assert_eq!(m.counters().late_segments, 1);
 }
 
+/// A generator that advances no further than `ticks_to_next_screw_command` at a time sees
+/// each screw command take effect on its own plan tick, at full feed and through a hold's
+/// ramp (σ < 1), whatever its chunk length; unbounded chunks see it wherever they end.
+#[test]
+fn advancing_to_the_next_screw_command_samples_it_on_its_tick() {
+    let commands = [(1_234u64, 20_000), (2_345, 5_000), (6_001, 40_000)];
+    for (chunk, hold_at) in [(500u64, None), (97, None), (500, Some(3_025u64))] {
+        let mut m = machine();
+        queue(&mut m, cruise(0, 200, 50, 0, 1));
+        for &(start_clock, target_millirpm) in &commands {
+            let ramp = ScrewRamp {
+                start_clock,
+                ramp_ticks: 0,
+                target_millirpm,
+                pin_open: true,
+            };
+            assert_eq!(m.handle(&HostMessage::Screw(ramp), 0), None);
+        }
+        let mut taken = Vec::new();
+        let mut held = false;
+        while m.clock() < 20_000 {
+            if let Some(at) = hold_at.filter(|&at| !held && m.clock() >= at) {
+                held = true;
+                m.handle(
+                    &HostMessage::FeedHold {
+                        rate_q32: (ONE / 8_000) as u32,
+                    },
+                    at,
+                );
+            }
+            let mut until = m.clock() + chunk;
+            if let Some(ticks) = m.ticks_to_next_screw_command() {
+                until = until.min(m.clock() + ticks.max(1));
+            }
+            if let Some(at) = hold_at.filter(|_| !held) {
+                until = until.min(at);
+            }
+            let before = m.screw.next_start();
+            run(&mut m, until);
+            if m.screw.next_start() != before {
+                taken.push(m.plan_clock());
+            }
+        }
+        // Held from 3025, σ falls to 0 over 8000 ticks: the plan clock reaches 6001 at σ < 1
+        // and stops near 7025.
+        let expected: Vec<u64> = commands.iter().map(|c| c.0).collect();
+        assert_eq!(taken, expected, "chunk {chunk}, hold at {hold_at:?}");
+        if hold_at.is_some() {
+            assert!(
+                (7_000..7_100).contains(&m.plan_clock()),
+                "{}",
+                m.plan_clock()
+            );
+        }
+    }
+    // Unbounded by the commands, a 500-tick pass takes them where it ends.
+    let mut m = machine();
+    queue(&mut m, cruise(0, 200, 50, 0, 1));
+    m.handle(
+        &HostMessage::Screw(ScrewRamp {
+            start_clock: 1_234,
+            ramp_ticks: 0,
+            target_millirpm: 20_000,
+            pin_open: true,
+        }),
+        0,
+    );
+    run(&mut m, 1_000);
+    assert_eq!(m.ticks_to_next_screw_command(), Some(234));
+    run(&mut m, 1_500);
+    assert_eq!(
+        (m.ticks_to_next_screw_command(), m.plan_clock()),
+        (None, 1_500)
+    );
+}
+
 #[test]
 fn an_emergency_stop_stops_at_once_and_holds_until_reset() {
     let mut m = machine();

@@ -307,6 +307,9 @@ pub struct JobIo {
     pub status: tokio::sync::watch::Sender<cell_machine::node::Status>,
     /// The pre-flight's machine time of the plan, once known.
     pub planned: tokio::sync::watch::Sender<Option<f64>>,
+    /// `/cell` service calls that the caller serves and hands to this job's machine (which
+    /// then serves none itself), or `None`: the machine serves them.
+    pub cell_requests: Option<tokio::sync::mpsc::UnboundedReceiver<cell_machine::node::Request>>,
 }
 
 /// How a print job that did not fail ended.
@@ -351,6 +354,7 @@ pub async fn print(file: &str, options: &PrintOptions, ros_args: &RosArgs) -> an
         interrupts,
         status,
         planned,
+        cell_requests: None,
     };
     let report = run_job(file, options, ros_args, io).await;
     signals.abort();
@@ -588,7 +592,22 @@ pub async fn run_job(
         // The bag has the machine's states from the first.
         param("await_subscribers", format!("[{recorder_name:?}]")),
     ]);
+    if io.cell_requests.is_some() {
+        executor_overrides.push(param("cell_services", "false".into()));
+    }
     let (commands, command_rx) = tokio::sync::mpsc::unbounded_channel();
+    if let (Some(mut requests), Some(_)) = (io.cell_requests, options.execution) {
+        // Handed over as they come; once the machine is gone, a request's answer sender is
+        // dropped with it, and so is this receiver: the caller answers for itself.
+        let to_machine = commands.clone();
+        tokio::spawn(async move {
+            while let Some(request) = requests.recv().await {
+                if to_machine.send(request).is_err() {
+                    break;
+                }
+            }
+        });
+    }
     let status_tx = io.status;
     let status = status_tx.subscribe();
     // The MCU emulator of `--device emulator` lives as long as the job.
@@ -1081,14 +1100,14 @@ async fn show_execution(
 /// Ctrl-C while executing: cancel (stop on the path within the acceleration limits, pin
 /// closed, screw stopped); a second Ctrl-C during that stop: emergency stop. Says how it ended.
 async fn stop_machine(
-    commands: &tokio::sync::mpsc::UnboundedSender<cell_machine::node::Command>,
+    commands: &tokio::sync::mpsc::UnboundedSender<cell_machine::node::Request>,
     status: &tokio::sync::watch::Receiver<cell_machine::node::Status>,
     bar: &ProgressBar,
     interrupts: &tokio::sync::watch::Receiver<u32>,
 ) -> (bool, String) {
     use cell_executor::PlayerState;
     use cell_machine::node::Command;
-    let _ = commands.send(Command::Cancel);
+    let _ = commands.send(Command::Cancel.into());
     // The second interrupt is the emergency stop, whether this stop came from the first (a
     // Ctrl-C, an action's cancel) or from the job itself (a bag that cannot be written, a
     // node that failed): then a cancel asked meanwhile is that stop, not an emergency.
@@ -1118,7 +1137,7 @@ async fn stop_machine(
     let (s, emergency) = tokio::select! {
         s = at_rest => (s, false),
         _ = interrupted(interrupts, EMERGENCY_AT) => {
-            let _ = commands.send(Command::EmergencyStop);
+            let _ = commands.send(Command::EmergencyStop.into());
             let mut watch = status.clone();
             loop {
                 if watch.borrow_and_update().state == Some(PlayerState::Stopped) { break; }
@@ -1336,7 +1355,8 @@ mod tests {
         obey: impl Fn(&cell_machine::node::Command, &mut cell_machine::node::Status) + Send + 'static,
     ) -> ((bool, String), Vec<cell_machine::node::Command>) {
         use cell_machine::node::Status;
-        let (commands, mut asked) = tokio::sync::mpsc::unbounded_channel();
+        let (commands, mut asked) =
+            tokio::sync::mpsc::unbounded_channel::<cell_machine::node::Request>();
         let (status_tx, status) = tokio::sync::watch::channel(Status {
             state: Some(cell_executor::PlayerState::Running),
             current: Some((41, 120)),
@@ -1345,7 +1365,8 @@ mod tests {
         let (interrupts_tx, interrupts) = tokio::sync::watch::channel(0u32);
         let machine = tokio::spawn(async move {
             let mut seen = Vec::new();
-            while let Some(command) = asked.recv().await {
+            while let Some(request) = asked.recv().await {
+                let command = request.command;
                 if matches!(command, cell_machine::node::Command::Cancel) {
                     interrupts_tx.send_replace(interrupts_during);
                     tokio::task::yield_now().await;

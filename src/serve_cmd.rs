@@ -10,9 +10,11 @@
 //! cell would print again with nobody having reset it). While no job runs, the server answers
 //! the `/cell` services itself: `/cell/estop` latches that stop, `/cell/reset` clears it, and
 //! the others say that no print runs (a `ros2 service call` no longer waits for ever). While
-//! a job's machine node is up it answers them; before (pre-flight, start-up) and after it
-//! (the job closing its bag) the server does, and an e-stop then stops the job before it
-//! moves and latches all the same.
+//! a job's machine node is up the server hands the calls to it and sends its answers (the
+//! machine serves no `/cell` service of its own: with two servers of one service, a call
+//! that matched only the server's reader was lost to the machine); before (pre-flight,
+//! start-up) and after it (the job closing its bag) the server answers, and an e-stop then
+//! stops the job before it moves and latches all the same.
 //!
 //! One goal at a time: a goal sent while another runs is rejected. The endpoints are
 //! ros2-client's synchronous `ActionServer` (its async wrapper needs `Copy` goals and has the
@@ -72,6 +74,10 @@ struct Running {
     shutdown: bool,
     /// `/cell/estop` came while the job's machine was not up (pre-flight, start-up).
     estopped_before_motion: bool,
+    /// `/cell` calls handed to the job's machine (it serves none itself: one server per
+    /// service for the server's whole life, so a call cannot reach a server that leaves it
+    /// to another whose reader has not yet matched the caller).
+    cell_requests: tokio::sync::mpsc::UnboundedSender<cell_machine::node::Request>,
     job: Job,
 }
 
@@ -79,6 +85,16 @@ struct Running {
 /// not `Sync`, so the job cannot be a spawned task).
 type Job =
     std::pin::Pin<Box<dyn std::future::Future<Output = (anyhow::Result<JobReport>, String)>>>;
+
+/// A `/cell` call handed to the running job's machine: the service's index in
+/// [`cell_machine::node::SERVICES`], the request to answer, its command, and the machine's
+/// answer to come.
+type HandedCall = (
+    usize,
+    cell_runtime::service::Request,
+    Command,
+    tokio::sync::oneshot::Receiver<(bool, String)>,
+);
 
 struct Finished {
     info: GoalInfo,
@@ -122,6 +138,8 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
     // (RustDDS keeps a topic's samples for the participant), an old /cell/reset among them.
     let mut idle: Vec<(TriggerServer, Command)> = Vec::new();
     let mut replies = cell_runtime::service::Replies::default();
+    // Calls handed to a job's machine, waiting for its answer.
+    let mut to_machine: Vec<HandedCall> = Vec::new();
     for (name, command) in cell_machine::node::SERVICES {
         let server = node.service::<TriggerRequest, TriggerResponse>(
             name,
@@ -179,24 +197,28 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                     (None, Some(request)) => Some((request, idle_reply(command, &mut latched))),
                     (Some(r), Some(request)) => {
                         // The job's machine answers while its node is up. Before (pre-flight,
-                        // start-up) and after (the job closing its bag) these do: an e-stop
-                        // then stops the job before it moves, and holds the cell either way.
+                        // start-up) and after (the job closing its bag) the server does: an
+                        // e-stop then stops the job before it moves, and holds the cell
+                        // either way.
                         let up = r.status.has_changed().is_ok() && r.status.borrow().state.is_some();
                         if command == Command::EmergencyStop {
                             latched.get_or_insert_with(|| "emergency stop (/cell/estop) during a print".into());
                         }
-                        (!up).then(|| {
-                            let reply = match command {
-                                Command::EmergencyStop if r.status.borrow().state.is_none() => {
-                                    r.estopped_before_motion = true;
-                                    let _ = r.interrupts.send(2);
-                                    (true, "emergency stop: the print stops before it moves; new prints are refused until /cell/reset".to_string())
-                                }
-                                Command::EmergencyStop => (true, "emergency stop: the print has ended; new prints are refused until /cell/reset".to_string()),
-                                _ => (false, "the print is starting or ending: its machine is not up".to_string()),
-                            };
-                            (request, reply)
-                        })
+                        let (answer, answered) = tokio::sync::oneshot::channel();
+                        let handed = up && r
+                            .cell_requests
+                            .send(cell_machine::node::Request { command, answer: Some(answer) })
+                            .is_ok();
+                        if handed {
+                            to_machine.push((index, request, command, answered));
+                            None
+                        } else if command == Command::EmergencyStop && r.status.borrow().state.is_none() {
+                            r.estopped_before_motion = true;
+                            let _ = r.interrupts.send(2);
+                            Some((request, (true, "emergency stop: the print stops before it moves; new prints are refused until /cell/reset".to_string())))
+                        } else {
+                            Some((request, without_machine_reply(command)))
+                        }
                     }
                     (_, None) => None,
                 };
@@ -228,6 +250,28 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 None
             }
         };
+        // The machine's answers to the calls handed to it; a machine that ended first
+        // dropped the call, and the server answers it.
+        for (index, request, command, mut answered) in std::mem::take(&mut to_machine) {
+            let reply = match answered.try_recv() {
+                Ok(reply) => reply,
+                Err(tokio::sync::oneshot::error::TryRecvError::Empty) => {
+                    to_machine.push((index, request, command, answered));
+                    continue;
+                }
+                Err(tokio::sync::oneshot::error::TryRecvError::Closed) => {
+                    let reply = without_machine_reply(command);
+                    eprintln!(
+                        "serve: {}: {}",
+                        cell_machine::node::SERVICES[index].0,
+                        reply.1
+                    );
+                    reply
+                }
+            };
+            let (success, message) = reply;
+            replies.push(index, request, Wire(TriggerResponse { success, message }));
+        }
         for (index, problem) in replies.send_ready(|index| &idle[index].0) {
             eprintln!(
                 "serve: {}: {problem}",
@@ -319,6 +363,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
             let (status_tx, status) =
                 tokio::sync::watch::channel(cell_machine::node::Status::default());
             let (planned_tx, planned) = tokio::sync::watch::channel(None);
+            let (cell_requests, cell_requests_rx) = tokio::sync::mpsc::unbounded_channel();
             let job_options = PrintOptions {
                 bag: bag.clone(),
                 bag_dir: false,
@@ -335,6 +380,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                     interrupts: interrupts_rx,
                     status: status_tx,
                     planned: planned_tx,
+                    cell_requests: Some(cell_requests_rx),
                 };
                 // `print -` reads its own standard input; the server's is not the client's.
                 let report = if file == "-" {
@@ -366,6 +412,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 cancelling: false,
                 shutdown: false,
                 estopped_before_motion: false,
+                cell_requests,
                 job,
             });
             publish_statuses(&server, &running, &finished);
@@ -558,6 +605,21 @@ fn idle_reply(command: Command, latched: &mut Option<String>) -> (bool, String) 
         }
         Command::Reset => (false, "not stopped".into()),
         Command::Pause | Command::Resume | Command::Cancel => (false, "no print runs".into()),
+    }
+}
+
+/// The server's answer while a job runs without its machine up (starting or ending); an
+/// e-stop was latched by the caller.
+fn without_machine_reply(command: Command) -> (bool, String) {
+    match command {
+        Command::EmergencyStop => (
+            true,
+            "emergency stop: the print has ended; new prints are refused until /cell/reset".into(),
+        ),
+        _ => (
+            false,
+            "the print is starting or ending: its machine is not up".into(),
+        ),
     }
 }
 

@@ -4,7 +4,7 @@
 //! (topics, services, plan credit, diagnostics), the same one a microcontroller behind the
 //! bridge has.
 
-use cell_machine::node::{Command, MachineParams, Status};
+use cell_machine::node::{MachineParams, Request, Status};
 use cell_runtime::{CellNode, ParamSpec, ParamValue};
 use tokio::sync::{mpsc, watch};
 
@@ -50,7 +50,7 @@ pub fn executor_from_params(params: &MachineParams, control_period_s: f64) -> Ex
 /// print's Ctrl-C); `status` tells it how the machine is doing.
 pub async fn run(
     node: &mut CellNode,
-    commands: mpsc::UnboundedReceiver<Command>,
+    commands: mpsc::UnboundedReceiver<Request>,
     status: watch::Sender<Status>,
 ) -> anyhow::Result<()> {
     let params = MachineParams::from_params(&node.params)?;

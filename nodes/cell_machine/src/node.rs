@@ -76,6 +76,7 @@ pub fn param_specs(tick_period_s: f64) -> Vec<ParamSpec> {
         ParamSpec::new("planner_resume_timeout_s", ParamValue::Double(10.0), "a planner restarted mid-print must continue the plan within this long of the machine running out of plan (wall s; it holds on the path meanwhile) or the print stops and fails (0: never resume, stop at once)").range(0.0, 3600.0),
         ParamSpec::new("screw_resume_timeout_s", ParamValue::Double(10.0), "a screw driver restarted mid-print must continue its commands within this long of the machine holding for them (wall s; it holds on the path before the commands it has run out) or the print stops and fails (0: never resume, stop at once)").range(0.0, 3600.0),
         ParamSpec::new("exit_when_done", ParamValue::Bool(false), "end the node once a complete plan (its stream finished) has been executed (for scripts)"),
+        ParamSpec::new("cell_services", ParamValue::Bool(true), "serve /cell/pause, /cell/resume, /cell/cancel, /cell/estop and /cell/reset (false: the process that runs this node serves them and hands their calls over, as polar-cell serve does for its jobs: one server per service for the server's whole life)"),
         ParamSpec::new("service_mapping", ParamValue::String("cyclone".into()), "request/reply wire format of the services: cyclone (rmw_cyclonedds clients), enhanced (rmw_fastrtps) or basic"),
         ParamSpec::new("await_subscribers", ParamValue::StringArray(vec![]), "nodes (relative: in this node's namespace) that must subscribe to /joint_states and /tf before the first state is published: a volatile sample reaches only readers matched by then, and a recorder matched late misses the first ones"),
         ParamSpec::new("await_subscribers_s", ParamValue::Double(5.0), "wait at most this long (wall s) for await_subscribers, then start without them, with a warning").range(0.0, 600.0),
@@ -227,6 +228,23 @@ pub const SERVICES: [(&str, Command); 5] = [
     ("/cell/reset", Command::Reset),
 ];
 
+/// A command from the machine node's own process, and where its answer goes if somebody
+/// waits for it (a `polar-cell serve` handing over a `/cell` service call it took).
+#[derive(Debug)]
+pub struct Request {
+    pub command: Command,
+    pub answer: Option<tokio::sync::oneshot::Sender<(bool, String)>>,
+}
+
+impl From<Command> for Request {
+    fn from(command: Command) -> Request {
+        Request {
+            command,
+            answer: None,
+        }
+    }
+}
+
 /// What the operator's commands have made of the plan: every decision of the node loop that
 /// depends on them, apart from DDS (so it is tested without it).
 ///
@@ -332,10 +350,11 @@ pub async fn run<M: Machine>(
     node: &mut CellNode,
     executor: &mut M,
     options: &MachineParams,
-    mut commands: mpsc::UnboundedReceiver<Command>,
+    mut commands: mpsc::UnboundedReceiver<Request>,
     status: watch::Sender<Status>,
 ) -> anyhow::Result<()> {
     let mapping = parse_service_mapping(node.params.string("service_mapping"))?;
+    let serves_cell_services = node.params.bool("cell_services");
     let exit_when_done = node.params.bool("exit_when_done");
     let tree = TfTree::from_urdf(&options.urdf).context("URDF")?;
     tree.check_joints(&JOINT_NAMES)
@@ -416,7 +435,7 @@ pub async fn run<M: Machine>(
     node.keep(tf.clone());
     node.keep(credit_pub.clone());
     let mut servers = Vec::new();
-    for (name, command) in SERVICES {
+    for (name, command) in SERVICES.into_iter().filter(|_| serves_cell_services) {
         let server = node.service::<TriggerRequest, TriggerResponse>(
             name,
             ("std_srvs", "Trigger"),
@@ -498,9 +517,8 @@ pub async fn run<M: Machine>(
     // Service replies waiting for their clients' response readers.
     let mut replies = cell_runtime::service::Replies::default();
     loop {
-        // A command, and the service request to answer if it came from one.
-        let mut requested: Option<(Command, Option<(usize, cell_runtime::service::Request)>)> =
-            None;
+        // A command, and who asked for it.
+        let mut requested: Option<(Command, Caller)> = None;
         tokio::select! {
             taken = steps_sub.async_take() => { 'steps: {
                 let Some((s, info)) = undecodable.take(node, "/polar/steps", taken)? else {
@@ -623,10 +641,12 @@ pub async fn run<M: Machine>(
                     }
                 }
             }
-            Some(command) = commands.recv() => requested = Some((command, None)),
-            (index, request) = next_request(&servers) => {
+            Some(request) = commands.recv() => {
+                requested = Some((request.command, Caller::Process(request.answer)));
+            }
+            (index, request) = next_request(&servers), if !servers.is_empty() => {
                 if let Some(request) = request {
-                    requested = Some((servers[index].1, Some((index, request))));
+                    requested = Some((servers[index].1, Caller::Service(index, request)));
                 }
             }
             _ = tokio::time::sleep_until(wake.into()) => {}
@@ -643,8 +663,13 @@ pub async fn run<M: Machine>(
                 held_for_screw = false;
             }
             match caller {
-                None => cell_runtime::cell_log!(node, LogLevel::Info, "{}", message),
-                Some((index, request)) => {
+                Caller::Process(answer) => {
+                    cell_runtime::cell_log!(node, LogLevel::Info, "{}", message);
+                    if let Some(answer) = answer {
+                        let _ = answer.send((success, message));
+                    }
+                }
+                Caller::Service(index, request) => {
                     let service = SERVICES[index].0;
                     cell_runtime::cell_log!(node, LogLevel::Info, "{service}: {message}");
                     replies.push(index, request, Wire(TriggerResponse { success, message }));
@@ -1109,7 +1134,7 @@ fn restarted(producer: &str, topic: &str) -> String {
 /// How a machine node runs: the node, commands from its own process, its status out.
 pub type RunFn = for<'a> fn(
     &'a mut CellNode,
-    mpsc::UnboundedReceiver<Command>,
+    mpsc::UnboundedReceiver<Request>,
     watch::Sender<Status>,
 ) -> std::pin::Pin<
     Box<dyn std::future::Future<Output = anyhow::Result<()>> + 'a>,
@@ -1173,7 +1198,7 @@ pub async fn main_with_args(
                         eprintln!(
                             "{name}: stopping on the path (Ctrl-C again: emergency stop)"
                         );
-                        let _ = commands.send(Command::Cancel);
+                        let _ = commands.send(Command::Cancel.into());
                         stopping = Some(signal);
                     }
                     None => return Ok(()),
@@ -1182,7 +1207,7 @@ pub async fn main_with_args(
                     Some(ShutdownSignal::Interrupt) if signal == ShutdownSignal::Terminate => {}
                     Some(_) if under_way && end_at.is_none() => {
                         eprintln!("{name}: emergency stop");
-                        let _ = commands.send(Command::EmergencyStop);
+                        let _ = commands.send(Command::EmergencyStop.into());
                         end_at = Some(tokio::time::Instant::now() + LINGER);
                     }
                     Some(_) if !under_way => return Ok(()),
@@ -1199,6 +1224,13 @@ pub async fn main_with_args(
             }
         }
     }
+}
+
+/// Who asked for a command: the node's own process (maybe waiting for the answer), or a
+/// caller of one of its `/cell` services (by index in [`SERVICES`]).
+enum Caller {
+    Process(Option<tokio::sync::oneshot::Sender<(bool, String)>>),
+    Service(usize, cell_runtime::service::Request),
 }
 
 /// A `/cell` service's server.

@@ -21,7 +21,7 @@ use std::os::unix::fs::OpenOptionsExt;
 use std::os::unix::net::UnixStream;
 
 use anyhow::Context as _;
-use cell_machine::node::{Command, MachineParams, Status};
+use cell_machine::node::{MachineParams, Request, Status};
 use cell_runtime::{CellNode, LogLevel, ParamSpec, ParamValue};
 use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 use nix::sys::termios::{cfmakeraw, cfsetspeed, tcgetattr, tcsetattr, BaudRate, SetArg};
@@ -500,7 +500,7 @@ pub fn probe_position(
 /// Run the bridge on `node` until an error: the MCU on `device` is the machine.
 pub async fn run(
     node: &mut CellNode,
-    commands: mpsc::UnboundedReceiver<Command>,
+    commands: mpsc::UnboundedReceiver<Request>,
     status: watch::Sender<Status>,
 ) -> anyhow::Result<()> {
     let params = MachineParams::from_params(&node.params)?;

@@ -132,8 +132,8 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
     let mut running: Option<Running> = None;
     // Why the cell is stopped at once, until `/cell/reset`.
     let mut latched: Option<String> = None;
-    // The `/cell` services while no job runs; while one runs its machine answers them, and
-    // these take the requests and leave them. They live as long as the server: a reader made
+    // The `/cell` services, answered here while no job's machine is up and handed to the
+    // machine while one is. They live as long as the server: a reader made
     // again on this participant would be handed the requests its predecessor had taken
     // (RustDDS keeps a topic's samples for the participant), an old /cell/reset among them.
     let mut idle: Vec<(TriggerServer, Command)> = Vec::new();

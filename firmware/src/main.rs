@@ -816,7 +816,7 @@ fn main() -> ! {
                 .min(generated_to + free)
                 .min(generated_to + chunk);
             if let Some(ticks) = endpoint.machine().ticks_to_next_screw_command() {
-                until = until.min(generated_to + ticks.max(1));
+                until = until.min(generated_to.saturating_add(ticks.max(1)));
             }
             endpoint.advance(until, &mut |edge| {
                 let writes = outputs.edge(edge);

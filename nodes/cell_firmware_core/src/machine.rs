@@ -217,13 +217,27 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
     }
 
     /// MCU ticks at least until the next queued screw command takes effect (0: at the next
-    /// advance), if one is queued. The plan clock runs at most as fast as the MCU's (σ ≤ 1),
-    /// so a generator that advances no further than this and then samples the screw puts
-    /// each command on its own tick, not wherever a generator pass happens to end.
+    /// advance), if one is queued and the plan clock moves. The plan clock runs at most as
+    /// fast as the MCU's (σ ≤ 1), and through a hold's ramp at most σ as fast (σ only falls
+    /// there), so a generator that advances no further than this and then samples the screw
+    /// puts each command on its own tick, not wherever a generator pass happens to end.
+    /// While the plan clock stands (held, waiting to resume, or run dry) no command can take
+    /// effect: `None`, or a generator bounded by it would crawl a tick at a time through the
+    /// whole rest.
     pub fn ticks_to_next_screw_command(&self) -> Option<u64> {
-        self.screw
-            .next_start()
-            .map(|start| start.saturating_sub(self.plan_clock()))
+        let start = self.screw.next_start()?;
+        if self.sigma_q32 == 0 || self.waiting_in_schedule() {
+            return None;
+        }
+        Some(match self.ramp {
+            Ramp::Hold { .. } => {
+                // The exact plan time left (the plan clock has a fraction here), at σ now.
+                let left_q32 = ((start as u128) << 32).saturating_sub(self.plan_q32);
+                let ticks = left_q32.div_ceil(self.sigma_q32 as u128);
+                u64::try_from(ticks).unwrap_or(u64::MAX)
+            }
+            _ => start.saturating_sub(self.plan_clock()),
+        })
     }
 
     /// Pin output now: the schedule's, but closed while held at rest. While a hold slows

@@ -664,7 +664,7 @@ pub async fn run<M: Machine>(
             }
             match caller {
                 Caller::Process(answer) => {
-                    cell_runtime::cell_log!(node, LogLevel::Info, "{}", message);
+                    cell_runtime::cell_log!(node, LogLevel::Info, "{command:?}: {message}");
                     if let Some(answer) = answer {
                         let _ = answer.send((success, message));
                     }

@@ -350,6 +350,31 @@ fn advancing_to_the_next_screw_command_samples_it_on_its_tick() {
             );
         }
     }
+    // Held at rest with a command two plan ticks ahead: no bound (the plan clock stands; a
+    // generator bounded by it would crawl through the rest a tick at a time).
+    let mut m = machine();
+    queue(&mut m, cruise(0, 200, 50, 0, 1));
+    run(&mut m, 3_000);
+    m.handle(
+        &HostMessage::FeedHold {
+            rate_q32: (ONE / 100) as u32,
+        },
+        3_000,
+    );
+    run(&mut m, 3_500);
+    let stands_at = m.plan_clock();
+    m.handle(
+        &HostMessage::Screw(ScrewRamp {
+            start_clock: stands_at + 2,
+            ramp_ticks: 0,
+            target_millirpm: 20_000,
+            pin_open: true,
+        }),
+        3_500,
+    );
+    assert_eq!(m.ticks_to_next_screw_command(), None);
+    run(&mut m, 4_000);
+    assert_eq!(m.plan_clock(), stands_at);
     // Unbounded by the commands, a 500-tick pass takes them where it ends.
     let mut m = machine();
     queue(&mut m, cruise(0, 200, 50, 0, 1));

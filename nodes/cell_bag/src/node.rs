@@ -440,6 +440,11 @@ macro_rules! with_message_type {
     };
 }
 
+/// A type the taps can record (used through [`with_message_type`]): its Rust type.
+fn recordable<T: RosMessage>() -> anyhow::Result<&'static str> {
+    Ok(std::any::type_name::<T>())
+}
+
 fn publish_time(info: &ros2_client::MessageInfo, fallback: u64) -> u64 {
     info.source_timestamp()
         .map(|t| t.to_nanos().max(0) as u64)
@@ -714,6 +719,28 @@ fn spawn_moves_consumer(
                     }
                 },
                 _ = stop.changed() => {
+                    // What the readers hold goes in too: the moves first (the bag would
+                    // otherwise have trajectories and progress for moves it lacks), then
+                    // the progress, each only from the streamer, as while recording.
+                    loop {
+                        let (m, info) = match moves.take() {
+                            Ok(Some(taken)) => taken,
+                            Ok(None) => break,
+                            Err(e) => {
+                                unreadable.note("/gcode/moves", &e);
+                                continue;
+                            }
+                        };
+                        if !producer.admits(&info) {
+                            continue;
+                        }
+                        unrecorded += u64::from(tracker.needs_hello());
+                        if tracker.accept(m.sequence) == Verdict::Process
+                            && !forward(&tx, moves_channel, &m, &info).await
+                        {
+                            return None;
+                        }
+                    }
                     loop {
                         let (p, info) = match progress.take() {
                             Ok(Some(taken)) => taken,
@@ -723,9 +750,10 @@ fn spawn_moves_consumer(
                                 continue;
                             }
                         };
-                        if producer.admits(&info) {
-                            streamer_published = streamer_published.max(p.moves_published);
+                        if !producer.admits(&info) {
+                            continue;
                         }
+                        streamer_published = streamer_published.max(p.moves_published);
                         if let Some(channel) = progress_channel {
                             forward(&tx, channel, &p, &info).await;
                         }
@@ -764,7 +792,15 @@ impl Recorder {
             .into_iter()
             .map(
                 |(topic, type_name)| match polar_cell_msgs::find(&type_name) {
-                    Some(msg_type) => Ok((topic, type_name, msg_type)),
+                    // As the taps and the bag name it (`std_msgs/String` is
+                    // `std_msgs/msg/String`), and one they record: checked before the
+                    // output is created, which would empty a bag already there.
+                    Some(msg_type) => {
+                        let type_name = msg_type.full_name();
+                        with_message_type!(type_name.as_str(), recordable())
+                            .with_context(|| format!("topic {topic}"))?;
+                        Ok((topic, type_name, msg_type))
+                    }
                     None => Err(anyhow!("topic {topic}: unknown message type {type_name}")),
                 },
             )

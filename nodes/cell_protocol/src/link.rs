@@ -93,6 +93,8 @@ pub struct LinkCounters {
     /// Sequenced frames received ahead of a missing one (held if within the window, NAKed).
     pub out_of_order: u32,
     pub peer_restarts: u32,
+    /// Sequenced frames that came before any peer session was known (an old session's).
+    pub stale_frames: u32,
 }
 
 /// Most bytes of a selective-acknowledgement bitmap: one bit for each of the 127 frames a
@@ -370,6 +372,14 @@ impl<const W: usize> Link<W> {
         }
         if header.sync_reply {
             self.on_sync_reply(frame);
+            return Received::Nothing;
+        }
+        if header.sequenced && self.peer_nonce.is_none() {
+            // No peer session known: a sequenced frame is from an old one (an MCU that
+            // restarted, the host still resending its window). A peer sends sequenced frames
+            // only once its SYNC_REQUEST (or our reply to it) told us its session, so
+            // nothing of a new one is lost here.
+            self.counters.stale_frames = self.counters.stale_frames.wrapping_add(1);
             return Received::Nothing;
         }
         self.on_ack(header.ack, now);

@@ -108,6 +108,12 @@ pub struct Interpreter {
     flow_percent: f64,
     last_motion: Option<u32>,
     next_sequence: u64,
+    /// The last `N` line number (or what `M110` set): a numbered line must follow it by one,
+    /// as a firmware checks a host's stream, so a line lost between two numbered ones is an
+    /// error, not a silent gap.
+    last_numbered: Option<i64>,
+    /// What an `M110 N…` on the line being executed sets.
+    numbered_by_m110: Option<i64>,
 }
 
 /// Output of one line.
@@ -137,6 +143,8 @@ impl Interpreter {
             flow_percent: 100.0,
             last_motion: None,
             next_sequence: 0,
+            last_numbered: None,
+            numbered_by_m110: None,
         }
     }
 
@@ -193,7 +201,33 @@ impl Interpreter {
                 return Err(self.error(line_number, column, kind));
             }
         };
+        // `M110` sets the number itself, whatever its line's own.
+        let sets_number = lexed
+            .words
+            .first()
+            .is_some_and(|w| w.letter == b'M' && w.value == 110.0);
+        if let (Some(found), Some(last), false) =
+            (lexed.line_number, self.last_numbered, sets_number)
+        {
+            if Some(found) != last.checked_add(1) {
+                self.lexer.recycle(lexed);
+                return Err(self.error(
+                    line_number,
+                    first_word_column(bytes).unwrap_or(1),
+                    ErrorKind::LineNumberOutOfOrder {
+                        expected: last.saturating_add(1),
+                        found,
+                    },
+                ));
+            }
+        }
+        self.numbered_by_m110 = None;
         let result = self.execute_words(line_number, &lexed.words, out);
+        if result.is_ok() {
+            if let Some(n) = self.numbered_by_m110.or(lexed.line_number) {
+                self.last_numbered = Some(n);
+            }
+        }
         self.lexer.recycle(lexed);
         result
     }
@@ -419,6 +453,21 @@ impl Interpreter {
             }
             (b'M', 82) => {
                 self.relative_e = false;
+                Ok(())
+            }
+            (b'M', 110) => {
+                // Set the line number: the next numbered line follows it.
+                if let Some(n) = p.get(b'N') {
+                    if n.fract() != 0.0 || !(0.0..=i64::MAX as f64 / 2.0).contains(&n) {
+                        return Err(self.invalid(
+                            line,
+                            command.column,
+                            name(),
+                            "N must be a whole number from 0",
+                        ));
+                    }
+                    self.numbered_by_m110 = Some(n as i64);
+                }
                 Ok(())
             }
             (b'M', 83) => {
@@ -724,7 +773,7 @@ fn acts_on(letter: u8, code: f64) -> bool {
         && (0.0..1e6).contains(&code)
         && matches!(
             (letter, code as u32),
-            (b'G', 0..=4 | 17..=21 | 28 | 90..=92) | (b'M', 82 | 83 | 220 | 221) | (b'T', _)
+            (b'G', 0..=4 | 17..=21 | 28 | 90..=92) | (b'M', 82 | 83 | 110 | 220 | 221) | (b'T', _)
         )
 }
 

@@ -191,6 +191,55 @@ fn errors_name_file_line_column_and_expectation() {
     assert_eq!(e.kind, ErrorKind::LineTooLong { limit: 65536 });
 }
 
+/// `N` line numbers are checked as a firmware checks a host's stream: each numbered line
+/// follows the last by one (unnumbered lines between are not counted), so a line lost
+/// between two numbered ones — each with a good checksum — is an error naming where;
+/// `M110 N…` sets the number the next one follows.
+#[test]
+fn numbered_lines_follow_each_other_and_m110_sets_the_number() {
+    fn checked(line: &str) -> String {
+        let sum = line.bytes().fold(0u8, |a, b| a ^ b);
+        format!("{line}*{sum}\n")
+    }
+    let ok = [checked("N1 G1 X1"), "G1 X2\n".into(), checked("N2 G1 X3")].concat();
+    assert_eq!(parse(&ok).len(), 3);
+    let lost = [checked("N1 G1 X1"), checked("N3 G1 X2")].concat();
+    let e = error_of(&lost);
+    assert_eq!(
+        (e.line, e.column, e.kind.clone()),
+        (
+            2,
+            1,
+            ErrorKind::LineNumberOutOfOrder {
+                expected: 2,
+                found: 3
+            }
+        )
+    );
+    assert_eq!(
+        e.to_string(),
+        "bad.gcode:2:1: line number N3 out of order: expected N2"
+    );
+    let repeated = [checked("N5 G1 X1"), checked("N5 G1 X2")].concat();
+    assert!(matches!(
+        error_of(&repeated).kind,
+        ErrorKind::LineNumberOutOfOrder {
+            expected: 6,
+            found: 5
+        }
+    ));
+    // A host's reset of the numbering, and the line's own number as well.
+    let reset = [
+        checked("N7 G1 X1"),
+        "M110 N0\n".into(),
+        checked("N1 G1 X2"),
+        checked("N40 M110"),
+        checked("N41 G1 X3"),
+    ]
+    .concat();
+    assert_eq!(parse(&reset).len(), 3);
+}
+
 #[test]
 fn unknown_commands_warn_with_their_line() {
     let (moves, warnings) = parse_all(

@@ -546,7 +546,10 @@ impl Planner {
             let rest = self.rest_points(self.options.pin_open_dwell_s);
             self.push_fixed(seq, rest, false, out);
         }
-        if moves_or_feeds {
+        // A line that neither goes anywhere nor moves E (`G1 F1800` between two extruding
+        // moves) takes no time: the screw driver leaves the pin as it is over it, and so
+        // must the dwell (it rested the stage with the pin open and the screw stopped).
+        if moves_or_feeds && (length >= GcodeMove::NO_PATH_M || m.delta_e_m != 0.0) {
             self.previous_extruding = m.extrude;
         }
         match m.kind {

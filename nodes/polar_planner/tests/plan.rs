@@ -940,3 +940,34 @@ fn a_refused_move_leaves_no_pin_dwell_and_the_next_extruding_move_gets_its_own()
         "{rest_end}"
     );
 }
+
+/// A feed-rate line between two extruding moves (`G1 F1800`: no path, no E) takes no time and
+/// changes nothing of the pin: the second move gets no pin-open dwell (it rested the stage
+/// 0.25 s with the pin open and the screw stopped, as the screw driver skips such a line). A
+/// travel between them still does.
+#[test]
+fn a_feed_rate_line_between_extruding_moves_adds_no_pin_dwell() {
+    let options = PlannerOptions {
+        pin_open_dwell_s: 0.25,
+        ..PlannerOptions::default()
+    };
+    for (between, dwell_s) in [("G1 F1800", 0.0), ("G1 X25 Y5", 0.25)] {
+        let src = format!("M83\nG1 X20 Y0 F3000\nG1 X25 Y0 E1\n{between}\nG1 X30 Y0 E1\n");
+        let moves = moves_of(src.as_bytes());
+        let planned = plan(&moves, options.clone());
+        let last = moves.last().unwrap().sequence;
+        let plan = planned.iter().find(|p| p.sequence == last).unwrap();
+        let rest_end = plan
+            .points
+            .iter()
+            .take_while(|p| p.q == plan.points[0].q)
+            .last()
+            .unwrap()
+            .t;
+        assert!(
+            (rest_end - plan.start_time() - dwell_s).abs() < 1e-9,
+            "{between}: rests {} s",
+            rest_end - plan.start_time()
+        );
+    }
+}

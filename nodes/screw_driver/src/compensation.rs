@@ -638,8 +638,9 @@ pub fn material_per_move(
 }
 
 /// What held `commands` (a screw's commands as it received them: each held to the next)
-/// deliver through `model` to each extruding move of `moves`, against what the move wants
-/// (`e_per_rev_m` of filament-equivalent per revolution).
+/// deliver through `model` to each extruding move of `moves` (a print's, from its start),
+/// against what the move wants: its ΔE as the screw feeds it, net of retractions
+/// ([`crate::screw::as_fed`]; `e_per_rev_m` of filament-equivalent per revolution).
 pub fn material_of_commands(
     moves: &[crate::screw::TimedMove],
     commands: &[Command],
@@ -647,6 +648,7 @@ pub fn material_of_commands(
     pin_open_delay_s: f64,
     e_per_rev_m: f64,
 ) -> Vec<MoveMaterial> {
+    let moves = &crate::screw::as_fed(moves)[..];
     let mut windows = Vec::new();
     let mut which = Vec::new();
     for (k, m) in moves.iter().enumerate() {

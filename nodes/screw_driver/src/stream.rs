@@ -286,6 +286,7 @@ impl Stream {
             pin: PinState {
                 extruding: c.pin_extruding,
                 closed_at: c.pin_closed_at_s,
+                retracted_m: c.retracted_m,
                 delivery: CompensatorState {
                     flow_rpm: c.flow_rpm,
                     t_s: c.flow_t_s,
@@ -554,6 +555,7 @@ impl Stream {
             from_m: c.from_m,
             pin_extruding: c.pin.extruding,
             pin_closed_at_s: c.pin.closed_at,
+            retracted_m: c.pin.retracted_m,
             flow_rpm: d.flow_rpm,
             flow_t_s: d.t_s,
             flow_command_rpm: d.command_rpm,
@@ -582,7 +584,7 @@ impl Stream {
 }
 
 /// The format this build writes and reads.
-pub const CHECKPOINT_FORMAT: u32 = 1;
+pub const CHECKPOINT_FORMAT: u32 = 2;
 
 /// A screw driver's state after every move before `next_sequence` was commanded: the bytes
 /// it acknowledges with (CDR, like every message here, led by a format number and a digest of
@@ -597,6 +599,7 @@ pub struct Checkpoint {
     pub from_m: [f64; 3],
     pub pin_extruding: bool,
     pub pin_closed_at_s: f64,
+    pub retracted_m: f64,
     pub flow_rpm: f64,
     pub flow_t_s: f64,
     pub flow_command_rpm: f64,
@@ -673,6 +676,12 @@ impl Checkpoint {
         }
         if c.pin_closed_at_s.is_nan() || c.flow_opened_at_s.is_nan() {
             return Err(CheckpointError::NotAScrewState("NaN".into()));
+        }
+        if !(c.retracted_m.is_finite() && c.retracted_m >= 0.0) {
+            return Err(CheckpointError::NotAScrewState(format!(
+                "retracted {} m",
+                c.retracted_m
+            )));
         }
         Ok(c)
     }

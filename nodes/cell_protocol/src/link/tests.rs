@@ -183,6 +183,34 @@ fn clean_channel_delivers_in_order_without_retransmits() {
     assert!(steps <= 2 * 63 + 5, "{steps} steps");
 }
 
+/// A side that restarted (an MCU reset mid-print) knows no peer session yet: the frames of
+/// the old session its peer still resends — its window was never acknowledged — are not
+/// delivered to the new session (seq 0.. matched the new side's expectation, and an old
+/// session's segments and screw commands were queued on the new clock). Once the peer
+/// learns of the restart it drops them, and new messages flow.
+#[test]
+fn a_restarted_side_takes_nothing_sequenced_from_the_old_session() {
+    let (mut a, _old, mut rng) = synced_pair(8);
+    for i in 0..4 {
+        a.link.send(&message(i)).unwrap();
+    }
+    let mut b = Side::new(3, 8);
+    transmit(&mut a, &mut b, 10, CLEAN, &mut rng);
+    b.receive_all(10);
+    assert!(b.delivered.is_empty(), "{:?}", b.delivered);
+    assert_eq!(b.link.counters().stale_frames, 4);
+    for now in 11..40 {
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
+    }
+    assert_eq!(a.restarts, [4], "the old session's frames are gone with it");
+    assert!(b.delivered.is_empty(), "{:?}", b.delivered);
+    a.link.send(&message(9)).unwrap();
+    for now in 40..45 {
+        round(&mut a, &mut b, now, CLEAN, &mut rng);
+    }
+    assert_eq!(b.delivered, [message(9)]);
+}
+
 #[test]
 fn nothing_sequenced_flows_before_the_peer_answers() {
     let mut a = link(1, 8);

@@ -194,11 +194,22 @@ def test_compensated_flow_delivers_each_move_its_material(screw_bags, name):
                      for p in traj.points]
             spans.append((move, times[0], times[-1]))
         windows, wanted = [], []
+        # A retraction takes nothing back (the pin holds the melt): the E that pushes the
+        # filament back after it repays it first, and only the rest is fed.
+        retracted = 0.0
         for k, (move, start, end) in enumerate(spans):
-            if move.extrude and move.delta_e_m > 0 and end > start:
+            if move.delta_e_m < 0:
+                retracted -= move.delta_e_m
+                continue
+            fed = move.delta_e_m
+            if move.extrude and fed > 0:
+                repaid = min(retracted, fed)
+                retracted -= repaid
+                fed -= repaid
+            if move.extrude and fed > 1e-12 and end > start:
                 following = next((s for _, s, e in spans[k + 1:]), math.inf)
                 windows.append((start, max(end, following)))
-                wanted.append((move, move.delta_e_m * 60.0 / E_PER_REV_M))
+                wanted.append((move, fed * 60.0 / E_PER_REV_M))
         got = delivered_per_window(commands, base, windows)
         results[mode] = [(m, g / w - 1.0, w) for (m, w), g in zip(wanted, got)]
     plain = [r for r in results["plain"] if abs(r[1]) > 0.01]

@@ -376,9 +376,8 @@ impl<const W: usize> Link<W> {
         }
         if header.sequenced && self.peer_nonce.is_none() {
             // No peer session known: a sequenced frame is from an old one (an MCU that
-            // restarted, the host still resending its window). A peer sends sequenced frames
-            // only once its SYNC_REQUEST (or our reply to it) told us its session, so
-            // nothing of a new one is lost here.
+            // restarted, the host still resending its window). Unacknowledged, a frame of
+            // a new session is sent again once the sessions are known to each other.
             self.counters.stale_frames = self.counters.stale_frames.wrapping_add(1);
             return Received::Nothing;
         }

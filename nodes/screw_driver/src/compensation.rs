@@ -655,7 +655,8 @@ pub fn material_of_commands(
         let (Some(&t0), Some(&t1)) = (m.t.first(), m.t.last()) else {
             continue;
         };
-        if !m.extrude || t1 <= t0 {
+        // (An unretraction that only repays a retraction wants nothing: no window.)
+        if !m.extrude || m.delta_e_m <= 0.0 || t1 <= t0 {
             continue;
         }
         let end = moves[k + 1..]

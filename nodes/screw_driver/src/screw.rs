@@ -245,6 +245,10 @@ impl Default for PinState {
 /// E from millimetres (a retraction and its exact undoing cancel to about 1e-19 m).
 const FED_NOTHING_M: f64 = 1e-12;
 
+/// Most retracted E carried (m): any G-code's retractions stay far below; a sum of absurd
+/// ones must not reach infinity, which no checkpoint could carry.
+const MAX_RETRACTED_M: f64 = 1e3;
+
 /// `moves` (a print's, from its start) as the screw feeds them: see [`fed_after_retractions`].
 pub fn as_fed(moves: &[TimedMove]) -> Vec<TimedMove> {
     let mut retracted_m = 0.0;
@@ -258,11 +262,13 @@ pub fn as_fed(moves: &[TimedMove]) -> Vec<TimedMove> {
 /// and keeps the melt where it is. So the ΔE that later pushes the filament back (a
 /// slicer's unretract, `G1 E0.1` after `G1 E-1`) is first set against what was retracted,
 /// and only the rest is fed: the screw delivers the G-code's net E, not the unretract's
-/// length on top (polartest.gcode: 51.34 mm of positive ΔE for a net 44.34 mm). `None`:
-/// the move as it is.
+/// length on top (polartest.gcode: 51.34 mm of positive ΔE for a net 44.34 mm). The move
+/// stays an extruding one for the pin, as the planner has it (its pin rest under `stop`
+/// comes before it, and none before the line after it), even when it feeds nothing.
+/// `None`: the move as it is.
 fn fed_after_retractions(m: &TimedMove, retracted_m: &mut f64) -> Option<TimedMove> {
     if m.delta_e_m < 0.0 {
-        *retracted_m += -m.delta_e_m;
+        *retracted_m = (*retracted_m - m.delta_e_m).min(MAX_RETRACTED_M);
         return None;
     }
     if !m.extrude || *retracted_m <= 0.0 {
@@ -272,8 +278,7 @@ fn fed_after_retractions(m: &TimedMove, retracted_m: &mut f64) -> Option<TimedMo
     *retracted_m -= repaid_m;
     let fed_m = m.delta_e_m - repaid_m;
     Some(TimedMove {
-        delta_e_m: fed_m,
-        extrude: fed_m > FED_NOTHING_M,
+        delta_e_m: if fed_m > FED_NOTHING_M { fed_m } else { 0.0 },
         ..m.clone()
     })
 }
@@ -298,23 +303,25 @@ pub fn breakpoints_from(
     let mut pin_closed_at = state.closed_at;
     let mut retracted_m = state.retracted_m;
     for m in moves {
+        let fed = fed_after_retractions(m, &mut retracted_m);
+        let mut m = fed.as_ref().unwrap_or(m);
         let (Some(&t0), Some(&t1)) = (m.t.first(), m.t.last()) else {
             continue;
         };
-        let fed = fed_after_retractions(m, &mut retracted_m);
-        let mut m = fed.as_ref().unwrap_or(m);
-        // A prime after a non-extruding move under `Stop` rests the pin's delay first (the
-        // planner's pin rest, in the same trajectory as the prime's own): it feeds after it,
-        // when the melt can pass, not from the rest's start.
+        // A prime after a non-extruding move under `Stop` opens with the planner's pin rest
+        // (the delay at rest, in the same trajectory as the prime's own): it feeds after it,
+        // when the melt can pass, not from the rest's start. Only where that rest is.
         let primed;
+        let rest_end = m.t.get(1).copied().unwrap_or(t0);
         if options.strategy == PinStrategy::Stop
             && m.extrude
             && !previous_extruding
             && m.length_m <= 0.0
-            && m.motion_start_s < t0 + options.pin_open_delay_s
+            && m.t.len() > 2
+            && (rest_end - t0 - options.pin_open_delay_s).abs() < 1e-6
         {
             primed = TimedMove {
-                motion_start_s: (t0 + options.pin_open_delay_s).min(t1),
+                motion_start_s: rest_end,
                 ..m.clone()
             };
             m = &primed;
@@ -864,19 +871,29 @@ mod tests {
         assert_eq!(pin.retracted_m, 1e-3);
         split.extend(breakpoints_from(&all[2..], &options, &mut pin, true));
         assert_eq!(split, commands);
-        // Undone exactly: nothing turns and the pin stays closed until the next line's
-        // opening (its delay before it).
+        // Undone exactly: nothing turns, but the pin opens for it as the planner has it
+        // (the delay before it) and stays open into the line, which needs no opening (under
+        // `stop` the planner rests before the unretraction, not before the line).
         let commands = breakpoints(&moves(1e-3), &options);
         assert!(revs(&commands, 3.0).abs() < 1e-12);
-        let opens_at = 4.0 - options.pin_open_delay_s;
-        assert!(
-            commands
-                .iter()
-                .filter(|c| c.t > 1.0 && c.t < opens_at - 1e-9)
-                .all(|c| !c.pin_open && c.rpm == 0.0),
-            "{commands:?}"
-        );
-        assert_eq!(as_fed(&moves(1e-3))[3].delta_e_m, 0.0);
+        let opens_at = 3.0 - options.pin_open_delay_s;
+        assert!(commands.iter().any(|c| c.t == opens_at && c.pin_open));
+        for c in commands.iter().filter(|c| c.t > 1.0 && c.t < 5.0) {
+            assert_eq!(c.pin_open, c.t >= opens_at, "{c:?}");
+            assert!(c.t >= 4.0 || c.rpm == 0.0, "{c:?}");
+        }
+        let fed = as_fed(&moves(1e-3));
+        assert_eq!((fed[3].delta_e_m, fed[3].extrude), (0.0, true));
+        // Under `stop` likewise: open from the unretraction's start (where the planner
+        // rests), not from the line's, which moves at once.
+        let stop = ScrewOptions {
+            strategy: PinStrategy::Stop,
+            ..options.clone()
+        };
+        let commands = breakpoints(&moves(1e-3), &stop);
+        for c in commands.iter().filter(|c| c.t > 1.0 && c.t < 5.0) {
+            assert_eq!(c.pin_open, c.t >= 3.0, "{c:?}");
+        }
     }
 
     /// Under `Stop`, a prime after a travel rests the pin's delay in its own trajectory

@@ -499,6 +499,21 @@ struct Unreadable {
 }
 
 impl Unreadable {
+    /// The next sample `sub` holds now, past undecodable ones (noted), or `None`: what a
+    /// drain at stop takes.
+    fn take_next<M: 'static + serde::de::DeserializeOwned>(
+        &mut self,
+        sub: &Subscription<M>,
+        topic: &str,
+    ) -> Option<(M, ros2_client::MessageInfo)> {
+        loop {
+            match sub.take() {
+                Ok(taken) => return taken,
+                Err(e) => self.note(topic, &e),
+            }
+        }
+    }
+
     fn note(&mut self, topic: &str, error: &ros2_client::ReadError) {
         self.count += 1;
         if self.count == 1 {
@@ -551,15 +566,7 @@ fn spawn_tap<T: Recordable>(
                     Err(e) => unreadable.note(&topic, &e),
                 },
                 _ = stop.changed() => {
-                    loop {
-                        let (m, info) = match sub.take() {
-                            Ok(Some(taken)) => taken,
-                            Ok(None) => break,
-                            Err(e) => {
-                                unreadable.note(&topic, &e);
-                                continue;
-                            }
-                        };
+                    while let Some((m, info)) = unreadable.take_next(&sub, &topic) {
                         gaps.observe(info.publisher_gid(), info.sequence_number());
                         if is_repeat(&mut replayed, &m, &info) {
                             continue;
@@ -722,15 +729,7 @@ fn spawn_moves_consumer(
                     // What the readers hold goes in too: the moves first (the bag would
                     // otherwise have trajectories and progress for moves it lacks), then
                     // the progress, each only from the streamer, as while recording.
-                    loop {
-                        let (m, info) = match moves.take() {
-                            Ok(Some(taken)) => taken,
-                            Ok(None) => break,
-                            Err(e) => {
-                                unreadable.note("/gcode/moves", &e);
-                                continue;
-                            }
-                        };
+                    while let Some((m, info)) = unreadable.take_next(&moves, "/gcode/moves") {
                         if !producer.admits(&info) {
                             continue;
                         }
@@ -741,15 +740,7 @@ fn spawn_moves_consumer(
                             return None;
                         }
                     }
-                    loop {
-                        let (p, info) = match progress.take() {
-                            Ok(Some(taken)) => taken,
-                            Ok(None) => break,
-                            Err(e) => {
-                                unreadable.note("/gcode/progress", &e);
-                                continue;
-                            }
-                        };
+                    while let Some((p, info)) = unreadable.take_next(&progress, "/gcode/progress") {
                         if !producer.admits(&info) {
                             continue;
                         }

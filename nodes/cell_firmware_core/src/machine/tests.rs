@@ -43,6 +43,16 @@ fn run(m: &mut M, until: u64) -> Vec<StepEdge> {
     edges
 }
 
+/// The screw at `target_millirpm` from `start_clock` at once, the pin open.
+fn screw_on(start_clock: u64, target_millirpm: i32) -> HostMessage {
+    HostMessage::Screw(ScrewRamp {
+        start_clock,
+        ramp_ticks: 0,
+        target_millirpm,
+        pin_open: true,
+    })
+}
+
 fn queue(m: &mut M, q: QueuedSegment) {
     assert_eq!(m.handle(&HostMessage::QueueSegment(q), m.clock()), None);
 }
@@ -279,15 +289,7 @@ fn a_late_screw_command_starts_at_arrival_without_a_fault() {
     let mut m = machine();
     queue(&mut m, cruise(0, 100, 100, 0, 1));
     run(&mut m, 1000);
-    m.handle(
-        &HostMessage::Screw(ScrewRamp {
-            start_clock: 500,
-            ramp_ticks: 0,
-            target_millirpm: 30_000,
-            pin_open: true,
-        }),
-        1000,
-    );
+    m.handle(&screw_on(500, 30_000), 1000);
     run(&mut m, 1010);
     assert_eq!(m.mode(), Mode::Running);
     assert_eq!(m.fault(), FaultCode::None);
@@ -363,30 +365,14 @@ fn advancing_to_the_next_screw_command_samples_it_on_its_tick() {
     );
     run(&mut m, 3_500);
     let stands_at = m.plan_clock();
-    m.handle(
-        &HostMessage::Screw(ScrewRamp {
-            start_clock: stands_at + 2,
-            ramp_ticks: 0,
-            target_millirpm: 20_000,
-            pin_open: true,
-        }),
-        3_500,
-    );
+    m.handle(&screw_on(stands_at + 2, 20_000), 3_500);
     assert_eq!(m.ticks_to_next_screw_command(), None);
     run(&mut m, 4_000);
     assert_eq!(m.plan_clock(), stands_at);
     // Unbounded by the commands, a 500-tick pass takes them where it ends.
     let mut m = machine();
     queue(&mut m, cruise(0, 200, 50, 0, 1));
-    m.handle(
-        &HostMessage::Screw(ScrewRamp {
-            start_clock: 1_234,
-            ramp_ticks: 0,
-            target_millirpm: 20_000,
-            pin_open: true,
-        }),
-        0,
-    );
+    m.handle(&screw_on(1_234, 20_000), 0);
     run(&mut m, 1_000);
     assert_eq!(m.ticks_to_next_screw_command(), Some(234));
     run(&mut m, 1_500);
@@ -400,15 +386,7 @@ fn advancing_to_the_next_screw_command_samples_it_on_its_tick() {
 fn an_emergency_stop_stops_at_once_and_holds_until_reset() {
     let mut m = machine();
     queue(&mut m, cruise(0, 100, 100, 0, 1));
-    m.handle(
-        &HostMessage::Screw(ScrewRamp {
-            start_clock: 0,
-            ramp_ticks: 0,
-            target_millirpm: 30_000,
-            pin_open: true,
-        }),
-        0,
-    );
+    m.handle(&screw_on(0, 30_000), 0);
     assert_eq!(run(&mut m, 2050).len(), 20);
     assert!(m.pin_open());
     assert_eq!(m.screw_millirpm(), 30_000);
@@ -458,15 +436,7 @@ fn a_feed_hold_stops_on_the_path_and_resume_plays_the_same_steps() {
     };
     let mut m = machine();
     queue(&mut m, cruise(0, 200, 50, SEGMENT_ENDS_AT_REST, 1));
-    m.handle(
-        &HostMessage::Screw(ScrewRamp {
-            start_clock: 0,
-            ramp_ticks: 0,
-            target_millirpm: 10_000,
-            pin_open: true,
-        }),
-        0,
-    );
+    m.handle(&screw_on(0, 10_000), 0);
     // Between two steps (the 60th at 3000, the next due at 3050).
     let mut edges = run(&mut m, 3025);
     // σ from 1 to 0 in 2000 ticks (2001 with the rate rounded down).

@@ -445,6 +445,21 @@ fn recordable<T: RosMessage>() -> anyhow::Result<&'static str> {
     Ok(std::any::type_name::<T>())
 }
 
+/// A move of the streamer's into the bag, in sequence. Moves before the resume point is
+/// known are not taken (the streamer sends them again once it is): counted in `unrecorded`,
+/// in case it never will be. False once the bag writer is gone.
+async fn record_move(
+    tracker: &mut AckTracker,
+    unrecorded: &mut u64,
+    tx: &mpsc::Sender<Item>,
+    channel: ChannelId,
+    m: &GcodeMove,
+    info: &ros2_client::MessageInfo,
+) -> bool {
+    *unrecorded += u64::from(tracker.needs_hello());
+    tracker.accept(m.sequence) != Verdict::Process || forward(tx, channel, m, info).await
+}
+
 fn publish_time(info: &ros2_client::MessageInfo, fallback: u64) -> u64 {
     info.source_timestamp()
         .map(|t| t.to_nanos().max(0) as u64)
@@ -681,12 +696,7 @@ fn spawn_moves_consumer(
                         if !producer.admits(&info) {
                             continue;
                         }
-                        // Moves before the resume point is known are not taken (the streamer
-                        // sends them again once it is): counted, in case it never will be.
-                        unrecorded += u64::from(tracker.needs_hello());
-                        if tracker.accept(m.sequence) == Verdict::Process
-                            && !forward(&tx, moves_channel, &m, &info).await
-                        {
+                        if !record_move(&mut tracker, &mut unrecorded, &tx, moves_channel, &m, &info).await {
                             return None;
                         }
                         if let Some(ack) = tracker.ack_due(false) {
@@ -733,10 +743,7 @@ fn spawn_moves_consumer(
                         if !producer.admits(&info) {
                             continue;
                         }
-                        unrecorded += u64::from(tracker.needs_hello());
-                        if tracker.accept(m.sequence) == Verdict::Process
-                            && !forward(&tx, moves_channel, &m, &info).await
-                        {
+                        if !record_move(&mut tracker, &mut unrecorded, &tx, moves_channel, &m, &info).await {
                             return None;
                         }
                     }

@@ -112,8 +112,6 @@ pub struct Interpreter {
     /// as a firmware checks a host's stream, so a line lost between two numbered ones is an
     /// error, not a silent gap.
     last_numbered: Option<i64>,
-    /// What an `M110 N…` on the line being executed sets.
-    numbered_by_m110: Option<i64>,
 }
 
 /// Output of one line.
@@ -144,7 +142,6 @@ impl Interpreter {
             last_motion: None,
             next_sequence: 0,
             last_numbered: None,
-            numbered_by_m110: None,
         }
     }
 
@@ -221,10 +218,15 @@ impl Interpreter {
                 ));
             }
         }
-        self.numbered_by_m110 = None;
         let result = self.execute_words(line_number, &lexed.words, out);
         if result.is_ok() {
-            if let Some(n) = self.numbered_by_m110.or(lexed.line_number) {
+            // An `M110 N…` (its N checked by the command) sets the number, else the line's.
+            let m110_n = lexed
+                .words
+                .iter()
+                .find(|w| sets_number && w.letter == b'N')
+                .map(|w| w.value as i64);
+            if let Some(n) = m110_n.or(lexed.line_number) {
                 self.last_numbered = Some(n);
             }
         }
@@ -456,19 +458,18 @@ impl Interpreter {
                 Ok(())
             }
             (b'M', 110) => {
-                // Set the line number: the next numbered line follows it.
-                if let Some(n) = p.get(b'N') {
-                    if n.fract() != 0.0 || !(0.0..=i64::MAX as f64 / 2.0).contains(&n) {
-                        return Err(self.invalid(
+                // Sets the line number (in `feed_line`, once the line is done): checked here.
+                match p.get(b'N') {
+                    Some(n) if n.fract() != 0.0 || !(0.0..=i64::MAX as f64 / 2.0).contains(&n) => {
+                        Err(self.invalid(
                             line,
                             command.column,
                             name(),
                             "N must be a whole number from 0",
-                        ));
+                        ))
                     }
-                    self.numbered_by_m110 = Some(n as i64);
+                    _ => Ok(()),
                 }
-                Ok(())
             }
             (b'M', 83) => {
                 self.relative_e = true;

@@ -50,6 +50,7 @@ pub struct LinkOptions {
     /// does not hold (and repeat an unanswered SYNC_REQUEST). In the caller's time unit. This
     /// is the longest wait and the first; once round trips are measured the link waits the
     /// measured round trip plus four deviations (RFC 6298), not less than an eighth of this.
+    /// At least 8 units (less is taken as 8): a wait of 0 would make every poll due again.
     pub retransmit_timeout: u64,
     /// This session's nonce: random, so that a restart is told from a repeated request.
     pub nonce: u32,
@@ -170,6 +171,10 @@ impl<const W: usize> Link<W> {
             options.window,
             W.min(127)
         );
+        let options = LinkOptions {
+            retransmit_timeout: options.retransmit_timeout.max(8),
+            ..options
+        };
         Link {
             options,
             synced: false,

@@ -39,16 +39,34 @@ pub struct Crystal {
     pub offset_ticks: u64,
     /// Rate error (parts per million; positive: the MCU clock runs fast).
     pub rate_ppm: f64,
-    /// Change of the rate error per second (ppm/s), as a warming crystal drifts.
+    /// Change of the rate error per second (ppm/s), as a warming crystal drifts; the rate
+    /// error stops changing at ±[`Crystal::MAX_RATE_PPM`], so the clock always runs forwards.
     pub drift_ppm_per_s: f64,
 }
 
 impl Crystal {
+    /// The largest rate error (ppm) a drift reaches: 10 %.
+    pub const MAX_RATE_PPM: f64 = 1e5;
+
     /// MCU clock (ticks) `host_s` seconds after the emulator started.
     pub fn ticks_at(&self, host_s: f64) -> u64 {
         let t = host_s.max(0.0);
-        let error = (self.rate_ppm * t + 0.5 * self.drift_ppm_per_s * t * t) * 1e-6;
-        self.offset_ticks + (self.timer_hz * (t + error)).floor().max(0.0) as u64
+        let (rate, drift) = (self.rate_ppm, self.drift_ppm_per_s);
+        // ∫ rate error dt, the error rising (or falling) with the drift until it saturates.
+        let error_ppm_s = if drift == 0.0 {
+            rate * t
+        } else {
+            let limit = Self::MAX_RATE_PPM.copysign(drift);
+            let saturates_at_s = ((limit - rate) / drift).max(0.0);
+            if t <= saturates_at_s {
+                rate * t + 0.5 * drift * t * t
+            } else {
+                let s = saturates_at_s;
+                rate * s + 0.5 * drift * s * s + limit * (t - s)
+            }
+        };
+        let ticks = (self.timer_hz * (t + error_ppm_s * 1e-6)).floor().max(0.0) as u64;
+        self.offset_ticks.saturating_add(ticks)
     }
 }
 
@@ -207,7 +225,10 @@ impl Emulator {
 
     /// MCU clock at host time `host_s` (ticks since the MCU's last power-up).
     pub fn clock_at(&self, host_s: f64) -> u64 {
-        self.options.crystal.ticks_at(host_s) - self.clock_base
+        self.options
+            .crystal
+            .ticks_at(host_s)
+            .saturating_sub(self.clock_base)
     }
 
     fn stalled(&self, host_s: f64) -> bool {

@@ -66,6 +66,10 @@ struct Args {
     /// Write every step edge to this file (`clock,axes,negative` per line).
     #[arg(long)]
     edges: Option<PathBuf>,
+    /// The MCU link's longest wait for an acknowledgement (ms of wall time, whatever
+    /// `--speed`: the host's round trip does not speed up with the emulated clock).
+    #[arg(long, default_value_t = 50.0)]
+    retransmit_timeout_ms: f64,
 }
 
 /// The serial side: a pty master, or the socket and its current connection.
@@ -93,10 +97,16 @@ fn rate(name: &str, p: f64) -> Result<f64> {
 /// 32-bit rate, and a crystal runs forwards.
 fn check_crystal(args: &Args) -> Result<()> {
     let hz = args.timer_hz;
-    if !(hz.is_finite() && hz.fract() == 0.0 && (1.0..=u32::MAX as f64).contains(&hz)) {
+    if !(hz.is_finite() && hz.fract() == 0.0 && (1000.0..=u32::MAX as f64).contains(&hz)) {
         bail!(
-            "--timer-hz {hz}: must be a whole number of Hz from 1 to {}",
+            "--timer-hz {hz}: must be a whole number of Hz from 1000 to {}",
             u32::MAX
+        );
+    }
+    if args.offset_ticks > 1 << 62 {
+        bail!(
+            "--offset-ticks {}: at most 2^62, so that the clock does not wrap",
+            args.offset_ticks
         );
     }
     if !(args.rate_ppm.is_finite() && args.rate_ppm.abs() <= 1e5) {
@@ -120,6 +130,14 @@ fn main() -> Result<()> {
         bail!("--speed {}: must be a positive number", args.speed);
     }
     check_crystal(&args)?;
+    if !(args.retransmit_timeout_ms.is_finite()
+        && (0.1..=10_000.0).contains(&args.retransmit_timeout_ms))
+    {
+        bail!(
+            "--retransmit-timeout-ms {}: must lie within 0.1..=10000",
+            args.retransmit_timeout_ms
+        );
+    }
     let options = EmulatorOptions {
         crystal: Crystal {
             timer_hz: args.timer_hz,
@@ -143,6 +161,7 @@ fn main() -> Result<()> {
             args.initial_steps[1],
             args.initial_steps[2],
         ],
+        retransmit_timeout_s: args.retransmit_timeout_ms * 1e-3 * args.speed,
         ..EmulatorOptions::default()
     };
     let mut port = open_port(&args)?;

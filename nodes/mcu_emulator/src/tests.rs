@@ -16,6 +16,27 @@ fn the_crystal_keeps_its_rate_error_and_drift() {
 }
 
 #[test]
+fn a_drifting_crystal_saturates_and_never_runs_backwards() {
+    let crystal = Crystal {
+        timer_hz: 1e6,
+        offset_ticks: 0,
+        rate_ppm: 0.0,
+        drift_ppm_per_s: -1000.0,
+    };
+    // The error reaches -10 % at 100 s: ∫ = -½·1000·100² ppm·s = -5 s of the 100.
+    assert_eq!(crystal.ticks_at(100.0), 95_000_000);
+    // Then 0.9 ticks per µs for ever, where the unbounded drift would stop the clock at
+    // 1000 s and turn it back.
+    assert_eq!(crystal.ticks_at(2100.0), 95_000_000 + 1_800_000_000);
+    let mut last = 0;
+    for s in 0..5000 {
+        let ticks = crystal.ticks_at(s as f64);
+        assert!(ticks >= last, "{s} s");
+        last = ticks;
+    }
+}
+
+#[test]
 fn the_line_damages_bytes_at_its_rates_and_repeatably() {
     let faults = LineFaults {
         corrupt: 0.01,

@@ -313,6 +313,16 @@ fn the_socket_path_and_the_crystal_are_checked() {
         (&["--timer-hz", "5e9"], "--timer-hz 5000000000"),
         (&["--rate-ppm", "-2000000"], "--rate-ppm -2000000"),
         (&["--drift-ppm-per-s", "inf"], "--drift-ppm-per-s inf"),
+        // A link's timeout of a few ticks resent on every pass.
+        (&["--timer-hz", "10"], "--timer-hz 10"),
+        (
+            &["--offset-ticks", "18446744073709551615"],
+            "--offset-ticks 18446744073709551615",
+        ),
+        (
+            &["--retransmit-timeout-ms", "0"],
+            "--retransmit-timeout-ms 0",
+        ),
     ] {
         let why = refused(args);
         assert!(why.contains(names), "{args:?}: {why}");

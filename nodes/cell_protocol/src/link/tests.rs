@@ -434,3 +434,22 @@ proptest! {
         prop_assert!(a.restarts.is_empty() && b.restarts.is_empty());
     }
 }
+
+#[test]
+fn a_zero_timeout_does_not_make_every_poll_send_again() {
+    for timeout in [0, 1, 7] {
+        let mut l: Link<32> = Link::new(LinkOptions {
+            window: 4,
+            retransmit_timeout: timeout,
+            nonce: 7,
+        });
+        let mut out = [0u8; MAX_WIRE_FRAME];
+        assert!(
+            l.poll_transmit(100, &mut out).is_some(),
+            "the first SYNC_REQUEST"
+        );
+        assert_eq!(l.poll_transmit(100, &mut out), None, "timeout {timeout}");
+        assert_eq!(l.poll_transmit(107, &mut out), None, "timeout {timeout}");
+        assert!(l.poll_transmit(108, &mut out).is_some(), "repeated after 8");
+    }
+}

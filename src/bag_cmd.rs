@@ -54,14 +54,29 @@ pub fn recover(input: &Path, output: &Path) -> anyhow::Result<()> {
     if output.exists() {
         bail!("{} exists already: give a new path", output.display());
     }
-    let file =
-        std::fs::File::create(output).with_context(|| format!("creating {}", output.display()))?;
+    let file = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(output)
+        .with_context(|| format!("creating {}", output.display()))?;
     let mut sink = std::io::BufWriter::new(file);
-    let r = cell_bag::recover(&bytes, &mut sink, &cell_bag::WriterOptions::default())
-        .with_context(|| format!("recovering {}", file_path.display()))?;
-    use std::io::Write as _;
-    sink.flush()
-        .with_context(|| format!("writing {}", output.display()))?;
+    let recovered = cell_bag::recover(&bytes, &mut sink, &cell_bag::WriterOptions::default())
+        .with_context(|| format!("recovering {}", file_path.display()))
+        .and_then(|r| {
+            use std::io::Write as _;
+            sink.flush()
+                .with_context(|| format!("writing {}", output.display()))?;
+            Ok(r)
+        });
+    let r = match recovered {
+        Ok(r) => r,
+        Err(e) => {
+            // Not a bag: a half-written output would only be refused by the next try.
+            drop(sink);
+            let _ = std::fs::remove_file(output);
+            return Err(e);
+        }
+    };
     let end = match &r.end {
         cell_bag::RecoveryEnd::Complete => "the data section was complete".to_string(),
         cell_bag::RecoveryEnd::Truncated { at } => format!(
@@ -117,14 +132,38 @@ pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> any
         ref wait_for_nodes,
         deliver_timeout_s,
     } = *options;
-    if rate.is_nan() || rate <= 0.0 {
-        bail!("--rate must be > 0, got {rate}");
+    if !(1e-3..=1e6).contains(&rate) {
+        bail!("--rate must lie in [0.001, 1e6], got {rate}");
     }
-    if deliver_timeout_s.is_nan() || deliver_timeout_s < 0.0 {
-        bail!("--deliver-timeout-s must be >= 0, got {deliver_timeout_s}");
+    for (name, s) in [
+        ("--deliver-timeout-s", deliver_timeout_s),
+        ("--wait-subscribers-s", wait_subscribers_s),
+    ] {
+        if !(0.0..=3.2e7).contains(&s) {
+            bail!("{name} must lie in [0, 3.2e7] s, got {s}");
+        }
     }
     let (file_path, bytes) = map_bag(path)?;
     let bag = read_bag(&bytes).with_context(|| format!("reading {}", file_path.display()))?;
+    // A topic asked for by name that the bag lacks is a typo more often than not.
+    let absent: Vec<&str> = only_topics
+        .iter()
+        .filter(|name| !bag.info.topics.iter().any(|t| &t.name == *name))
+        .map(String::as_str)
+        .collect();
+    if !absent.is_empty() {
+        bail!(
+            "{}: no topic {} in the bag (it has {})",
+            file_path.display(),
+            absent.join(", "),
+            bag.info
+                .topics
+                .iter()
+                .map(|t| t.name.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
     let mut node = CellNode::start("bag_player", &[], ros_args)?;
     let mut publishers: HashMap<String, Box<dyn CdrPublisher>> = HashMap::new();
     for t in &bag.info.topics {

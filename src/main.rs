@@ -151,7 +151,7 @@ enum BagCommand {
     Play {
         bag: PathBuf,
         /// Speed factor on the original timing.
-        #[arg(long, default_value_t = 1.0)]
+        #[arg(long, default_value_t = 1.0, value_parser = parse_rate)]
         rate: f64,
         /// As fast as possible (ignores --rate).
         #[arg(long)]
@@ -160,7 +160,7 @@ enum BagCommand {
         #[arg(long, value_delimiter = ',')]
         topics: Vec<String>,
         /// Wait up to this many seconds for every topic to have a subscriber before playing.
-        #[arg(long, default_value_t = 0.0)]
+        #[arg(long, default_value_t = 0.0, value_parser = parse_nonnegative_s)]
         wait_subscribers_s: f64,
         /// Before playing, wait (up to --wait-subscribers-s) until every topic played has a
         /// subscription of this node (fully qualified, e.g. /screw_driver; repeatable): any
@@ -169,7 +169,7 @@ enum BagCommand {
         wait_for_nodes: Vec<String>,
         /// At the end, wait up to this many seconds for every subscriber to acknowledge the
         /// last messages (a lost one is repaired only while the player runs).
-        #[arg(long, default_value_t = 10.0)]
+        #[arg(long, default_value_t = 10.0, value_parser = parse_nonnegative_s)]
         deliver_timeout_s: f64,
     },
 }
@@ -216,6 +216,14 @@ fn parse_speed(text: &str) -> Result<f64, String> {
     match text.parse::<f64>() {
         Ok(k) if (0.01..=1000.0).contains(&k) => Ok(k),
         _ => Err(format!("`{text}` is not a speed factor in [0.01, 1000]")),
+    }
+}
+
+/// A replay's speed factor on the recorded timing.
+fn parse_rate(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(k) if (1e-3..=1e6).contains(&k) => Ok(k),
+        _ => Err(format!("`{text}` is not a rate in [0.001, 1e6]")),
     }
 }
 

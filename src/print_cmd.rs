@@ -243,6 +243,10 @@ impl Emulator {
         command
             .args(["--speed", &speed.to_string()])
             .stdout(std::process::Stdio::piped());
+        // Its own process group: a Ctrl-C typed in the terminal goes to the foreground group,
+        // and an emulator killed by it would turn the print's controlled stop into a lost
+        // line. The print stops it when the job ends (and PDEATHSIG if the print dies).
+        std::os::unix::process::CommandExt::process_group(&mut command, 0);
         // SAFETY: prctl is async-signal-safe; between fork and exec it only asks the kernel
         // to kill the child when its parent thread dies (here a runtime thread, which lives
         // as long as the process), so no emulator outlives a killed print.
@@ -327,6 +331,17 @@ pub enum Ending {
 pub struct JobReport {
     pub ending: Ending,
     pub summary: Option<StreamSummary>,
+}
+
+/// A job interrupted before any node started: nothing moved, nothing to stop.
+fn interrupted_before_start() -> JobReport {
+    JobReport {
+        ending: Ending::Interrupted {
+            emergency: false,
+            how: None,
+        },
+        summary: None,
+    }
 }
 
 /// Resolves once `interrupts` has counted `n`.
@@ -434,7 +449,12 @@ pub async fn run_job(
             // A second or so of serial line: off the runtime's threads (`serve` goes on).
             let (device, args) = (device.to_string(), ros_args.clone());
             let asked = tokio::task::spawn_blocking(move || mcu_position(&device, &args));
+            // Waited for even when interrupted (it ends within its timeouts): abandoned, it
+            // would hold the line that the next job opens.
             let joints = asked.await.context("asking the MCU where it stands")??;
+            if *io.interrupts.borrow() > 0 {
+                return Ok(interrupted_before_start());
+            }
             eprintln!("The print starts where the MCU stands.");
             Some(joints)
         }
@@ -450,19 +470,20 @@ pub async fn run_job(
         // Off the runtime's threads: `serve` answers its clients meanwhile (a million moves
         // take seconds).
         let checked = file.to_string();
-        let report = tokio::task::spawn_blocking(move || preflight(&checked, &streamer, &planner))
-            .await
-            .context("the pre-flight")??;
-        if *io.interrupts.borrow() > 0 {
-            // Cancelled while checking: nothing has started, nothing to stop.
-            return Ok(JobReport {
-                ending: Ending::Interrupted {
-                    emergency: false,
-                    how: None,
-                },
-                summary: None,
-            });
-        }
+        let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let cancelled = cancel.clone();
+        let checking = tokio::task::spawn_blocking(move || {
+            preflight(&checked, &streamer, &planner, &cancelled)
+        });
+        // Cancelled while checking: nothing has started, nothing to stop; the check ends
+        // at its next move.
+        let report = tokio::select! {
+            report = checking => report.context("the pre-flight")??,
+            _ = interrupted(&io.interrupts, 1) => {
+                cancel.store(true, std::sync::atomic::Ordering::Relaxed);
+                return Ok(interrupted_before_start());
+            }
+        };
         eprintln!(
             "{file}: pre-flight passed: {}",
             describe(&report, started.elapsed())
@@ -929,11 +950,14 @@ fn execution_overrides(
     // driver puts its commands on that grid, each the exact average over its interval.
     let mut command_period_s = screw.f64("command_period_s");
     let mut screw_extra = vec![];
+    // The horizon of the machine that runs: the screw's chunks stay inside it.
+    let mut horizon_s = executor.f64("horizon_s");
     if on_mcu {
         let specs = mcu_bridge::node::param_specs();
         let name = mcu_bridge::node::NODE_NAME;
         let (_, bridge) =
             cell_runtime::resolve_node(name, &specs, &args_for(ros_args, name, &specs, vec![]))?;
+        horizon_s = bridge.f64("horizon_s");
         let line_period_s = 1.0 / bridge.f64("screw_max_rate_hz");
         if !bridge.string("screw_port").is_empty() && command_period_s < line_period_s {
             command_period_s = line_period_s;
@@ -972,7 +996,6 @@ fn execution_overrides(
         ),
         param("screw_hold", hold.to_string()),
     ];
-    let horizon_s = executor.f64("horizon_s");
     let planner_extra = vec![param("follow_execution", "true".into())];
     screw_extra.extend([
         screw_chunk_for(horizon_s),
@@ -1016,16 +1039,13 @@ fn progress_bar(
 
 /// `m:ss.s` (or `h:mm:ss`) of a duration in seconds.
 fn clock(seconds: f64) -> String {
-    let s = seconds.max(0.0);
-    if s >= 3600.0 {
-        format!(
-            "{}:{:02}:{:02}",
-            (s / 3600.0) as u64,
-            (s % 3600.0 / 60.0) as u64,
-            (s % 60.0) as u64
-        )
+    // Rounded to what is shown before splitting, so that 59.96 s reads 1:00.0, not 0:60.0.
+    let tenths = (seconds.max(0.0) * 10.0).round() as u64;
+    if tenths >= 36_000 {
+        let s = tenths / 10;
+        format!("{}:{:02}:{:02}", s / 3600, s / 60 % 60, s % 60)
     } else {
-        format!("{}:{:04.1}", (s / 60.0) as u64, s % 60.0)
+        format!("{}:{:02}.{}", tenths / 600, tenths / 10 % 60, tenths % 10)
     }
 }
 
@@ -1139,11 +1159,25 @@ async fn stop_machine(
         _ = interrupted(interrupts, EMERGENCY_AT) => {
             let _ = commands.send(Command::EmergencyStop.into());
             let mut watch = status.clone();
-            loop {
-                if watch.borrow_and_update().state == Some(PlayerState::Stopped) { break; }
-                if watch.changed().await.is_err() { break; }
+            // The machine stops within a control period; a machine that does not say so
+            // within seconds is not waited for (nor is a third Ctrl-C ignored meanwhile).
+            let confirmed = async {
+                loop {
+                    if watch.borrow_and_update().state == Some(PlayerState::Stopped) { break; }
+                    if watch.changed().await.is_err() { break; }
+                }
+            };
+            tokio::select! {
+                _ = tokio::time::timeout(ESTOP_CONFIRM, confirmed) => {}
+                _ = interrupted(interrupts, EMERGENCY_AT + 1) => {}
             }
-            let s = watch.borrow().clone();
+            let s = status.borrow().clone();
+            if s.state != Some(PlayerState::Stopped) && s.state.is_some() {
+                return (true, format!(
+                    "emergency stop sent; the machine did not confirm it within {} s",
+                    ESTOP_CONFIRM.as_secs()
+                ));
+            }
             (s, true)
         }
     };
@@ -1158,6 +1192,9 @@ async fn stop_machine(
     };
     (stopped_at_once, stop_text(&how, &s))
 }
+
+/// How long an emergency stop's confirmation is waited for.
+const ESTOP_CONFIRM: Duration = Duration::from_secs(5);
 
 /// Whether `device` is a serial port, where a real microcontroller keeps real time: not the
 /// built-in emulator, a `unix:` socket or a pseudo-terminal (which an emulator serves). A
@@ -1246,6 +1283,7 @@ fn preflight(
     file: &str,
     streamer: &cell_runtime::Params,
     planner: &cell_runtime::Params,
+    cancelled: &std::sync::atomic::AtomicBool,
 ) -> anyhow::Result<polar_planner::PreflightReport> {
     let (options, steps) = polar_planner::node::options_from_params(planner)?;
     let interpreter = gcode_streamer::node::interpreter_options(streamer)?;
@@ -1253,6 +1291,9 @@ fn preflight(
     let mut reader = GcodeReader::new(input, file, interpreter);
     let mut check = polar_planner::Preflight::new(options, steps)?;
     for event in reader.by_ref() {
+        if cancelled.load(std::sync::atomic::Ordering::Relaxed) {
+            bail!("{file}: pre-flight cancelled");
+        }
         if let Event::Move(m) = event? {
             check
                 .push(&m)
@@ -1312,7 +1353,12 @@ pub fn check(
     );
     if !parse_only && file != "-" {
         let started = std::time::Instant::now();
-        let report = preflight(file, &streamer, &planner)?;
+        let report = preflight(
+            file,
+            &streamer,
+            &planner,
+            &std::sync::atomic::AtomicBool::new(false),
+        )?;
         println!(
             "{file}: pre-flight passed: {}",
             describe(&report, started.elapsed())
@@ -1324,6 +1370,40 @@ pub fn check(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_screw_chunks_stay_inside_the_horizon_of_the_machine_that_runs() {
+        let args = RosArgs {
+            params: vec![ParamOverride {
+                node: Some(mcu_bridge::node::NODE_NAME.to_string()),
+                name: "horizon_s".to_string(),
+                value_yaml: "0.8".to_string(),
+            }],
+            ..RosArgs::default()
+        };
+        let chunk = |on_mcu| {
+            let (_, _, screw) = execution_overrides(&args, 1.0, on_mcu).unwrap();
+            let chunk = screw
+                .into_iter()
+                .find(|p| p.name == "max_buffer_s")
+                .unwrap();
+            chunk.value_yaml
+        };
+        assert_eq!(chunk(true), "0.2");
+        assert_eq!(chunk(false), "0.5"); // the executor's default 2 s
+    }
+
+    #[test]
+    fn the_progress_clock_never_shows_sixty_seconds() {
+        assert_eq!(clock(0.0), "0:00.0");
+        assert_eq!(clock(-3.0), "0:00.0");
+        assert_eq!(clock(7.26), "0:07.3");
+        assert_eq!(clock(59.96), "1:00.0");
+        assert_eq!(clock(119.97), "2:00.0");
+        assert_eq!(clock(166.04), "2:46.0");
+        assert_eq!(clock(3599.96), "1:00:00");
+        assert_eq!(clock(3725.4), "1:02:05");
+    }
 
     fn scoped(node: Option<&str>, name: &str) -> RosArgs {
         RosArgs {

@@ -214,7 +214,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                             None
                         } else if command == Command::EmergencyStop && r.status.borrow().state.is_none() {
                             r.estopped_before_motion = true;
-                            let _ = r.interrupts.send(2);
+                            raise_interrupt(&r.interrupts, 2);
                             Some((request, (true, "emergency stop: the print stops before it moves; new prints are refused until /cell/reset".to_string())))
                         } else {
                             Some((request, without_machine_reply(command)))
@@ -238,7 +238,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 signals_seen += 1;
                 if let Some(r) = running.as_mut() {
                     // The first: a cancel (stop on the path); a second: emergency stop.
-                    let _ = r.interrupts.send(signals_seen.min(2));
+                    raise_interrupt(&r.interrupts, signals_seen.min(2));
                     // (A goal its client cancelled already ends as that cancel.)
                     r.shutdown |= !r.cancelling;
                     r.cancelling = true;
@@ -344,6 +344,28 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 answers.push(client, goal_answer(request_id, true, stamp));
                 continue;
             }
+            let asked_speed = request.goal.0.speed;
+            if !(asked_speed == 0.0 || (0.01..=1000.0).contains(&asked_speed)) {
+                // Refused before a bag or a node exists for it, saying why (a rejection
+                // carries no reason).
+                let info = GoalInfo {
+                    goal_id: request.goal_id,
+                    stamp,
+                };
+                let result = PrintResult {
+                    ended: "aborted".into(),
+                    message: format!(
+                        "speed {asked_speed}: a print runs at 0.01 to 1000 machine seconds per wall second (0: the server's --speed {})",
+                        options.speed
+                    ),
+                    stop_position: standing_position(&options.device, machine_at),
+                    ..PrintResult::default()
+                };
+                keep_finished(&mut finished, info, GoalStatusEnum::Aborted, result);
+                publish_statuses(&server, &running, &finished);
+                answers.push(client, goal_answer(request_id, true, stamp));
+                continue;
+            }
             // The next number no bag in the directory has yet: a restarted server does not
             // overwrite the last one's bags.
             let bag = loop {
@@ -354,10 +376,10 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 }
             };
             let goal = request.goal.0;
-            let speed = if goal.speed > 0.0 {
-                goal.speed
-            } else {
+            let speed = if goal.speed == 0.0 {
                 options.speed
+            } else {
+                goal.speed
             };
             let (interrupts, interrupts_rx) = tokio::sync::watch::channel(0u32);
             let (status_tx, status) =
@@ -436,7 +458,7 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                     );
                     if !verdict.goals_canceling.is_empty() {
                         if let Some(r) = running.as_mut() {
-                            let _ = r.interrupts.send(1);
+                            raise_interrupt(&r.interrupts, 1);
                             r.cancelling = true;
                         }
                     }
@@ -513,6 +535,16 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
 /// Finished goals kept at most, whatever the result timeout (a client sending goals that
 /// fail at once must not grow the server without bound).
 const MAX_RESULTS_KEPT: usize = 64;
+
+/// Ask the running job to stop at least as hard as `level` (1: cancel, 2: emergency stop):
+/// never lower, so a cancel that comes after an emergency stop cannot undo it.
+fn raise_interrupt(interrupts: &tokio::sync::watch::Sender<u32>, level: u32) {
+    interrupts.send_if_modified(|current| {
+        let raised = level > *current;
+        *current = (*current).max(level);
+        raised
+    });
+}
 
 /// Keep a goal that ended (the oldest goes beyond [`MAX_RESULTS_KEPT`]).
 fn keep_finished(

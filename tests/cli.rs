@@ -368,3 +368,61 @@ fn mechanism_cl_with_a_calibration_commands_the_corrected_table() {
     assert_eq!(work["leg_lengths_mm"], ik["calibrated"]["leg_lengths_mm"]);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `bag play` refuses what it cannot do before it starts a node: a topic the bag lacks (a
+/// typo would play nothing and succeed), a rate or a wait that no clock takes.
+#[test]
+fn bag_play_refuses_a_missing_topic_and_impossible_numbers() {
+    let bag = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/polartest_moves.mcap");
+    let refused = |extra: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+            .args(["bag", "play"])
+            .arg(&bag)
+            .args(extra)
+            .env("ROS_DOMAIN_ID", "48")
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{extra:?}");
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let why = refused(&["--topics", "/gcode/move"]);
+    assert!(
+        why.contains("no topic /gcode/move in the bag (it has /gcode/moves"),
+        "{why}"
+    );
+    for (arg, value) in [
+        ("--rate", "1e-18"),
+        ("--rate", "0"),
+        ("--wait-subscribers-s", "inf"),
+        ("--deliver-timeout-s", "1e20"),
+        ("--deliver-timeout-s", "NaN"),
+    ] {
+        let why = refused(&[arg, value]);
+        assert!(
+            why.contains(&format!("invalid value '{value}' for '{arg}")),
+            "{why}"
+        );
+    }
+}
+
+/// `bag recover` of something that is not a bag fails and leaves no output behind, so the
+/// next try (with the right input) is not refused for an existing file.
+#[test]
+fn a_failed_recovery_leaves_no_output() {
+    let dir = std::env::temp_dir().join(format!("polar-cell-recover-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let garbage = dir.join("garbage.mcap");
+    std::fs::write(&garbage, b"this is not an MCAP file at all").unwrap();
+    let output = dir.join("recovered.mcap");
+    let out = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        .args(["bag", "recover"])
+        .arg(&garbage)
+        .arg(&output)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(stderr.contains("recovering"), "{stderr}");
+    assert!(!output.exists(), "a partial output was left");
+    std::fs::remove_dir_all(&dir).ok();
+}

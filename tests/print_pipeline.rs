@@ -388,7 +388,9 @@ fn an_executed_print_records_the_executed_joints_at_50_hz() {
 /// Ctrl-C while executing stops on the path and finishes the bag; the machine is at rest
 /// (every executed velocity 0) with the screw stopped. A second Ctrl-C during that stop stops
 /// at once. At 0.1× machine pace, so the stop (tens of ms of machine time) spans hundreds of
-/// ms of the test's time.
+/// ms of the test's time. The same on the MCU emulator, which a terminal's Ctrl-C used to
+/// kill with the print (it was in the print's process group): the print then "stopped at
+/// once" on a closed line instead of on the path.
 #[test]
 fn ctrl_c_cancels_on_the_path_and_a_second_stops_at_once() {
     let _one_at_a_time = one_print_at_a_time();
@@ -402,24 +404,35 @@ fn ctrl_c_cancels_on_the_path_and_a_second_stops_at_once() {
         text += &format!("G1 X{:.3} Y{:.3} F6000\n", 50.0 * a.cos(), 50.0 * a.sin());
     }
     std::fs::write(&gcode, text).unwrap();
-    for (domain, second_interrupt) in [(61u16, false), (62, true)] {
+    // As a terminal's Ctrl-C: SIGINT to the print's whole process group (with the MCU
+    // emulator it starts, which must not die of it: the stop is the print's to make).
+    for (domain, second_interrupt, device) in [
+        (61u16, false, None),
+        (62, true, None),
+        (64, false, Some("emulator")),
+    ] {
         let bag = dir.join(format!("stop-{domain}.mcap"));
-        let child = Command::new(env!("CARGO_BIN_EXE_polar-cell"))
+        let mut command = Command::new(env!("CARGO_BIN_EXE_polar-cell"));
+        command
             .env("ROS_DOMAIN_ID", domain.to_string())
             .arg("print")
             .arg(&gcode)
             .arg("--bag")
             .arg(&bag)
-            .args(["--no-progress", "--speed", "0.1"])
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .unwrap();
+            .stderr(std::process::Stdio::piped());
+        match device {
+            None => command.args(["--no-progress", "--speed", "0.1"]),
+            Some(device) => command.args(["--no-progress", "--speed", "0.5", "--device", device]),
+        };
+        std::os::unix::process::CommandExt::process_group(&mut command, 0);
+        let child = command.spawn().unwrap();
+        let group = child.id() as i32;
         std::thread::sleep(std::time::Duration::from_secs(4));
-        // SAFETY: signalling our own child.
-        assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+        // SAFETY: signalling our own child's process group.
+        assert_eq!(unsafe { libc::killpg(group, libc::SIGINT) }, 0);
         if second_interrupt {
             std::thread::sleep(std::time::Duration::from_millis(20));
-            assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+            assert_eq!(unsafe { libc::killpg(group, libc::SIGINT) }, 0);
         }
         let out = child.wait_with_output().unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);

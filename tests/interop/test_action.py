@@ -327,6 +327,14 @@ def test_cancel_rules_goal_ids_result_timeout_and_shutdown_as_rcl_has_them(tmp_p
         assert (reply.return_code, len(reply.goals_canceling)) == (ERROR_NONE, 0)
         assert cancel_goal(new_id(), Time(0, 0)).return_code == ERROR_UNKNOWN_GOAL_ID
 
+        # A goal at a speed no machine runs at: accepted to say why, aborted before any bag.
+        too_fast = new_id()
+        seq = send_goal.send(lambda g, s: SendGoalRequest(g, s, too_fast, PrintGoal(str(long_file), -1.0)))
+        assert send_goal.reply(seq, 10).accepted
+        refused = result_of(too_fast, 10)
+        assert refused.status == ABORTED, refused
+        assert "speed -1: a print runs at 0.01 to 1000" in refused.result.message, refused.result.message
+
         first = new_id()
         accepted = goal(first, long_file)
         assert accepted.accepted

@@ -43,6 +43,8 @@ pub fn executor_from_params(params: &MachineParams, control_period_s: f64) -> Ex
     player.control_period_s = control_period_s;
     player.queue_capacity = params.queue_capacity;
     player.initial_steps = params.initial_steps();
+    // Held for an underrun, the machine gets at most the horizon ahead: resume within it.
+    player.underrun_resume_s = (params.horizon_s / 4.0).min(0.5);
     ExecutorOptions::new(player, params.screw_hold)
 }
 

@@ -50,6 +50,10 @@ pub struct PlayerOptions {
     /// Machine time a resume waits at rest with the pin reopened before motion restarts (the
     /// pin's opening delay, so material flows exactly where it stopped).
     pub pin_open_delay_s: f64,
+    /// Plan an underrun hold waits for beyond twice its stopping distance before it
+    /// releases (s). It must stay well inside the producers' horizon: held, the machine
+    /// is never given more than the horizon ahead, so a larger figure would hold for ever.
+    pub underrun_resume_s: f64,
 }
 
 impl PlayerOptions {
@@ -65,6 +69,7 @@ impl PlayerOptions {
             initial_steps: [0; MAX_AXES],
             control_period_s: 0.001,
             pin_open_delay_s,
+            underrun_resume_s: 0.5,
         }
     }
 }
@@ -370,6 +375,12 @@ impl Player {
             if self.ensure_active() {
                 self.last_edge_q32 = self.now_q32;
                 self.state = PlayerState::Running;
+                if self.feed == 0.0 && self.hold.is_none() {
+                    // After running dry (the pin closed there): restart as a resume does,
+                    // the pin reopened for its delay first, σ rising from rest.
+                    self.resume_at_q32 =
+                        self.now_q32 + self.ticks_q32(self.options.pin_open_delay_s);
+                }
             }
             return Ok(());
         }
@@ -388,6 +399,11 @@ impl Player {
                     // The plan ended before the cancel's hold came to rest: nothing is left
                     // to drop, and the cancel must not drop the next plan.
                     self.drop_plan();
+                } else if !self.input_finished {
+                    // Stopped where the plan ends (it ends at rest), the pin closed while
+                    // idle: σ is 0 now, so what comes next starts as a resume, not at the
+                    // feed it ran dry with.
+                    self.feed = 0.0;
                 }
                 self.state = PlayerState::Idle;
                 break;
@@ -416,7 +432,7 @@ impl Player {
                 self.hold = Some(HoldReason::Underrun);
                 self.underruns += 1;
             } else if self.hold == Some(HoldReason::Underrun)
-                && self.ahead_q32() > 2 * needed + self.ticks_q32(0.5)
+                && self.ahead_q32() > 2 * needed + self.ticks_q32(self.options.underrun_resume_s)
             {
                 self.release();
             }

@@ -6,9 +6,9 @@
 //! known), the pin switches at a command.
 //! The executor follows them as *execution* reaches their plan time. Under a feed scale σ the
 //! screw turns at σ times the planned rpm, so material per length of path is kept through a
-//! hold; its angle therefore integrates the planned rpm over plan time. Held or waiting, the
-//! screw is stopped and the pin closed (the safe state); the pin reopens before motion
-//! resumes, by its delay, so material flows again exactly where it stopped.
+//! hold; its angle therefore integrates the planned rpm over plan time. Held, idle or
+//! stopped, the screw is stopped and the pin closed (the safe state); the pin reopens before
+//! motion resumes, by its delay, so material flows again exactly where it stopped.
 
 use std::collections::VecDeque;
 
@@ -134,7 +134,8 @@ impl ScrewTrack {
     }
 
     /// Execute up to plan time `plan_now_q32` at feed scale `feed`; `pin_allowed` is false
-    /// while the machine is held or waiting (the pin then stays closed).
+    /// while the machine is held, idle or stopped (the pin then stays closed), and true
+    /// while it moves or waits out the pin's delay before a resume.
     pub fn advance(&mut self, plan_now_q32: u128, feed: f64, pin_allowed: bool) {
         let rad_per_rpm_tick_q32 = std::f64::consts::TAU / 60.0 * q32_to_seconds(1, self.timer_hz);
         while self.plan_q32 < plan_now_q32 {
@@ -162,8 +163,8 @@ impl ScrewTrack {
         self.pin_allowed = pin_allowed;
     }
 
-    /// The rpm and pin actually executed: σ times the planned rpm, the pin as commanded unless
-    /// held; stopped and closed when held or waiting.
+    /// The rpm and pin actually executed: σ times the planned rpm (0 at rest), the pin as
+    /// commanded while allowed (see [`ScrewTrack::advance`]), else closed.
     pub fn executed(&self) -> (f64, bool) {
         let rpm = if self.feed > 0.0 {
             self.feed * self.rpm_at(self.plan_q32)

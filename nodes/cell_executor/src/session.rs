@@ -21,8 +21,8 @@ const Q32: u128 = step_core::ONE_TICK_Q32 as u128;
 #[derive(Clone, Debug, PartialEq)]
 pub struct ExecutorOptions {
     pub player: PlayerOptions,
-    /// Screw commands queued ahead of execution at most (besides those waiting for the
-    /// first segment).
+    /// Screw commands queued ahead of execution at most, those waiting for the first
+    /// segment (which fixes their place on the plan clock) included.
     pub screw_queue_capacity: usize,
     /// How rpm runs between screw commands: as the screw driver publishes them (its
     /// `command_hold`: held when it compensates the flow, smooths or resamples).

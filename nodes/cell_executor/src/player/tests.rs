@@ -643,3 +643,78 @@ fn a_pause_during_a_dwell_holds_at_once() {
     // Held at plan time ~0.1 s: the dwell's rest of 29.9 s is still ahead.
     assert!(player.ahead_q32() > 29 * 1_000_000 * Q32);
 }
+
+/// Held for an underrun, the machine is given at most the producers' horizon ahead: the
+/// hold releases on what fits in it (here 0.2 s queued with a 0.05 s margin), where a fixed
+/// half second held a print with a shorter horizon for ever.
+#[test]
+fn an_underrun_hold_releases_within_a_short_horizon() {
+    let mut player = Player::new(PlayerOptions {
+        underrun_resume_s: 0.05,
+        ..options()
+    });
+    player.push(cruise(1, 2000, 400, false, 1)).unwrap();
+    collect(&mut player, 0);
+    play(&mut player, 0, 1_000_000, |_, _| {});
+    assert_eq!(player.hold(), Some(HoldReason::Underrun));
+    let held_at = player.position_steps()[1];
+    // 0.2 s more, input still open.
+    player.push(cruise(1, 500, 400, false, 2)).unwrap();
+    play(&mut player, 1_000_000, 1_300_000, |_, _| {});
+    assert_eq!(player.hold(), None, "released");
+    assert!(player.position_steps()[1] > held_at, "moving again");
+}
+
+/// A plan that runs dry while moving (too short for a hold to come to rest on it) stops
+/// where it ends with the pin closed; what arrives next starts as a resume: the pin
+/// reopened for its delay before the first step, σ rising from rest.
+#[test]
+fn after_running_dry_the_next_plan_waits_for_the_pin() {
+    let mut player = Player::new(options());
+    // 10 steps at 2500 steps/s: 4 ms, shorter than the 10 ms a hold needs from this speed.
+    player.push(cruise(1, 10, 400, false, 1)).unwrap();
+    collect(&mut player, 0);
+    play(&mut player, 0, 100_000, |_, _| {});
+    assert_eq!(player.state(), PlayerState::Idle);
+    assert_eq!(player.position_steps()[1], 10);
+    assert!(!player.pin_allowed());
+    player.push(cruise(1, 2000, 400, false, 2)).unwrap();
+    player.finish_input();
+    // (The synthetic plan ends at speed: the limits over the restart only.)
+    let (edges, velocities) = play(&mut player, 100_000, 1_000_000, |_, _| {});
+    let first = edges.first().expect("the next plan played").time_q32;
+    assert!(
+        first >= (100_000 + 250_000) * Q32,
+        "first step at {} µs, before the pin's delay",
+        first / Q32
+    );
+    assert!(worst_acceleration(&velocities) <= 1.0 + 1e-9);
+    play(&mut player, 1_000_000, 1_500_000, |_, _| {});
+    assert_eq!(player.position_steps()[1], 2010);
+}
+
+/// Paused too late to stop on a short plan, it runs dry; resumed while nothing is queued,
+/// the pin's delay counts from when the next plan comes (the pin stays closed while idle),
+/// not from the resume.
+#[test]
+fn a_resume_with_nothing_queued_waits_for_the_pin_when_the_plan_comes() {
+    let mut player = Player::new(options());
+    player.push(cruise(1, 10, 400, false, 1)).unwrap();
+    collect(&mut player, 0);
+    player.pause();
+    play(&mut player, 0, 100_000, |_, _| {});
+    assert_eq!(player.state(), PlayerState::Idle);
+    assert_eq!(player.hold(), Some(HoldReason::Pause));
+    player.resume();
+    play(&mut player, 100_000, 600_000, |_, _| {});
+    player.push(cruise(1, 2000, 400, false, 2)).unwrap();
+    player.finish_input();
+    let (edges, velocities) = play(&mut player, 600_000, 1_200_000, |_, _| {});
+    let first = edges.first().expect("the next plan played").time_q32;
+    assert!(
+        first >= (601_000 + 250_000) * Q32,
+        "first step at {} µs, before the pin's delay",
+        first / Q32
+    );
+    assert!(worst_acceleration(&velocities) <= 1.0 + 1e-9);
+}

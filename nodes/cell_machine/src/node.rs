@@ -18,6 +18,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _};
+use cell_runtime::flow::consumer_state;
 use cell_runtime::graph::Producer;
 use cell_runtime::replay::{Joined, Numbered};
 use cell_runtime::topics::{publisher_qos, suite_topic};
@@ -25,9 +26,11 @@ use cell_runtime::{
     now_ns, parse_service_mapping, reliable_qos, CellNode, LogLevel, ParamSpec, ParamValue, Params,
     ShutdownSignal, Wire,
 };
+use polar_cell_msgs::checkpoint::{reach, PlannerReach, ScrewReach};
 use polar_cell_msgs::{
     DiagnosticStatus, GcodeProgress, Header, Hold, JointState, PlanCredit, ScrewCommand,
     StepSegment, StringMsg, TFMessage, Time, TriggerRequest, TriggerResponse,
+    TIMELINE_TOLERANCE_NS,
 };
 use step_core::StepOptions;
 use tokio::sync::{mpsc, watch};
@@ -38,6 +41,44 @@ use cell_runtime::tf::TfTree;
 /// The most plan (s) the screw commands must reach ahead of the machine: it holds on the path
 /// before that (a quarter of the horizon when that is less).
 const SCREW_HOLD_MARGIN_MAX_S: f64 = 0.5;
+
+/// How long after the stream finished the last segments and screw commands the producers
+/// acknowledged may still be on their way.
+const END_OF_INPUT_PATIENCE: Duration = Duration::from_secs(10);
+
+/// Why the input cannot end: what the producers published and did not arrive.
+fn end_of_input_missing<W: PartialEq>(
+    planner: &Option<PlannerReach>,
+    steps: &cell_runtime::replay::StepsJoin<W>,
+    screw: &Option<ScrewReach>,
+    commands: &cell_runtime::replay::SequenceJoin,
+) -> String {
+    let mut lost = Vec::new();
+    if let Some(r) = planner {
+        let taken_ns = steps.end_ns().unwrap_or(r.plan_epoch_ns);
+        if taken_ns < r.end_ns() - TIMELINE_TOLERANCE_NS {
+            lost.push(format!(
+                "/polar/steps ends {:.6} s into the plan, the planner published {:.6} s",
+                (taken_ns - r.plan_epoch_ns) as f64 * 1e-9,
+                r.t_s
+            ));
+        }
+    }
+    if let Some(r) = screw {
+        if commands.next() < r.next_command {
+            lost.push(format!(
+                "/screw/command has {} commands, the screw driver published {}",
+                commands.next(),
+                r.next_command
+            ));
+        }
+    }
+    format!(
+        "the end of the plan was lost: {} s after the stream finished, {}",
+        END_OF_INPUT_PATIENCE.as_secs(),
+        lost.join("; ")
+    )
+}
 
 /// The cell's URDF (the default of `urdf_file`).
 pub const POLAR_CELL_URDF: &str = include_str!("../../../urdf/polar_cell.urdf");
@@ -395,6 +436,11 @@ pub async fn run<M: Machine>(
     // commands are normally short of it.
     let screw_margin_ns = (options.horizon_s / 4.0).min(SCREW_HOLD_MARGIN_MAX_S) * 1e9;
     let screw_margin_ns = screw_margin_ns as i64;
+    // Screw commands that came after the machine passed their time, and how late one may
+    // come before the print stops: the screw hold's margin, or 50 ms of wall time at the
+    // machine's pace (a loop's pass at a high --speed), whichever is longer.
+    let mut late_screw_commands = 0u64;
+    let late_screw_tolerance_ns = screw_margin_ns.max((0.05e9 * options.speed) as i64);
     // The least the screw commands were ahead of the running machine (a measure of the
     // margin a lost screw driver leaves).
     let mut screw_ahead_min_ns = i64::MAX;
@@ -499,7 +545,16 @@ pub async fn run<M: Machine>(
     let mut pending_steps: VecDeque<StepSegment> = VecDeque::new();
     let mut pending_screw: VecDeque<ScrewCommand> = VecDeque::new();
     let mut received = 0u64;
+    // The input ends when the streamer says the file is done AND what the planner and the
+    // screw driver acknowledged having published (their checkpoints' reach, in the same
+    // progress report) has all arrived: the `finished` flag travels on another topic and
+    // can overtake the last segments and commands.
     let mut input_finished = false;
+    let mut stream_finished = false;
+    let mut stream_finished_at: Option<Instant> = None;
+    let mut planner_reach: Option<PlannerReach> = None;
+    let mut screw_reach: Option<ScrewReach> = None;
+    let mut start_checked = false;
     let mut control = Control::default();
     let mut fault: Option<String> = None;
     let mut last_credit = (Instant::now() - Duration::from_secs(1), f64::NAN);
@@ -630,7 +685,16 @@ pub async fn run<M: Machine>(
             taken = progress_sub.async_take() => {
                 if let Ok((p, info)) = taken {
                     if progress_from.admits(&info) {
-                        input_finished |= p.finished;
+                        stream_finished |= p.finished;
+                        let reach_of = |producer: &Producer| {
+                            consumer_state(&p, producer.name()).map(|(_, state)| state)
+                        };
+                        if let Some((_, r)) = reach_of(&steps_from).and_then(reach::<PlannerReach>) {
+                            planner_reach = Some(r);
+                        }
+                        if let Some((_, r)) = reach_of(&screw_from).and_then(reach::<ScrewReach>) {
+                            screw_reach = Some(r);
+                        }
                     } else {
                         ignored.note(
                             node,
@@ -650,6 +714,38 @@ pub async fn run<M: Machine>(
                 }
             }
             _ = tokio::time::sleep_until(wake.into()) => {}
+        }
+        if stream_finished && !input_finished {
+            let steps_in = planner_reach.is_none_or(|r| {
+                r.end_ns() - r.plan_epoch_ns <= TIMELINE_TOLERANCE_NS
+                    || steps_join
+                        .end_ns()
+                        .is_some_and(|end| end >= r.end_ns() - TIMELINE_TOLERANCE_NS)
+            });
+            let screw_in = screw_reach.is_none_or(|r| screw_join.next() >= r.next_command);
+            let since = *stream_finished_at.get_or_insert_with(Instant::now);
+            if steps_in && screw_in {
+                input_finished = true;
+            } else if since.elapsed() >= END_OF_INPUT_PATIENCE && !control.plan_dropped {
+                // Reliable delivery repairs a lost sample within a heartbeat or two: this
+                // much later, the end of the plan is lost, and the print did not end as planned.
+                stopping_for.get_or_insert_with(|| {
+                    end_of_input_missing(&planner_reach, &steps_join, &screw_reach, &screw_join)
+                });
+            }
+        }
+        // The first segment taken must be the plan's start: a plan whose first segments
+        // were dropped (from a writer not yet announced, say) would play displaced.
+        if let (false, Some(r), Some(first_ns)) =
+            (start_checked, planner_reach, steps_join.first_start_ns())
+        {
+            start_checked = true;
+            if first_ns - r.plan_epoch_ns > TIMELINE_TOLERANCE_NS && !control.plan_dropped {
+                stopping_for.get_or_insert_with(|| format!(
+                    "/polar/steps lost the plan's start: the first segment taken starts {:.6} s after plan time 0",
+                    (first_ns - r.plan_epoch_ns) as f64 * 1e-9
+                ));
+            }
         }
         if let Some((command, caller)) = requested {
             let (success, message) = control.apply(executor, command);
@@ -835,17 +931,49 @@ pub async fn run<M: Machine>(
         let (mut free_steps, free_screw) = executor.free_slots();
         for _ in 0..free_screw.min(pending_screw.len()) {
             let c = pending_screw.pop_front().expect("counted");
+            // Where the machine plays it: a pin opening stamped before the plan's start
+            // (its delay reaches back) plays at the start.
+            let due_ns = executor
+                .epoch_ns()
+                .map_or(c.header.stamp.as_nanos(), |epoch| {
+                    c.header.stamp.as_nanos().max(epoch)
+                });
+            let late_ns = plan_now_ns.map_or(0, |now| now - due_ns);
+            if late_ns > TIMELINE_TOLERANCE_NS {
+                // The machine has passed its time: played now, it feeds from here, and what
+                // it should have fed since is missing. A little late (within the screw hold's
+                // own reach: its margin, or a loop's pass at a high --speed) is counted; far
+                // beyond that the screw driver is not keeping up, and the print stops on
+                // the path.
+                late_screw_commands += 1;
+                if late_ns > late_screw_tolerance_ns {
+                    stopping_for.get_or_insert_with(|| format!(
+                        "screw command {} (line {}) for plan time {:.3} s came {:.3} s after the machine passed it",
+                        c.sequence,
+                        c.source_line,
+                        executor
+                            .epoch_ns()
+                            .map_or(0.0, |epoch| (due_ns - epoch) as f64 * 1e-9),
+                        late_ns as f64 * 1e-9
+                    ));
+                    pending_screw.clear();
+                    break;
+                }
+            }
             if let Err(e) = executor.on_screw(&c) {
                 fault.get_or_insert(format!("screw command at line {}: {e}", c.source_line));
             }
         }
         // From rest, start only with half a horizon of plan in hand (or the whole plan, or
         // after half a second): a start on the first segment alone would underrun at once.
+        // Nor before the screw driver's first command, within the same half second: one
+        // that came after the machine passed its time would stop the print. (A print that
+        // extrudes only later, or never, has none yet, and starts after the half second.)
         let starting = executor.is_drained() && !input_finished;
         if starting && !pending_steps.is_empty() {
             let waiting_since = *start_wait.get_or_insert_with(Instant::now);
             let in_hand_s: f64 = pending_steps.iter().map(|s| s.duration_s).sum();
-            if in_hand_s < options.horizon_s / 2.0
+            if (in_hand_s < options.horizon_s / 2.0 || screw_covered_ns.is_none())
                 && waiting_since.elapsed() < Duration::from_millis(500)
             {
                 free_steps = 0;
@@ -1098,6 +1226,7 @@ pub async fn run<M: Machine>(
                 ("segments_repeated", steps_join.repeats().to_string()),
                 ("screw_commands_repeated", screw_join.repeats().to_string()),
                 ("screw_holds", screw_holds.to_string()),
+                ("late_screw_commands", late_screw_commands.to_string()),
                 ("dropped_after_stop", dropped_after_stop.to_string()),
                 (
                     "screw_ahead_min_s",

@@ -413,7 +413,9 @@ pub struct AckTracker {
 }
 
 /// How often a consumer repeats an acknowledgement that has not changed. A repeat only
-/// recovers a lost one (or tells a restarted streamer where the consumer stands); the
+/// recovers a lost one. (It does not tell a restarted streamer anything: that streamer has
+/// sent nothing, refuses an acknowledgement beyond it, and waits for its consumers'
+/// announcements, which they made once. A streamer is not restartable mid-print.) The
 /// planner and the screw driver used to repeat theirs on every 10 ms tick, 42,354
 /// acknowledgements for finger.gcode's 1,778 moves at 1×, each a DDS sample to the streamer
 /// and the recorder.
@@ -495,23 +497,12 @@ impl AckTracker {
         if self.resume_point_known {
             return false;
         }
-        let Some(i) = consumers.iter().position(|c| *c == self.consumer) else {
+        let Some((n, state)) =
+            consumer_entry(consumers, next_expected, states, ends, &self.consumer)
+        else {
             return false;
         };
-        let Some(&n) = next_expected.get(i) else {
-            return false;
-        };
-        let start = if i == 0 {
-            Some(0)
-        } else {
-            ends.get(i - 1).copied()
-        };
-        self.resume_state = match (start, ends.get(i)) {
-            (Some(a), Some(&b)) if a <= b => {
-                states.get(a as usize..b as usize).unwrap_or(&[]).to_vec()
-            }
-            _ => Vec::new(),
-        };
+        self.resume_state = state.to_vec();
         self.resume_state_until = n;
         self.next_expected = n;
         self.last_acked = n;
@@ -593,6 +584,42 @@ impl AckTracker {
     pub fn next_expected(&self) -> u64 {
         self.next_expected
     }
+}
+
+/// `consumer`'s acknowledged point and resume state in a progress report's per-consumer
+/// lists (see `GcodeProgress.msg`; malformed ends give an empty state).
+fn consumer_entry<'a>(
+    consumers: &[String],
+    next_expected: &[u64],
+    states: &'a [u8],
+    ends: &[u32],
+    consumer: &str,
+) -> Option<(u64, &'a [u8])> {
+    let i = consumers.iter().position(|c| c == consumer)?;
+    let n = *next_expected.get(i)?;
+    let start = if i == 0 {
+        Some(0)
+    } else {
+        ends.get(i - 1).copied()
+    };
+    let state = match (start, ends.get(i)) {
+        (Some(a), Some(&b)) if a <= b => states.get(a as usize..b as usize).unwrap_or(&[]),
+        _ => &[],
+    };
+    Some((n, state))
+}
+
+/// What `progress` says of `consumer` (fully qualified): the point it acknowledged and the
+/// state it acknowledged with. A node downstream of that consumer reads there how far the
+/// consumer's own output reaches (`polar_cell_msgs::checkpoint::reach`).
+pub fn consumer_state<'a>(progress: &'a GcodeProgress, consumer: &str) -> Option<(u64, &'a [u8])> {
+    consumer_entry(
+        &progress.consumers,
+        &progress.consumer_next_expected,
+        &progress.consumer_resume_states,
+        &progress.consumer_resume_state_ends,
+        consumer,
+    )
 }
 
 /// How a node takes in a link: as a flow-control consumer ([`AckTracker`]), or —
@@ -1102,6 +1129,10 @@ mod tests {
             vec![7, 7],
             "the recorder keeps none"
         );
+        // What a node downstream of the planner reads there.
+        assert_eq!(consumer_state(&p, "/planner"), Some((4, &b"after 4"[..])));
+        assert_eq!(consumer_state(&p, "/recorder"), Some((10, &b""[..])));
+        assert_eq!(consumer_state(&p, "/other"), None);
         restarted.on_progress(&p).unwrap();
         assert_eq!(restarted.resume_state(), Some((4, &b"after 4"[..])));
         assert_eq!(

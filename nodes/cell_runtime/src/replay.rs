@@ -119,6 +119,7 @@ pub struct StepsJoin<W> {
     /// The move of the last segment taken: its sequence, start stamp, and the plan time of
     /// its segments taken so far.
     last: Option<(u64, i64, f64)>,
+    first_start_ns: Option<i64>,
 }
 
 impl<W> Default for StepsJoin<W> {
@@ -126,6 +127,7 @@ impl<W> Default for StepsJoin<W> {
         StepsJoin {
             replay: ReplayFilter::default(),
             last: None,
+            first_start_ns: None,
         }
     }
 }
@@ -154,7 +156,10 @@ impl<W: PartialEq> StepsJoin<W> {
                 self.last = Some((segment.move_sequence, start_ns, segment.duration_s));
             }
             Some((_, _, ref mut taken_s)) => *taken_s += segment.duration_s,
-            None => self.last = Some((segment.move_sequence, start_ns, segment.duration_s)),
+            None => {
+                self.last = Some((segment.move_sequence, start_ns, segment.duration_s));
+                self.first_start_ns = Some(start_ns);
+            }
         }
         Joined::New
     }
@@ -162,6 +167,18 @@ impl<W: PartialEq> StepsJoin<W> {
     /// Segments dropped as repeats so far.
     pub fn repeats(&self) -> u64 {
         self.replay.repeats()
+    }
+
+    /// Stamp of the first segment taken (the plan's start, unless its first segments were
+    /// lost).
+    pub fn first_start_ns(&self) -> Option<i64> {
+        self.first_start_ns
+    }
+
+    /// Stamp of the end of the plan taken so far.
+    pub fn end_ns(&self) -> Option<i64> {
+        self.last
+            .map(|(_, move_start_ns, taken_s)| move_start_ns + (taken_s * 1e9).round() as i64)
     }
 }
 
@@ -330,12 +347,16 @@ mod tests {
     #[test]
     fn a_resumed_plan_joins_and_a_lost_segment_is_a_gap() {
         let mut join = StepsJoin::new();
+        assert_eq!((join.first_start_ns(), join.end_ns()), (None, None));
         assert_eq!(join.take(&segment(1, 0.0, 0.1), 'a'), Joined::New);
         assert_eq!(join.take(&segment(1, 0.0, 0.2), 'a'), Joined::New);
+        assert_eq!(join.end_ns(), Some(1_300_000_000));
         assert_eq!(join.take(&segment(2, 0.3, 0.1), 'a'), Joined::New);
         assert_eq!(join.take(&segment(2, 0.3, 0.1), 'b'), Joined::Repeat);
         assert_eq!(join.take(&segment(3, 0.4, 0.5), 'b'), Joined::New);
         assert_eq!(join.repeats(), 1);
+        assert_eq!(join.first_start_ns(), Some(1_000_000_000));
+        assert_eq!(join.end_ns(), Some(1_900_000_000));
         // Move 4's second segment is lost; move 5 starts where move 4 would have ended.
         assert_eq!(join.take(&segment(4, 0.9, 0.25), 'b'), Joined::New);
         assert_eq!(

@@ -109,6 +109,52 @@ pub fn from_bytes<C: Checkpoint>(
     Ok(c)
 }
 
+/// How far a planner's published plan reaches: the fields that lead its checkpoint after the
+/// header (`polar_planner::resume::Checkpoint`, whose tests hold it to this layout).
+///
+/// A machine reads it from the planner's acknowledgement in `/gcode/progress` to know where
+/// the plan it must receive ends: the streamer's `finished` travels on another topic and
+/// can overtake the last segments.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PlannerReach {
+    /// Stamp of plan time 0 (ns): the first segment's stamp.
+    pub plan_epoch_ns: i64,
+    /// Plan time at the end of everything published (s).
+    pub t_s: f64,
+}
+
+impl PlannerReach {
+    /// Stamp of the end of everything published.
+    pub fn end_ns(&self) -> i64 {
+        self.plan_epoch_ns + (self.t_s * 1e9).round() as i64
+    }
+}
+
+/// How far a screw driver's published commands reach: the fields that lead its checkpoint
+/// after the header (`screw_driver::stream::Checkpoint`, whose tests hold it to this layout).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ScrewReach {
+    pub has_base: bool,
+    pub base_ns: i64,
+    /// Stamp of the last command published.
+    pub last_stamp_ns: i64,
+    /// Number of the next command: every one before it is published.
+    pub next_command: u64,
+}
+
+#[derive(serde::Deserialize)]
+struct Lead<R> {
+    header: CheckpointHeader,
+    reach: R,
+}
+
+/// The header and the reach `R` that lead checkpoint `bytes` (`None`: too short, or not CDR).
+/// The rest of the checkpoint is the writer's own business and is not read.
+pub fn reach<R: serde::de::DeserializeOwned>(bytes: &[u8]) -> Option<(CheckpointHeader, R)> {
+    let lead: Lead<R> = crate::cdr::decode(bytes).ok()?;
+    Some((lead.header, lead.reach))
+}
+
 /// A digest of options (FNV-1a over their exact `Debug` text: every float printed so that it
 /// reads back the same), stable across builds and platforms, unlike `std`'s hashers.
 pub fn options_digest(debug_text: &str) -> u64 {
@@ -192,6 +238,36 @@ mod tests {
         assert!(e
             .to_string()
             .starts_with("resume state of 9 bytes is not a sampler checkpoint"));
+    }
+
+    #[test]
+    fn a_reach_is_read_from_the_lead_of_a_longer_checkpoint() {
+        #[derive(serde::Serialize)]
+        struct Planner {
+            header: CheckpointHeader,
+            plan_epoch_ns: i64,
+            t_s: f64,
+            rest: [f64; 3],
+        }
+        let bytes = crate::cdr::encode(&Planner {
+            header: Sample::header_for(5, 1),
+            plan_epoch_ns: 1_000,
+            t_s: 2.5,
+            rest: [9.0; 3],
+        })
+        .unwrap();
+        let (header, r) = reach::<PlannerReach>(&bytes).unwrap();
+        assert_eq!(header.next_sequence, 5);
+        assert_eq!(
+            r,
+            PlannerReach {
+                plan_epoch_ns: 1_000,
+                t_s: 2.5
+            }
+        );
+        assert_eq!(r.end_ns(), 2_500_001_000);
+        assert_eq!(reach::<PlannerReach>(&bytes[..20]), None);
+        assert_eq!(reach::<PlannerReach>(&[]), None);
     }
 
     /// FNV-1a's published test vectors (the empty string and "a").

@@ -27,7 +27,8 @@ pub struct Checkpoint {
     /// Format, the first move not yet published (the acknowledged point), and the
     /// [`options_digest`] of the planner that wrote it.
     pub header: CheckpointHeader,
-    /// Stamp of plan time 0 (ns).
+    /// Stamp of plan time 0 (ns). With `t_s`, the plan's reach that a machine reads from
+    /// the lead of these bytes (`polar_cell_msgs::checkpoint::PlannerReach`): keep them first.
     pub plan_epoch_ns: i64,
     pub t_s: f64,
     pub path_speed2: f64,
@@ -179,6 +180,16 @@ mod tests {
             previous_extruding: true,
         };
         Checkpoint::new(42, 7, 1_700_000_000_000_000_000, &at, [1, -2, 3], 12.52, 40)
+    }
+
+    /// A machine reads where the plan ends from the lead of these bytes.
+    #[test]
+    fn a_checkpoint_leads_with_the_plans_reach() {
+        let c = sample();
+        let (header, reach) = checkpoint::reach::<checkpoint::PlannerReach>(&c.to_bytes()).unwrap();
+        assert_eq!(header, c.header);
+        assert_eq!(reach.plan_epoch_ns, c.plan_epoch_ns);
+        assert_eq!(reach.t_s.to_bits(), c.t_s.to_bits());
     }
 
     #[test]

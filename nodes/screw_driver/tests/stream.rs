@@ -320,6 +320,33 @@ fn checkpoints_of_other_options_or_points_are_refused() {
     ));
 }
 
+/// A machine reads how far the commands reach from the lead of a checkpoint's bytes.
+#[test]
+fn a_checkpoint_leads_with_the_commands_reach() {
+    use polar_cell_msgs::checkpoint::{reach, ScrewReach};
+    let (moves, trajectories) = planned("finger.gcode");
+    let (whole, _) = run(Stream::new(compensated()), &moves, &trajectories, 0).unwrap();
+    let ours = Stream::new(compensated()).options_digest();
+    for (until, bytes, ..) in whole.checkpoints.iter().step_by(17) {
+        let c = Checkpoint::from_bytes(bytes, *until, ours).unwrap();
+        let (header, r) = reach::<ScrewReach>(bytes).unwrap();
+        assert_eq!(header, c.header);
+        assert_eq!(
+            r,
+            ScrewReach {
+                has_base: c.has_base,
+                base_ns: c.base_ns,
+                last_stamp_ns: c.last_stamp_ns,
+                next_command: c.next_command,
+            }
+        );
+    }
+    // After the last chunk: every command published.
+    let (_, last, ..) = whole.checkpoints.last().unwrap();
+    let (_, r) = reach::<ScrewReach>(last).unwrap();
+    assert_eq!(r.next_command, whole.commands.len() as u64);
+}
+
 proptest::proptest! {
     /// Any bytes: a checkpoint or a clean error, never a panic.
     #[test]

@@ -133,10 +133,11 @@ impl RosArgs {
         }
     }
 
+    /// The first rule that applies, in command-line order, as rcl takes it
+    /// (`_rcl_remap_first_match`), like the topic remaps.
     fn special_remap(&self, node: &str, keys: &[&str]) -> Option<String> {
         self.remaps
             .iter()
-            .rev()
             .find(|r| {
                 keys.contains(&r.from.as_str()) && r.node.as_deref().is_none_or(|n| n == node)
             })
@@ -222,6 +223,26 @@ mod tests {
             ArgsError::UnknownArgument("--bogus".into())
         );
         assert!(RosArgs::parse(&["--ros-args", "-r", ":x:=y"]).is_err());
+    }
+
+    /// Of two rules for the same name, the first applies (rcl's first match).
+    #[test]
+    fn the_first_applicable_node_or_namespace_remap_wins() {
+        let (ros, _) = RosArgs::parse(&[
+            "--ros-args",
+            "-r",
+            "streamer:__node:=x",
+            "-r",
+            "__node:=y",
+            "-r",
+            "__ns:=/a",
+            "-r",
+            "__ns:=/b",
+        ])
+        .unwrap();
+        assert_eq!(ros.node_name("streamer"), "x");
+        assert_eq!(ros.node_name("planner"), "y");
+        assert_eq!(ros.namespace("streamer", "/"), "/a");
     }
 
     #[test]

@@ -58,6 +58,10 @@ impl NameResolver {
             return Err(err("empty"));
         }
         let absolute = if let Some(rest) = name.strip_prefix('~') {
+            if !(rest.is_empty() || rest.starts_with('/')) {
+                // rcl: `~` stands alone or before `/` (`~status` would read `/ns/nodestatus`).
+                return Err(err("`~` must be followed by `/`"));
+            }
             format!("{}{}", self.fully_qualified_node_name(), rest)
         } else if name.starts_with('/') {
             name.to_string()
@@ -120,6 +124,8 @@ mod tests {
         assert_eq!(r.resolve("/cell/moves").unwrap(), "/other/moves");
         assert_eq!(r.resolve("/joint_states").unwrap(), "/joint_states");
         assert_eq!(r.resolve("~/status").unwrap(), "/cell/planner/status");
+        assert_eq!(r.resolve("~").unwrap(), "/cell/planner");
+        assert!(r.resolve("~status").is_err(), "not /cell/plannerstatus");
         let root = NameResolver::new("n", "/", &[]).unwrap();
         assert_eq!(root.resolve("a/b").unwrap(), "/a/b");
         assert!(root.resolve("a//b").is_err());

@@ -150,20 +150,23 @@ impl Params {
                     message: "top level must be a map of node names".into(),
                 });
             };
-            for (key, section) in map {
-                let selector = key.as_str().unwrap_or_default();
-                if !selector_matches(selector, fully_qualified_name) {
+            let mut sections = Vec::new();
+            node_sections("", map, &mut sections).map_err(|message| ParamError::BadYaml {
+                source_name: file.clone(),
+                message,
+            })?;
+            for (selector, params) in sections {
+                if !selector_matches(&selector, fully_qualified_name) {
                     continue;
                 }
-                let Some(params) = section.get("ros__parameters") else {
-                    return Err(ParamError::BadYaml {
-                        source_name: file.clone(),
-                        message: format!("`{selector}` has no `ros__parameters` map"),
-                    });
-                };
                 let mut flat = Vec::new();
                 flatten("", params, &mut flat);
                 for (name, value) in flat {
+                    // A section for many nodes sets what each declares (rclcpp ignores an
+                    // override no declaration takes); one for this node alone is checked.
+                    if selector.contains('*') && !specs.iter().any(|s| s.name == name) {
+                        continue;
+                    }
                     let source_name = format!("{file} [{selector}]");
                     set(
                         specs,
@@ -255,12 +258,60 @@ impl Params {
     }
 }
 
+/// The node sections of a params file: the path of keys down to each `ros__parameters` map
+/// (`/cell/streamer:` or `cell:` → `streamer:`, as rcl's parser nests namespaces), with it.
+fn node_sections<'a>(
+    prefix: &str,
+    map: &'a yaml_serde::Mapping,
+    out: &mut Vec<(String, &'a yaml_serde::Value)>,
+) -> Result<(), String> {
+    for (key, value) in map {
+        let Some(key) = key.as_str() else {
+            return Err(format!("`{prefix}`: a key that is not a name"));
+        };
+        if key == "ros__parameters" {
+            out.push((prefix.to_string(), value));
+            continue;
+        }
+        let path = format!("{prefix}/{}", key.trim_matches('/'));
+        match value.as_mapping() {
+            Some(inner) => node_sections(&path, inner, out)?,
+            None => return Err(format!("`{path}` has no `ros__parameters` map")),
+        }
+    }
+    Ok(())
+}
+
+/// Whether the section `selector` (absolute, segments as rclcpp matches them: `**` any
+/// number of segments, `*` within a segment any characters) applies to the node `fqn`.
 fn selector_matches(selector: &str, fqn: &str) -> bool {
-    let base = fqn.rsplit('/').next().unwrap_or_default();
-    selector == "/**"
-        || selector == fqn
-        || selector.strip_prefix("/**/").is_some_and(|s| s == base)
-        || (!selector.starts_with('/') && fqn == format!("/{selector}"))
+    let pattern: Vec<&str> = selector.split('/').filter(|s| !s.is_empty()).collect();
+    let name: Vec<&str> = fqn.split('/').filter(|s| !s.is_empty()).collect();
+    segments_match(&pattern, &name)
+}
+
+fn segments_match(pattern: &[&str], name: &[&str]) -> bool {
+    match pattern.split_first() {
+        None => name.is_empty(),
+        Some((&"**", rest)) => {
+            segments_match(rest, name) || (!name.is_empty() && segments_match(pattern, &name[1..]))
+        }
+        Some((p, rest)) => name
+            .split_first()
+            .is_some_and(|(n, name_rest)| segment_matches(p, n) && segments_match(rest, name_rest)),
+    }
+}
+
+/// One segment against a pattern whose `*` stands for any characters.
+fn segment_matches(pattern: &str, name: &str) -> bool {
+    match pattern.split_once('*') {
+        None => pattern == name,
+        Some((head, tail)) => name.strip_prefix(head).is_some_and(|rest| {
+            (0..=rest.len())
+                .filter(|&i| rest.is_char_boundary(i))
+                .any(|i| segment_matches(tail, &rest[i..]))
+        }),
+    }
 }
 
 fn flatten(prefix: &str, value: &yaml_serde::Value, out: &mut Vec<(String, yaml_serde::Value)>) {
@@ -314,6 +365,19 @@ fn set(
             .to_string(),
         source_name: source_name.to_string(),
     })?;
+    // NaN is no setting (and, unequal to itself, would fail the node's own check of its
+    // declared values with a message about restarting).
+    let has_nan = match &converted {
+        ParamValue::Double(v) => v.is_nan(),
+        ParamValue::DoubleArray(v) => v.iter().any(|x| x.is_nan()),
+        _ => false,
+    };
+    if has_nan {
+        return Err(ParamError::Invalid {
+            name: name.to_string(),
+            problem: format!("{converted} holds NaN ({source_name})"),
+        });
+    }
     if let Some((min, max)) = spec.range {
         let numbers: Vec<f64> = match &converted {
             ParamValue::Integer(v) => vec![*v as f64],
@@ -359,13 +423,21 @@ fn convert(like: &ParamValue, v: &yaml_serde::Value) -> Option<ParamValue> {
         _ => None,
     };
     let seq = |v: &Y| v.as_sequence().cloned();
+    // rcl's YAML parser reads YAML 1.1's words for booleans too (`yes`, `off`, …).
+    let boolean = |v: &Y| {
+        v.as_bool().or_else(|| match v.as_str()? {
+            "y" | "Y" | "yes" | "Yes" | "YES" | "on" | "On" | "ON" => Some(true),
+            "n" | "N" | "no" | "No" | "NO" | "off" | "Off" | "OFF" => Some(false),
+            _ => None,
+        })
+    };
     Some(match like {
-        ParamValue::Bool(_) => ParamValue::Bool(v.as_bool()?),
+        ParamValue::Bool(_) => ParamValue::Bool(boolean(v)?),
         ParamValue::Integer(_) => ParamValue::Integer(v.as_i64()?),
         ParamValue::Double(_) => ParamValue::Double(double(v)?),
         ParamValue::String(_) => ParamValue::String(v.as_str()?.to_string()),
         ParamValue::BoolArray(_) => {
-            ParamValue::BoolArray(seq(v)?.iter().map(|x| x.as_bool()).collect::<Option<_>>()?)
+            ParamValue::BoolArray(seq(v)?.iter().map(boolean).collect::<Option<_>>()?)
         }
         ParamValue::IntegerArray(_) => {
             ParamValue::IntegerArray(seq(v)?.iter().map(|x| x.as_i64()).collect::<Option<_>>()?)
@@ -404,16 +476,80 @@ mod tests {
                 .finite3("limits.v", "x, y, z")
         };
         assert_eq!(at("[1.5, -2, 0.25]").unwrap(), [1.5, -2.0, 0.25]);
-        for bad in [
-            "[1.0, 2.0]",
-            "[1.0, 2.0, 3.0, 4.0]",
-            "[1.0, .nan, 3.0]",
-            "[.inf, 0.0, 0.0]",
-        ] {
+        for bad in ["[1.0, 2.0]", "[1.0, 2.0, 3.0, 4.0]", "[.inf, 0.0, 0.0]"] {
             let error = at(bad).expect_err(bad).to_string();
             assert!(
                 error.contains("parameter `limits.v`: needs 3 finite values (x, y, z), got"),
                 "{bad}: {error}"
+            );
+        }
+    }
+
+    /// Sections as rcl's parser and rclcpp's matching take them: namespaces nested as maps,
+    /// `*` and `**` wildcards; a wildcard section sets only what the node declares.
+    #[test]
+    fn params_file_sections_nest_and_match_wildcards() {
+        let window = |yaml: &str, node: &str| {
+            let files = vec![("f.yaml".to_string(), yaml.to_string())];
+            Params::resolve(&specs(), node, &files, &[]).map(|p| p.i64("window"))
+        };
+        let nested = "cell:\n  streamer:\n    ros__parameters:\n      window: 5\n";
+        assert_eq!(window(nested, "/cell/streamer").unwrap(), 5);
+        assert_eq!(
+            window(nested, "/streamer").unwrap(),
+            64,
+            "another namespace"
+        );
+        let star = "/cell/*:\n  ros__parameters:\n    window: 6\n";
+        assert_eq!(window(star, "/cell/streamer").unwrap(), 6);
+        assert_eq!(
+            window(star, "/cell/deep/streamer").unwrap(),
+            64,
+            "one segment only"
+        );
+        let partial = "/cell/stream*:\n  ros__parameters:\n    window: 7\n";
+        assert_eq!(window(partial, "/cell/streamer").unwrap(), 7);
+        assert_eq!(window(partial, "/cell/planner").unwrap(), 64);
+        let deep = "/**/streamer:\n  ros__parameters:\n    window: 8\n";
+        assert_eq!(window(deep, "/streamer").unwrap(), 8);
+        assert_eq!(window(deep, "/a/b/streamer").unwrap(), 8);
+        // What only another node declares, set for all: not this node's business.
+        let all = "/**:\n  ros__parameters:\n    window: 9\n    rate_of_another_node: 50\n";
+        assert_eq!(window(all, "/x").unwrap(), 9);
+        let exact = "/x:\n  ros__parameters:\n    rate_of_another_node: 50\n";
+        assert!(matches!(
+            window(exact, "/x"),
+            Err(ParamError::Unknown { .. })
+        ));
+    }
+
+    #[test]
+    fn booleans_read_as_rcl_reads_them() {
+        let specs = vec![ParamSpec::new("on", ParamValue::Bool(false), "a switch")];
+        for (text, value) in [
+            ("true", true),
+            ("yes", true),
+            ("On", true),
+            ("no", false),
+            ("OFF", false),
+        ] {
+            let p = Params::resolve(&specs, "/n", &[], &[o(None, "on", text)]).unwrap();
+            assert_eq!(p.bool("on"), value, "{text}");
+        }
+        assert!(Params::resolve(&specs, "/n", &[], &[o(None, "on", "maybe")]).is_err());
+    }
+
+    /// NaN is refused where it is set, naming it and where it came from: unequal to itself,
+    /// it used to pass here and fail the node's start with a message about restarting.
+    #[test]
+    fn nan_is_no_setting() {
+        for (name, value) in [("limits.v", "[1.0, .nan, 3.0]"), ("rate_hz", ".nan")] {
+            let e = Params::resolve(&specs(), "/streamer", &[], &[o(None, name, value)])
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains(&format!("parameter `{name}`")) && e.contains("holds NaN (-p"),
+                "{e}"
             );
         }
     }

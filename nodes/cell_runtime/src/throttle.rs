@@ -21,6 +21,9 @@ pub struct LogThrottle<K> {
 }
 
 impl<K: Eq + Hash> LogThrottle<K> {
+    /// Senders kept at most.
+    pub const MAX_KEYS: usize = 1024;
+
     pub fn new(period: Duration) -> Self {
         Self::with_grace(period, Duration::ZERO)
     }
@@ -39,6 +42,17 @@ impl<K: Eq + Hash> LogThrottle<K> {
     /// Another occurrence for `key` at `now`: `Some(held_back)` when it is to be logged, with
     /// how many occurrences since the last logged one were not; `None` to hold it back.
     pub fn admit(&mut self, key: K, now: Duration) -> Option<u64> {
+        if self.keys.len() >= Self::MAX_KEYS && !self.keys.contains_key(&key) {
+            // Bounded whatever a sender does (one that makes a new writer per message): keys
+            // quiet for a period past their grace go first; beyond that, new ones are not
+            // logged at all.
+            let quiet = self.period + self.grace;
+            self.keys
+                .retain(|_, (first, last, _)| now.saturating_sub(last.unwrap_or(*first)) < quiet);
+            if self.keys.len() >= Self::MAX_KEYS {
+                return None;
+            }
+        }
         let (first, last, held_back) = self.keys.entry(key).or_insert((now, None, 0));
         let due = now.saturating_sub(*first) >= self.grace
             && last.is_none_or(|last| now.saturating_sub(last) >= self.period);
@@ -79,6 +93,28 @@ mod tests {
         assert_eq!(throttle.admit("a", ms(2000)), Some(1));
         // A quiet key is logged at once when it speaks again.
         assert_eq!(throttle.admit("b", ms(5000)), Some(0));
+    }
+
+    /// A sender with a new key per message grows nothing beyond MAX_KEYS: quiet keys go,
+    /// and while every kept key is recent, a new one is not logged.
+    #[test]
+    fn the_keys_kept_are_bounded() {
+        let max = LogThrottle::<u64>::MAX_KEYS as u64;
+        let mut throttle = LogThrottle::new(ms(1000));
+        // Within half a second: all still recent at 0.6 s.
+        for k in 0..max {
+            assert_eq!(throttle.admit(k, ms(k / 2)), Some(0));
+        }
+        assert_eq!(
+            throttle.admit(max, ms(600)),
+            None,
+            "all kept keys are recent"
+        );
+        assert_eq!(throttle.keys.len() as u64, max);
+        // A second later, the early ones are quiet and make room.
+        assert_eq!(throttle.admit(max + 1, ms(2000)), Some(0));
+        assert!((throttle.keys.len() as u64) < max);
+        assert_eq!(throttle.admit(3 * max, ms(2001)), Some(0));
     }
 
     #[test]

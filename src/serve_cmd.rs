@@ -325,39 +325,29 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 answers.push(client, goal_answer(request_id, false, stamp));
                 continue;
             }
-            if let Some(why) = &latched {
-                // Accepted, to say why it ends at once (a rejection carries no reason).
-                let info = GoalInfo {
-                    goal_id: request.goal_id,
-                    stamp,
-                };
-                let result = PrintResult {
-                    ended: "aborted".into(),
-                    message: format!(
-                        "the cell is stopped ({why}): call /cell/reset before a new print"
-                    ),
-                    stop_position: standing_position(&options.device, machine_at),
-                    ..PrintResult::default()
-                };
-                keep_finished(&mut finished, info, GoalStatusEnum::Aborted, result);
-                publish_statuses(&server, &running, &finished);
-                answers.push(client, goal_answer(request_id, true, stamp));
-                continue;
-            }
             let asked_speed = request.goal.0.speed;
-            if !(asked_speed == 0.0 || (0.01..=1000.0).contains(&asked_speed)) {
-                // Refused before a bag or a node exists for it, saying why (a rejection
-                // carries no reason).
+            let refusal = if let Some(why) = &latched {
+                Some(format!(
+                    "the cell is stopped ({why}): call /cell/reset before a new print"
+                ))
+            } else if !(asked_speed == 0.0 || (0.01..=1000.0).contains(&asked_speed)) {
+                Some(format!(
+                    "speed {asked_speed}: a print runs at 0.01 to 1000 machine seconds per wall second (0: the server's --speed {})",
+                    options.speed
+                ))
+            } else {
+                None
+            };
+            if let Some(message) = refusal {
+                // Accepted, to say why it ends at once (a rejection carries no reason),
+                // before a bag or a node exists for it.
                 let info = GoalInfo {
                     goal_id: request.goal_id,
                     stamp,
                 };
                 let result = PrintResult {
                     ended: "aborted".into(),
-                    message: format!(
-                        "speed {asked_speed}: a print runs at 0.01 to 1000 machine seconds per wall second (0: the server's --speed {})",
-                        options.speed
-                    ),
+                    message,
                     stop_position: standing_position(&options.device, machine_at),
                     ..PrintResult::default()
                 };

@@ -678,17 +678,7 @@ fn after_running_dry_the_next_plan_waits_for_the_pin() {
     assert_eq!(player.state(), PlayerState::Idle);
     assert_eq!(player.position_steps()[1], 10);
     assert!(!player.pin_allowed());
-    player.push(cruise(1, 2000, 400, false, 2)).unwrap();
-    player.finish_input();
-    // (The synthetic plan ends at speed: the limits over the restart only.)
-    let (edges, velocities) = play(&mut player, 100_000, 1_000_000, |_, _| {});
-    let first = edges.first().expect("the next plan played").time_q32;
-    assert!(
-        first >= (100_000 + 250_000) * Q32,
-        "first step at {} µs, before the pin's delay",
-        first / Q32
-    );
-    assert!(worst_acceleration(&velocities) <= 1.0 + 1e-9);
+    restart_waits_for_the_pin(&mut player, 100_000, 101_000);
     play(&mut player, 1_000_000, 1_500_000, |_, _| {});
     assert_eq!(player.position_steps()[1], 2010);
 }
@@ -707,12 +697,20 @@ fn a_resume_with_nothing_queued_waits_for_the_pin_when_the_plan_comes() {
     assert_eq!(player.hold(), Some(HoldReason::Pause));
     player.resume();
     play(&mut player, 100_000, 600_000, |_, _| {});
+    restart_waits_for_the_pin(&mut player, 600_000, 601_000);
+}
+
+/// The last plan (0.8 s at 2500 steps/s of the arm) comes at `at_ticks` to an idle player
+/// that ran dry: its first step comes the pin's 0.25 s after `restart_ticks`, and the
+/// restart keeps to the acceleration limits. (The synthetic plan ends at speed: the limits
+/// over the restart only.)
+fn restart_waits_for_the_pin(player: &mut Player, at_ticks: u64, restart_ticks: u64) {
     player.push(cruise(1, 2000, 400, false, 2)).unwrap();
     player.finish_input();
-    let (edges, velocities) = play(&mut player, 600_000, 1_200_000, |_, _| {});
+    let (edges, velocities) = play(player, at_ticks, at_ticks + 900_000, |_, _| {});
     let first = edges.first().expect("the next plan played").time_q32;
     assert!(
-        first >= (601_000 + 250_000) * Q32,
+        first >= u128::from(restart_ticks + 250_000) * Q32,
         "first step at {} µs, before the pin's delay",
         first / Q32
     );

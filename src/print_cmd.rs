@@ -420,7 +420,7 @@ pub async fn run_job(
     if let Some(rename) = ros_args
         .remaps
         .iter()
-        .find(|r| r.node.is_none() && r.from == "__node")
+        .find(|r| r.node.is_none() && matches!(r.from.as_str(), "__node" | "__name"))
     {
         bail!(
             "-r __node:={0} would give every node of this print the name {0:?}; rename one \

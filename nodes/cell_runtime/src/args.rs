@@ -115,7 +115,9 @@ impl RosArgs {
             .unwrap_or_else(|| default.to_string())
     }
 
-    /// The namespace after an `__ns` remap (always absolute, no trailing slash except root).
+    /// The namespace after an `__ns` remap (always absolute, no trailing slash except root),
+    /// for the node named `default_node_name` after its `__node` remaps: rcl matches a
+    /// node-prefixed `__ns` rule against the renamed node.
     pub fn namespace(&self, default_node_name: &str, default: &str) -> String {
         let ns = self
             .special_remap(default_node_name, &["__ns"])
@@ -243,6 +245,24 @@ mod tests {
         assert_eq!(ros.node_name("streamer"), "x");
         assert_eq!(ros.node_name("planner"), "y");
         assert_eq!(ros.namespace("streamer", "/"), "/a");
+    }
+
+    /// A namespace rule for the node names it as renamed, as rcl applies it.
+    #[test]
+    fn a_node_s_namespace_rule_names_it_as_renamed() {
+        let (ros, _) = RosArgs::parse(&[
+            "--ros-args",
+            "-r",
+            "streamer:__node:=feeder",
+            "-r",
+            "feeder:__ns:=/cell",
+        ])
+        .unwrap();
+        let name = ros.node_name("streamer");
+        assert_eq!(
+            (name.as_str(), ros.namespace(&name, "/").as_str()),
+            ("feeder", "/cell")
+        );
     }
 
     #[test]

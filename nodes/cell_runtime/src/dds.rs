@@ -175,7 +175,7 @@ pub fn resolve_node(
     ros_args: &RosArgs,
 ) -> Result<(NameResolver, Params), RuntimeError> {
     let node_name = ros_args.node_name(default_name);
-    let namespace = ros_args.namespace(default_name, "/");
+    let namespace = ros_args.namespace(&node_name, "/");
     let names = NameResolver::new(&node_name, &namespace, &ros_args.remaps)?;
     let mut files = Vec::new();
     for path in &ros_args.params_files {
@@ -230,7 +230,7 @@ impl CellNode {
         ros_args: &RosArgs,
     ) -> Result<CellNode, RuntimeError> {
         let node_name = ros_args.node_name(default_name);
-        let namespace = ros_args.namespace(default_name, "/");
+        let namespace = ros_args.namespace(&node_name, "/");
         let (names, params) = resolve_node(default_name, specs, ros_args)?;
         // Parameters are read at start-up; the validator (which ros2-client also runs on the
         // declarations) accepts exactly the resolved values and refuses any later change.

@@ -1,8 +1,9 @@
 //! Typed, validated node parameters from defaults, `--params-file` YAML and `-p` overrides.
 //!
-//! Files use the ROS 2 layout: top-level keys are node selectors (`/**`, `/**/name`, the fully
-//! qualified name, or the bare name for a node in `/`), each with `ros__parameters`; nested
-//! maps become dotted names. Later sources win: defaults, then files in order, then `-p`.
+//! Files use the ROS 2 layout: keys down to `ros__parameters` name the node (`/cell/name`, or
+//! `cell:` → `name:` nested as rcl nests namespaces; a bare name is a node in `/`), and a
+//! whole segment may be `*` (any one) or `**` (any number), as rclcpp matches them; maps
+//! under `ros__parameters` become dotted names. Later sources win: defaults, then files in order, then `-p`.
 //! An unknown parameter, a value of the wrong type, or one outside its range is an error that
 //! names the parameter and where the value came from. An integer is accepted for a double
 //! parameter (it loses nothing); nothing else is coerced.
@@ -164,7 +165,11 @@ impl Params {
                 for (name, value) in flat {
                     // A section for many nodes sets what each declares (rclcpp ignores an
                     // override no declaration takes); one for this node alone is checked.
-                    if selector.contains('*') && !specs.iter().any(|s| s.name == name) {
+                    let for_many = selector
+                        .rsplit('/')
+                        .next()
+                        .is_some_and(|last| matches!(last, "*" | "**"));
+                    if for_many && !specs.iter().any(|s| s.name == name) {
                         continue;
                     }
                     let source_name = format!("{file} [{selector}]");
@@ -274,16 +279,30 @@ fn node_sections<'a>(
             continue;
         }
         let path = format!("{prefix}/{}", key.trim_matches('/'));
+        if let Some(bad) = path
+            .split('/')
+            .find(|segment| segment.contains('*') && !matches!(*segment, "*" | "**"))
+        {
+            // rcl refuses the file: `*` and `**` stand for whole segments only.
+            return Err(format!(
+                "`{path}`: `{bad}` is no node name (`*` and `**` stand alone)"
+            ));
+        }
         match value.as_mapping() {
             Some(inner) => node_sections(&path, inner, out)?,
-            None => return Err(format!("`{path}` has no `ros__parameters` map")),
+            None => {
+                let node = if prefix.is_empty() { "/" } else { prefix };
+                return Err(format!(
+                    "`{node}`: `{key}` is neither a node (a map) nor `ros__parameters`"
+                ));
+            }
         }
     }
     Ok(())
 }
 
 /// Whether the section `selector` (absolute, segments as rclcpp matches them: `**` any
-/// number of segments, `*` within a segment any characters) applies to the node `fqn`.
+/// number of segments, `*` any one) applies to the node `fqn`.
 fn selector_matches(selector: &str, fqn: &str) -> bool {
     let pattern: Vec<&str> = selector.split('/').filter(|s| !s.is_empty()).collect();
     let name: Vec<&str> = fqn.split('/').filter(|s| !s.is_empty()).collect();
@@ -298,19 +317,7 @@ fn segments_match(pattern: &[&str], name: &[&str]) -> bool {
         }
         Some((p, rest)) => name
             .split_first()
-            .is_some_and(|(n, name_rest)| segment_matches(p, n) && segments_match(rest, name_rest)),
-    }
-}
-
-/// One segment against a pattern whose `*` stands for any characters.
-fn segment_matches(pattern: &str, name: &str) -> bool {
-    match pattern.split_once('*') {
-        None => pattern == name,
-        Some((head, tail)) => name.strip_prefix(head).is_some_and(|rest| {
-            (0..=rest.len())
-                .filter(|&i| rest.is_char_boundary(i))
-                .any(|i| segment_matches(tail, &rest[i..]))
-        }),
+            .is_some_and(|(n, name_rest)| (*p == "*" || p == n) && segments_match(rest, name_rest)),
     }
 }
 
@@ -507,9 +514,12 @@ mod tests {
             64,
             "one segment only"
         );
+        // rcl refuses the file: `*` is a whole segment or nothing.
         let partial = "/cell/stream*:\n  ros__parameters:\n    window: 7\n";
-        assert_eq!(window(partial, "/cell/streamer").unwrap(), 7);
-        assert_eq!(window(partial, "/cell/planner").unwrap(), 64);
+        assert!(matches!(
+            window(partial, "/cell/streamer"),
+            Err(ParamError::BadYaml { .. })
+        ));
         let deep = "/**/streamer:\n  ros__parameters:\n    window: 8\n";
         assert_eq!(window(deep, "/streamer").unwrap(), 8);
         assert_eq!(window(deep, "/a/b/streamer").unwrap(), 8);
@@ -519,6 +529,12 @@ mod tests {
         let exact = "/x:\n  ros__parameters:\n    rate_of_another_node: 50\n";
         assert!(matches!(
             window(exact, "/x"),
+            Err(ParamError::Unknown { .. })
+        ));
+        // A section for one node wherever it is still catches a typo.
+        let one = "/**/x:\n  ros__parameters:\n    windw: 5\n";
+        assert!(matches!(
+            window(one, "/a/x"),
             Err(ParamError::Unknown { .. })
         ));
     }

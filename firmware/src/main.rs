@@ -350,6 +350,17 @@ fn write_output(writer: &mut PinWriter, output: Output) {
                     .write(|r| unsafe { r.bits(writes.dir_clear) });
                 dir_written = cortex_m::peripheral::SYST::get_current();
             }
+            if let Some((mask, high_until)) = writer.pulse {
+                if mask & writes.step_set != 0 {
+                    // An axis still high from its last pulse (edges running late, a burst
+                    // of them due at once): end that pulse and keep the pin low as long, or
+                    // the driver takes two steps for one.
+                    wait_for_tick(high_until);
+                    sio().gpio_out_clr().write(|r| unsafe { r.bits(mask) });
+                    writer.pulse = None;
+                    wait_for_tick(high_until + PULSE_TICKS);
+                }
+            }
             wait_for_tick(edge.clock);
             // Set-up counted in core cycles (SysTick counts down), normally long over by now.
             while direction_changed
@@ -364,8 +375,10 @@ fn write_output(writer: &mut PinWriter, output: Output) {
                 .write(|r| unsafe { r.bits(writes.coil_toggle) });
             count_if_late(edge.clock, 1, &LATE_STEP_OUTPUTS);
             if writes.step_set != 0 {
+                // High for its width from when it was written: a late edge's would otherwise
+                // be over at once (below a driver's minimum).
                 let mask = writer.pulse.map_or(0, |(m, _)| m) | writes.step_set;
-                writer.pulse = Some((mask, edge.clock + PULSE_TICKS));
+                writer.pulse = Some((mask, edge.clock.max(timer_now()) + PULSE_TICKS));
             }
             bump(&EDGES_OUTPUT, 1);
         }
@@ -754,6 +767,10 @@ fn main() -> ! {
     let mut line_sent_at = 0u64;
     let mut switch_low_since: Option<u64> = None;
     let mut switch_counted = false;
+    // The hardware watchdog resets the chip (every output at its reset state: off) if the
+    // main loop stops passing, which the host-silence check inside it cannot see. A pass
+    // takes at most a few ms (main_max_cycles in the firmware tests: 259k cycles, 2 ms).
+    watchdog.start(rp2040_hal::fugit::MicrosDurationU32::millis(100));
     loop {
         let pass_started = cortex_m::peripheral::SYST::get_current();
         let now = timer_now();
@@ -800,6 +817,10 @@ fn main() -> ! {
                 link_on = Transport::Uart;
             }
             if endpoint.machine().fault() != FaultCode::None {
+                // Faulted, the clock follows time in one step (nothing is generated): a
+                // reset after hours faulted then has nothing to catch up chunk by chunk,
+                // which kept the MCU deaf for minutes.
+                endpoint.advance(generate_until, &mut |_| {});
                 break;
             }
             let generated_to = endpoint.machine().clock();
@@ -874,8 +895,14 @@ fn main() -> ! {
         if spent > MAIN_MAX_CYCLES.load(Ordering::Relaxed) {
             MAIN_MAX_CYCLES.store(spent, Ordering::Relaxed);
         }
-        let wake = timer_now() as u32 + LOOP_PERIOD_TICKS;
+        let wake = (timer_now() as u32).wrapping_add(LOOP_PERIOD_TICKS);
         timer().alarm1().write(|w| unsafe { w.bits(wake) });
+        // An alarm fires only on its exact tick: one armed already past would wake the
+        // loop only when the timer comes round again, 71 minutes later.
+        if (wake.wrapping_sub(timer_low()) as i32) <= 0 {
+            MAIN_WORK.store(true, Ordering::Relaxed);
+        }
+        watchdog.feed();
         // Asleep until a period or a frame gives work. WFE, not WFI: an interrupt's return
         // sets the event register, so one that sets the flag just after the test ends the
         // next WFE at once instead of leaving the pass to wait for another interrupt (and
@@ -887,14 +914,35 @@ fn main() -> ! {
     }
 }
 
-#[panic_handler]
-fn panic(_: &core::panic::PanicInfo) -> ! {
-    cortex_m::interrupt::disable();
-    // A safe state whatever broke: motors released, pin closed, screw stopped.
+/// A safe state whatever broke: step, direction and coil pins low, drivers disabled, the pin
+/// closed and the screw's PWM at 0 (GP13 is the PWM's, so clearing SIO outputs leaves it
+/// running).
+fn force_safe_outputs() {
     sio()
         .gpio_out_clr()
         .write(|w| unsafe { w.bits(profile::ALL_OUTPUTS) });
     profile::disable_drivers();
+    // SAFETY: the screw slice's compare register; nothing else runs any more.
+    let pwm = unsafe { &*pac::PWM::ptr() };
+    pwm.ch(profile::SCREW_PWM_SLICE)
+        .cc()
+        .write(|w| unsafe { w.bits(0) });
+}
+
+#[panic_handler]
+fn panic(_: &core::panic::PanicInfo) -> ! {
+    cortex_m::interrupt::disable();
+    force_safe_outputs();
+    loop {
+        cortex_m::asm::wfi();
+    }
+}
+
+/// A bus fault, a bad instruction: the default handler spins with every output as it was.
+#[cortex_m_rt::exception]
+unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
+    cortex_m::interrupt::disable();
+    force_safe_outputs();
     loop {
         cortex_m::asm::wfi();
     }

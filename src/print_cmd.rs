@@ -423,7 +423,7 @@ pub async fn run_job(
         .find(|r| r.node.is_none() && matches!(r.from.as_str(), "__node" | "__name"))
     {
         bail!(
-            "-r __node:={0} would give every node of this print the name {0:?}; rename one \
+            "-r {6}:={0} would give every node of this print the name {0:?}; rename one \
              with -r NODE:__node:={0} (NODE: {1}, {2}, {3}, {4} or {5})",
             rename.to,
             gcode_streamer::node::NODE_NAME,
@@ -431,6 +431,7 @@ pub async fn run_job(
             screw_driver::node::NODE_NAME,
             cell_executor::node::NODE_NAME,
             cell_bag::node::NODE_NAME,
+            rename.from,
         );
     }
     if let (Some(device), Some(speed)) = (options.device.as_deref(), options.execution) {

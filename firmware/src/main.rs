@@ -339,6 +339,18 @@ fn sample_screw(
 fn write_output(writer: &mut PinWriter, output: Output) {
     match output {
         Output::Step { edge, writes } => {
+            if let Some((mask, high_until)) = writer.pulse {
+                if mask & writes.step_set != 0 {
+                    // An axis still high from its last pulse (edges running late, a burst
+                    // of them due at once): end that pulse and keep the pin low as long, or
+                    // the driver takes two steps for one; before the direction changes too
+                    // (its hold time after that step).
+                    wait_for_tick(high_until);
+                    sio().gpio_out_clr().write(|r| unsafe { r.bits(mask) });
+                    writer.pulse = None;
+                    wait_for_tick(high_until + PULSE_TICKS);
+                }
+            }
             let direction_changed = writes.dir_set | writes.dir_clear != 0;
             let mut dir_written = 0;
             if direction_changed {
@@ -349,17 +361,6 @@ fn write_output(writer: &mut PinWriter, output: Output) {
                     .gpio_out_clr()
                     .write(|r| unsafe { r.bits(writes.dir_clear) });
                 dir_written = cortex_m::peripheral::SYST::get_current();
-            }
-            if let Some((mask, high_until)) = writer.pulse {
-                if mask & writes.step_set != 0 {
-                    // An axis still high from its last pulse (edges running late, a burst
-                    // of them due at once): end that pulse and keep the pin low as long, or
-                    // the driver takes two steps for one.
-                    wait_for_tick(high_until);
-                    sio().gpio_out_clr().write(|r| unsafe { r.bits(mask) });
-                    writer.pulse = None;
-                    wait_for_tick(high_until + PULSE_TICKS);
-                }
             }
             wait_for_tick(edge.clock);
             // Set-up counted in core cycles (SysTick counts down), normally long over by now.
@@ -767,9 +768,11 @@ fn main() -> ! {
     let mut line_sent_at = 0u64;
     let mut switch_low_since: Option<u64> = None;
     let mut switch_counted = false;
-    // The hardware watchdog resets the chip (every output at its reset state: off) if the
-    // main loop stops passing, which the host-silence check inside it cannot see. A pass
-    // takes at most a few ms (main_max_cycles in the firmware tests: 259k cycles, 2 ms).
+    // The hardware watchdog restarts the chip if the main loop stops passing, which the
+    // host-silence check inside it cannot see: the firmware starts again idle (nothing
+    // stepping, pin closed, screw stopped) and the host sees a restarted MCU, a fault. A
+    // pass takes at most a few ms (main_max_cycles in the firmware tests: 259k cycles,
+    // 2 ms). A panic or a HardFault stops it: they stay halted, every output safe.
     watchdog.start(rp2040_hal::fugit::MicrosDurationU32::millis(100));
     loop {
         let pass_started = cortex_m::peripheral::SYST::get_current();
@@ -918,6 +921,11 @@ fn main() -> ! {
 /// closed and the screw's PWM at 0 (GP13 is the PWM's, so clearing SIO outputs leaves it
 /// running).
 fn force_safe_outputs() {
+    // SAFETY: the watchdog's control register: halted here, the chip stays halted and
+    // safe rather than restarting 100 ms later with its drivers enabled again.
+    unsafe { &*pac::WATCHDOG::ptr() }
+        .ctrl()
+        .modify(|_, w| w.enable().clear_bit());
     sio()
         .gpio_out_clr()
         .write(|w| unsafe { w.bits(profile::ALL_OUTPUTS) });

@@ -128,6 +128,12 @@ const clock = sim.clock;
 // rp2040js logs every USB transfer and unimplemented register (the ring oscillator's random
 // bit, read 32 times for the link's nonce) at info/warn level: errors only.
 mcu.logger = new ConsoleLogger(LogLevel.Error);
+// The firmware feeds the RP2040's watchdog each pass of its main loop; rp2040js only logs a
+// trigger (no reset), so a loop that stalled past it would pass unnoticed: fail the run.
+mcu.peripherals[0x40058].onWatchdogTrigger = () => {
+  console.error('harness: the watchdog triggered: the firmware\'s main loop stalled past it');
+  process.exit(3);
+};
 // With --uf2 the flash is what a Pico would be flashed with (the ELF only names the counters).
 const image = args.uf2 ? readUf2(fs.readFileSync(args.uf2)) : elf.segments;
 for (const { paddr, data } of image) {

@@ -91,6 +91,13 @@ fn stopped(
 /// would otherwise be dropped without a word).
 fn check_params(ros_args: &RosArgs, nodes: &[(&str, &[ParamSpec])]) -> anyhow::Result<()> {
     let declares = |specs: &[ParamSpec], name: &str| specs.iter().any(|s| s.name == name);
+    // `-p NODE:` names a node as it runs, renamed by `-r NODE:__node:=…` (as the node's own
+    // parameters take it).
+    let renamed: Vec<(String, &[ParamSpec])> = nodes
+        .iter()
+        .map(|(name, specs)| (ros_args.node_name(name), *specs))
+        .collect();
+    let nodes = &renamed;
     for p in &ros_args.params {
         match &p.node {
             None => {
@@ -110,7 +117,7 @@ fn check_params(ros_args: &RosArgs, nodes: &[(&str, &[ParamSpec])]) -> anyhow::R
                     p.value_yaml,
                     nodes
                         .iter()
-                        .map(|(name, _)| *name)
+                        .map(|(name, _)| name.as_str())
                         .collect::<Vec<_>>()
                         .join(", ")
                 ),
@@ -1573,6 +1580,24 @@ mod tests {
             check(&scoped(Some("polar_planner"), "baud")),
             Err(
                 "-p polar_planner:baud:=1: node `polar_planner` declares no parameter `baud`"
+                    .to_string()
+            )
+        );
+        // A renamed node is named as it runs (its parameters take only that name).
+        let renamed = |node: &str| {
+            let mut args = scoped(Some(node), "horizon_s");
+            args.remaps = RosArgs::parse(&["--ros-args", "-r", "mcu_bridge:__node:=bridge2"])
+                .unwrap()
+                .0
+                .remaps;
+            check(&args)
+        };
+        assert_eq!(renamed("bridge2"), Ok(()));
+        assert_eq!(
+            renamed("mcu_bridge"),
+            Err(
+                "-p mcu_bridge:horizon_s:=1: this print runs no node `mcu_bridge` (its nodes: \
+                 polar_planner, bridge2)"
                     .to_string()
             )
         );

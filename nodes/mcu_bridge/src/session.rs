@@ -366,8 +366,9 @@ impl McuSession {
         let (state, _) = self.state?;
         let mcu_now = self.clock.mcu_at(now_us as i64 * 1000)?;
         let lag = state.clock.saturating_sub(state.plan_clock);
-        // Held, faulted, or idle inside the schedule (ran dry at rest, waiting for the next
-        // segment): the plan clock stands.
+        // Held, or idle inside the schedule (ran dry at rest, waiting for the next segment):
+        // the plan clock stands. (Faulted, the MCU moves it on, but nothing is scheduled
+        // any more: taken as standing.)
         let waiting = state.mode == Mode::Idle && self.last_sent_tag.is_some();
         if state.mode == Mode::Held || state.mode == Mode::Fault || waiting {
             return Some(state.plan_clock);

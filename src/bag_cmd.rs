@@ -123,6 +123,9 @@ pub struct PlayOptions {
     pub deliver_timeout_s: f64,
 }
 
+/// The speed factors a replay takes on the recorded timing.
+pub const RATE_RANGE: std::ops::RangeInclusive<f64> = 1e-3..=1e6;
+
 pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> anyhow::Result<()> {
     let PlayOptions {
         rate,
@@ -132,14 +135,14 @@ pub async fn play(path: &Path, options: &PlayOptions, ros_args: &RosArgs) -> any
         ref wait_for_nodes,
         deliver_timeout_s,
     } = *options;
-    if !(1e-3..=1e6).contains(&rate) {
+    if !RATE_RANGE.contains(&rate) {
         bail!("--rate must lie in [0.001, 1e6], got {rate}");
     }
     for (name, s) in [
         ("--deliver-timeout-s", deliver_timeout_s),
         ("--wait-subscribers-s", wait_subscribers_s),
     ] {
-        if !(0.0..=3.2e7).contains(&s) {
+        if !crate::SECONDS_RANGE.contains(&s) {
             bail!("{name} must lie in [0, 3.2e7] s, got {s}");
         }
     }

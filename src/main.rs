@@ -12,6 +12,7 @@ mod print_cmd;
 mod screw_cmd;
 mod serve_cmd;
 
+use std::ops::RangeInclusive;
 use std::path::PathBuf;
 
 use anyhow::bail;
@@ -212,27 +213,32 @@ fn default_sigpipe() {
     }
 }
 
-fn parse_speed(text: &str) -> Result<f64, String> {
+/// A number within `range`, or what it is not (`what`) for clap's message.
+fn parse_within(text: &str, range: RangeInclusive<f64>, what: &str) -> Result<f64, String> {
     match text.parse::<f64>() {
-        Ok(k) if (0.01..=1000.0).contains(&k) => Ok(k),
-        _ => Err(format!("`{text}` is not a speed factor in [0.01, 1000]")),
+        Ok(x) if range.contains(&x) => Ok(x),
+        _ => Err(format!("`{text}` is not {what}")),
     }
+}
+
+fn parse_speed(text: &str) -> Result<f64, String> {
+    parse_within(
+        text,
+        cell_machine::node::SPEED_RANGE,
+        "a speed factor in [0.01, 1000]",
+    )
 }
 
 /// A replay's speed factor on the recorded timing.
 fn parse_rate(text: &str) -> Result<f64, String> {
-    match text.parse::<f64>() {
-        Ok(k) if (1e-3..=1e6).contains(&k) => Ok(k),
-        _ => Err(format!("`{text}` is not a rate in [0.001, 1e6]")),
-    }
+    parse_within(text, bag_cmd::RATE_RANGE, "a rate in [0.001, 1e6]")
 }
 
 /// A duration in seconds, 0 or more (at most a year: `Duration` takes it).
+pub(crate) const SECONDS_RANGE: RangeInclusive<f64> = 0.0..=3.2e7;
+
 fn parse_nonnegative_s(text: &str) -> Result<f64, String> {
-    match text.parse::<f64>() {
-        Ok(s) if (0.0..=3.2e7).contains(&s) => Ok(s),
-        _ => Err(format!("`{text}` is not a number of seconds in [0, 3.2e7]")),
-    }
+    parse_within(text, SECONDS_RANGE, "a number of seconds in [0, 3.2e7]")
 }
 
 /// `BED_RAD,ARM_M,Z_M`: a joint position (its limits are the planner's to check).

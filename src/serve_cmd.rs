@@ -330,7 +330,9 @@ pub async fn serve(options: ServeOptions, ros_args: &RosArgs) -> anyhow::Result<
                 Some(format!(
                     "the cell is stopped ({why}): call /cell/reset before a new print"
                 ))
-            } else if !(asked_speed == 0.0 || (0.01..=1000.0).contains(&asked_speed)) {
+            } else if !(asked_speed == 0.0
+                || cell_machine::node::SPEED_RANGE.contains(&asked_speed))
+            {
                 Some(format!(
                     "speed {asked_speed}: a print runs at 0.01 to 1000 machine seconds per wall second (0: the server's --speed {})",
                     options.speed

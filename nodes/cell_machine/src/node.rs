@@ -42,19 +42,25 @@ use cell_runtime::tf::TfTree;
 /// before that (a quarter of the horizon when that is less).
 const SCREW_HOLD_MARGIN_MAX_S: f64 = 0.5;
 
+/// Machine seconds per wall second a machine runs at (its `speed`; `print --speed` and a
+/// print goal's speed are held to it too).
+pub const SPEED_RANGE: std::ops::RangeInclusive<f64> = 0.01..=1000.0;
+
 /// How long after the stream finished the last segments and screw commands the producers
 /// acknowledged may still be on their way.
 const END_OF_INPUT_PATIENCE: Duration = Duration::from_secs(10);
 
-/// Why the input cannot end: what the producers published and did not arrive.
-fn end_of_input_missing<W: PartialEq>(
+/// What the producers acknowledged having published that has not arrived yet (nothing:
+/// the input is complete), one line per link.
+fn input_missing<W: PartialEq>(
     planner: &Option<PlannerReach>,
     steps: &cell_runtime::replay::StepsJoin<W>,
     screw: &Option<ScrewReach>,
     commands: &cell_runtime::replay::SequenceJoin,
-) -> String {
+) -> Vec<String> {
     let mut lost = Vec::new();
     if let Some(r) = planner {
+        // (A plan of no time has no segment: its end is its epoch.)
         let taken_ns = steps.end_ns().unwrap_or(r.plan_epoch_ns);
         if taken_ns < r.end_ns() - TIMELINE_TOLERANCE_NS {
             lost.push(format!(
@@ -73,11 +79,7 @@ fn end_of_input_missing<W: PartialEq>(
             ));
         }
     }
-    format!(
-        "the end of the plan was lost: {} s after the stream finished, {}",
-        END_OF_INPUT_PATIENCE.as_secs(),
-        lost.join("; ")
-    )
+    lost
 }
 
 /// The cell's URDF (the default of `urdf_file`).
@@ -102,7 +104,7 @@ pub fn param_specs(tick_period_s: f64) -> Vec<ParamSpec> {
         ParamSpec::new("urdf_file", ParamValue::String(String::new()), "URDF of the cell for /tf and /robot_description (empty: the shipped urdf/polar_cell.urdf)"),
         ParamSpec::new("rate_hz", ParamValue::Double(50.0), "/joint_states and /tf per second of machine time").range(0.1, 1000.0),
         ParamSpec::new("horizon_s", ParamValue::Double(2.0), "plan time the producers may run ahead of execution").range(0.05, 3600.0),
-        ParamSpec::new("speed", ParamValue::Double(1.0), "machine seconds per wall second (a faster simulation of the same timeline)").range(0.01, 1000.0),
+        ParamSpec::new("speed", ParamValue::Double(1.0), "machine seconds per wall second (a faster simulation of the same timeline)").range(*SPEED_RANGE.start(), *SPEED_RANGE.end()),
         ParamSpec::new("tick_period_s", ParamValue::Double(tick_period_s), "wall time between the node's looks at the clock when nothing arrives").range(1e-4, 0.1),
         Producer::named_param_spec("producer", "gcode_streamer", "the node whose /gcode/progress this machine takes (relative: in its namespace; empty: any writer's); other writers are ignored"),
         Producer::named_param_spec("steps_producer", "polar_planner", "the node whose /polar/steps this machine executes (relative: in its namespace; empty: any writer's, e.g. a replayed bag); other writers are ignored"),
@@ -716,21 +718,19 @@ pub async fn run<M: Machine>(
             _ = tokio::time::sleep_until(wake.into()) => {}
         }
         if stream_finished && !input_finished {
-            let steps_in = planner_reach.is_none_or(|r| {
-                r.end_ns() - r.plan_epoch_ns <= TIMELINE_TOLERANCE_NS
-                    || steps_join
-                        .end_ns()
-                        .is_some_and(|end| end >= r.end_ns() - TIMELINE_TOLERANCE_NS)
-            });
-            let screw_in = screw_reach.is_none_or(|r| screw_join.next() >= r.next_command);
+            let missing = input_missing(&planner_reach, &steps_join, &screw_reach, &screw_join);
             let since = *stream_finished_at.get_or_insert_with(Instant::now);
-            if steps_in && screw_in {
+            if missing.is_empty() {
                 input_finished = true;
             } else if since.elapsed() >= END_OF_INPUT_PATIENCE && !control.plan_dropped {
                 // Reliable delivery repairs a lost sample within a heartbeat or two: this
                 // much later, the end of the plan is lost, and the print did not end as planned.
                 stopping_for.get_or_insert_with(|| {
-                    end_of_input_missing(&planner_reach, &steps_join, &screw_reach, &screw_join)
+                    format!(
+                        "the end of the plan was lost: {} s after the stream finished, {}",
+                        END_OF_INPUT_PATIENCE.as_secs(),
+                        missing.join("; ")
+                    )
                 });
             }
         }

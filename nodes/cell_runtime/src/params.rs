@@ -372,31 +372,23 @@ fn set(
             .to_string(),
         source_name: source_name.to_string(),
     })?;
+    let numbers: Vec<f64> = match &converted {
+        ParamValue::Integer(v) => vec![*v as f64],
+        ParamValue::Double(v) => vec![*v],
+        ParamValue::IntegerArray(v) => v.iter().map(|&x| x as f64).collect(),
+        ParamValue::DoubleArray(v) => v.clone(),
+        _ => vec![],
+    };
     // NaN is no setting (and, unequal to itself, would fail the node's own check of its
     // declared values with a message about restarting).
-    let has_nan = match &converted {
-        ParamValue::Double(v) => v.is_nan(),
-        ParamValue::DoubleArray(v) => v.iter().any(|x| x.is_nan()),
-        _ => false,
-    };
-    if has_nan {
+    if numbers.iter().any(|x| x.is_nan()) {
         return Err(ParamError::Invalid {
             name: name.to_string(),
             problem: format!("{converted} holds NaN ({source_name})"),
         });
     }
     if let Some((min, max)) = spec.range {
-        let numbers: Vec<f64> = match &converted {
-            ParamValue::Integer(v) => vec![*v as f64],
-            ParamValue::Double(v) => vec![*v],
-            ParamValue::IntegerArray(v) => v.iter().map(|&x| x as f64).collect(),
-            ParamValue::DoubleArray(v) => v.clone(),
-            _ => vec![],
-        };
-        if numbers
-            .iter()
-            .any(|&x| !(min..=max).contains(&x) || x.is_nan())
-        {
+        if numbers.iter().any(|x| !(min..=max).contains(x)) {
             return Err(ParamError::OutOfRange {
                 name: name.to_string(),
                 value: converted.to_string(),

@@ -145,7 +145,7 @@ impl<W: PartialEq> StepsJoin<W> {
         let start_ns = segment.header.stamp.as_nanos();
         match self.last {
             Some((sequence, move_start_ns, taken_s)) if sequence != segment.move_sequence => {
-                let expected_ns = move_start_ns + (taken_s * 1e9).round() as i64;
+                let expected_ns = move_end_ns(move_start_ns, taken_s);
                 if (start_ns - expected_ns).abs() > TIMELINE_TOLERANCE_NS {
                     return Joined::Gap {
                         move_sequence: segment.move_sequence,
@@ -178,8 +178,13 @@ impl<W: PartialEq> StepsJoin<W> {
     /// Stamp of the end of the plan taken so far.
     pub fn end_ns(&self) -> Option<i64> {
         self.last
-            .map(|(_, move_start_ns, taken_s)| move_start_ns + (taken_s * 1e9).round() as i64)
+            .map(|(_, move_start_ns, taken_s)| move_end_ns(move_start_ns, taken_s))
     }
+}
+
+/// Stamp where a move that started at `move_start_ns` ends after `taken_s` of its segments.
+fn move_end_ns(move_start_ns: i64, taken_s: f64) -> i64 {
+    move_start_ns + (taken_s * 1e9).round() as i64
 }
 
 /// What became of a numbered message ([`SequenceJoin::take`]).

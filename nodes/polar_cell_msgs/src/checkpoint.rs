@@ -124,9 +124,9 @@ pub struct PlannerReach {
 }
 
 impl PlannerReach {
-    /// Stamp of the end of everything published.
+    /// Stamp of the end of everything published (as the planner stamps plan time).
     pub fn end_ns(&self) -> i64 {
-        self.plan_epoch_ns + (self.t_s * 1e9).round() as i64
+        crate::Time::after(self.plan_epoch_ns, self.t_s).as_nanos()
     }
 }
 

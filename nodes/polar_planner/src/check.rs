@@ -137,9 +137,17 @@ pub fn limit_usage(
                             .max((p.qd[j] - prev.qd[j]).abs() / dt / l.acceleration);
                         r.mean_velocity[j] =
                             r.mean_velocity[j].max((p.q[j] - prev.q[j]).abs() / dt / l.velocity);
-                    } else if l.velocity_jump > 0.0 {
-                        r.velocity_jump[j] =
-                            r.velocity_jump[j].max((p.qd[j] - prev.qd[j]).abs() / l.velocity_jump);
+                    } else {
+                        // A corner: any jump over a limit of 0 is a violation.
+                        let jump = (p.qd[j] - prev.qd[j]).abs();
+                        let usage = if l.velocity_jump > 0.0 {
+                            jump / l.velocity_jump
+                        } else if jump > 1e-9 * l.velocity {
+                            f64::INFINITY
+                        } else {
+                            0.0
+                        };
+                        r.velocity_jump[j] = r.velocity_jump[j].max(usage);
                     }
                 }
             }

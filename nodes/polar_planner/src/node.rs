@@ -89,6 +89,20 @@ fn three(params: &Params, name: &str) -> anyhow::Result<[f64; 3]> {
     Ok([v[0], v[1], v[2]])
 }
 
+/// Most steps per unit taken: a window of the plan then holds at most about 2³¹ steps of
+/// any axis, as a segment's counts (u32) and a machine's position need.
+const MAX_STEPS_PER_UNIT: f64 = 1e8;
+
+fn steps_per_unit(params: &Params) -> anyhow::Result<[f64; 3]> {
+    let v = three(params, "steps_per_unit")?;
+    if v.iter().any(|x| !(*x > 0.0 && *x <= MAX_STEPS_PER_UNIT)) {
+        anyhow::bail!(
+            "parameter steps_per_unit needs 3 values in (0, {MAX_STEPS_PER_UNIT:e}] (bed per rad, arm and z per m), got {v:?}: an axis of 0 steps would never move"
+        );
+    }
+    Ok(v)
+}
+
 /// Planner and step options from the node's parameters and the URDF.
 pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, StepOptions)> {
     let urdf_text = match params.string("urdf_file") {
@@ -125,7 +139,7 @@ pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, S
         },
     };
     let steps = StepOptions {
-        steps_per_unit: three(params, "steps_per_unit")?,
+        steps_per_unit: steps_per_unit(params)?,
         timer_hz: params.f64("step_timer_hz"),
     };
     Ok((options, steps))
@@ -223,7 +237,7 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
     let mut planner = Planner::new(options.clone()).map_err(|e| anyhow!("{e}"))?;
     let mut steps = StepGenerator::new(step_options.clone(), options.initial_joints);
     let publish_steps = params.bool("publish_steps");
-    let js_period = params.f64("joint_state_period_s");
+    let js_period = params.sample_period_s("joint_state_period_s")?;
     let idle_flush = Duration::from_secs_f64(params.f64("idle_flush_s"));
     let mut epoch_ns = params.i64("plan_epoch_ns");
     let moves_sub = node.subscription::<GcodeMove>("/gcode/moves", &reliable_qos(10_000))?;
@@ -490,6 +504,33 @@ mod tests {
             qd: [0.0, rd, 0.0],
             ..Default::default()
         }
+    }
+
+    fn params_with(name: &str, value: &str) -> Params {
+        let set = cell_runtime::args::ParamOverride {
+            node: None,
+            name: name.into(),
+            value_yaml: value.into(),
+        };
+        Params::resolve(&param_specs(), "/polar_planner", &[], &[set]).unwrap()
+    }
+
+    /// An axis of 0 steps per unit would never move (the machine refuses it only when the
+    /// print starts, a graph launched node by node not at all): refused with the planner's
+    /// options, so `polar-cell check` says so too.
+    #[test]
+    fn steps_per_unit_must_be_positive_and_bounded() {
+        for bad in ["[0.0, 80000.0, 400000.0]", "[5000.0, 1.0e9, 400000.0]"] {
+            let error = options_from_params(&params_with("steps_per_unit", bad))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                error.contains("steps_per_unit needs 3 values in (0, 1e8]"),
+                "{bad}: {error}"
+            );
+        }
+        let good = options_from_params(&params_with("steps_per_unit", "[5000.0, 80000.0, 1.0]"));
+        assert_eq!(good.unwrap().1.steps_per_unit, [5000.0, 80000.0, 1.0]);
     }
 
     /// Samples fall on one grid across plans (a plan's first sample continues the last

@@ -314,13 +314,24 @@ impl Planner {
                 o.center_radius_m, o.path_tolerance_m
             )));
         }
-        if o.joints
-            .iter()
-            .any(|j| !(j.velocity > 0.0 && j.acceleration > 0.0 && j.velocity_jump >= 0.0))
-        {
-            return Err(PlanError::Options(
-                "joint velocity and acceleration limits must be > 0".into(),
-            ));
+        for (name, j) in JOINT_NAMES.iter().zip(&o.joints) {
+            if !(j.velocity > 0.0 && j.acceleration > 0.0 && j.velocity_jump >= 0.0) {
+                return Err(PlanError::Options(format!(
+                    "{name}: velocity and acceleration limits must be > 0 and the velocity jump >= 0, got velocity {}, acceleration {}, jump {}",
+                    j.velocity, j.acceleration, j.velocity_jump
+                )));
+            }
+        }
+        if o.allow_negative_r {
+            // Crossing the centre takes the arm to -r: it must reach as far on that side.
+            if let Some((lower, upper)) = o.joints[1].position {
+                if lower > -upper {
+                    return Err(PlanError::Options(format!(
+                        "allow_negative_r needs an arm that reaches as far on both sides of the centre, but {}'s limits are [{lower}, {upper}]",
+                        JOINT_NAMES[1]
+                    )));
+                }
+            }
         }
         if !(o.acceleration_safety > 0.0 && o.acceleration_safety <= 1.0) || o.lookahead_blocks < 2
         {
@@ -328,13 +339,8 @@ impl Planner {
                 "acceleration_safety in (0, 1], lookahead_blocks >= 2".into(),
             ));
         }
-        for (j, (&q, limits)) in o.initial_joints.iter().zip(&o.joints).enumerate() {
-            let (mut min, max) = limits
-                .position
-                .unwrap_or((f64::NEG_INFINITY, f64::INFINITY));
-            if j == 1 && o.allow_negative_r {
-                min = -max;
-            }
+        for (j, &q) in o.initial_joints.iter().enumerate() {
+            let (min, max) = position_range(o, j);
             // A stop position computed from steps may sit a rounding past a limit it reached.
             if !q.is_finite() || q < min - INITIAL_SLACK || q > max + INITIAL_SLACK {
                 return Err(PlanError::Options(format!(
@@ -371,7 +377,7 @@ impl Planner {
             ],
             tool_acceleration: o.max_tool_acceleration_m_per_s2,
         };
-        let q0 = o.initial_joints;
+        let q0 = start_joints(o);
         Ok(Planner {
             limits,
             q_end: q0,
@@ -396,7 +402,7 @@ impl Planner {
 
     /// Where a new planner with `options` starts: resumed there, a planner is a new one.
     pub fn start_point(options: &PlannerOptions) -> ResumePoint {
-        let q0 = options.initial_joints;
+        let q0 = start_joints(options);
         ResumePoint {
             t_s: 0.0,
             path_speed2: 0.0,
@@ -611,33 +617,58 @@ impl Planner {
         self.emit(n, out);
     }
 
+    /// The target's radius and z within their limits, and, where the arm cannot reach the
+    /// centre (a lower limit above 0), the radius all along the line: a line passing the
+    /// centre dips below both of its ends. (A disc is convex: the ends bound the top; z
+    /// runs linearly.)
     fn check_range(&self, m: &GcodeMove, target: [f64; 3]) -> Result<(), PlanError> {
         let r = target[0].hypot(target[1]);
-        for (j, value) in [(1usize, r), (2usize, target[2])] {
-            if let Some((min, max)) = self.options.joints[j].position {
-                let min_allowed = if j == 1 && self.options.allow_negative_r {
-                    -max
-                } else {
-                    min
-                };
-                let v = if j == 1 && self.options.allow_negative_r {
-                    r
-                } else {
-                    value
-                };
-                if v < min_allowed - 1e-12 || v > max + 1e-12 {
-                    return Err(PlanError::OutOfRange {
-                        sequence: m.sequence,
-                        line: m.source_line,
-                        joint: JOINT_NAMES[j],
-                        value: v,
-                        min: min_allowed,
-                        max,
-                    });
-                }
+        let nearest_r = self.nearest_radius(target);
+        for (j, value) in [(1usize, r), (1usize, nearest_r), (2usize, target[2])] {
+            if self.options.joints[j].position.is_none() {
+                continue;
+            }
+            let (min, max) = position_range(&self.options, j);
+            // With negative radii allowed the range is symmetric (checked in `new`).
+            let min = if j == 1 && self.options.allow_negative_r {
+                -max
+            } else {
+                min
+            };
+            if value < min - 1e-12 || value > max + 1e-12 {
+                return Err(PlanError::OutOfRange {
+                    sequence: m.sequence,
+                    line: m.source_line,
+                    joint: JOINT_NAMES[j],
+                    value,
+                    min,
+                    max,
+                });
             }
         }
         Ok(())
+    }
+
+    /// The smallest radius on the line from here to `target` (0 through the centre zone,
+    /// where the planner goes through the centre itself).
+    fn nearest_radius(&self, target: [f64; 3]) -> f64 {
+        let a = self.p_end;
+        let ab = [target[0] - a[0], target[1] - a[1]];
+        let len2 = ab[0] * ab[0] + ab[1] * ab[1];
+        let r_end = target[0].hypot(target[1]).min(a[0].hypot(a[1]));
+        if len2 == 0.0 {
+            return r_end;
+        }
+        let t = -(a[0] * ab[0] + a[1] * ab[1]) / len2;
+        if !(t > 0.0 && t < 1.0) {
+            return r_end;
+        }
+        let d = (a[0] * ab[1] - a[1] * ab[0]).abs() / len2.sqrt();
+        if d <= self.options.center_radius_m {
+            0.0
+        } else {
+            d
+        }
     }
 
     fn rest_points(&self, duration: f64) -> Vec<TrajPoint> {
@@ -1072,6 +1103,28 @@ impl Planner {
         }
         self.scratch_v2 = v2;
     }
+}
+
+/// A joint's position limits as the planner keeps to them (none: unbounded); with negative
+/// radii allowed, the arm's is symmetric about the centre.
+fn position_range(options: &PlannerOptions, joint: usize) -> (f64, f64) {
+    let (min, max) = options.joints[joint]
+        .position
+        .unwrap_or((f64::NEG_INFINITY, f64::INFINITY));
+    if joint == 1 && options.allow_negative_r {
+        (-max, max)
+    } else {
+        (min, max)
+    }
+}
+
+/// Where a plan starts: the initial joints, a rounding past a limit taken back onto it (a
+/// radius of -5 µm would otherwise set the sign of every radius after it).
+fn start_joints(options: &PlannerOptions) -> Joints {
+    std::array::from_fn(|j| {
+        let (min, max) = position_range(options, j);
+        options.initial_joints[j].max(min).min(max)
+    })
 }
 
 trait SignumOrOne {

@@ -149,11 +149,11 @@ mod tests {
         assert!(lo.abs() < 1e-12 && (hi - 0.05).abs() < 1e-12, "{report:?}");
     }
 
-    /// A segment the machine's step clock cannot time (2³¹ ticks: 2.15 s at 1 GHz) is
-    /// refused before the print, naming its line, as the machine would refuse it there; a
-    /// long dwell is not (it comes in pieces).
+    /// A step the machine's step clock cannot time (a first period of 2³⁰ ticks: 1.07 s at
+    /// 1 GHz) is refused before the print, naming its line, as the machine would refuse it
+    /// there. A long dwell, or a slow cruise of many steps, is not: both come in pieces.
     #[test]
-    fn a_segment_too_long_for_the_step_clock_is_refused_before_the_print() {
+    fn a_step_too_long_for_the_step_clock_is_refused_before_the_print() {
         let steps = StepOptions {
             timer_hz: 1e9,
             ..StepOptions::default()
@@ -168,19 +168,26 @@ mod tests {
             ..GcodeMove::default()
         };
         preflight.push(&dwell).unwrap();
+        // 10 mm at 0.5 mm/s: 20 s of steps 25 ms apart, in pieces under 2.15 s.
         let crawl = GcodeMove {
-            feedrate_m_per_s: 1e-4,
+            feedrate_m_per_s: 5e-4,
             ..line(2, 0.06, 0.0, 3)
         };
+        preflight.push(&crawl).unwrap();
+        // 0.1 mm at 1 µm/s: steps 12.5 s apart, and slower still to and from rest.
+        let creep = GcodeMove {
+            feedrate_m_per_s: 1e-6,
+            ..line(3, 0.0601, 0.0, 4)
+        };
         let text = match preflight
-            .push(&crawl)
+            .push(&creep)
             .and_then(|()| preflight.finish().map(drop))
         {
             Err(e) => e.to_string(),
-            Ok(()) => panic!("a 0.1 mm/s crawl at 1 GHz passed"),
+            Ok(()) => panic!("steps 12.5 s apart at 1 GHz passed"),
         };
         assert!(
-            text.contains("line 3") && text.contains("cannot be played"),
+            text.contains("line 4") && text.contains("cannot be played"),
             "{text}"
         );
     }

@@ -94,7 +94,7 @@ impl StepGenerator {
                 (n / dt, n / dt)
             };
             let a = (v1 * v1 - v0 * v0) / (2.0 * n);
-            for part in ramp_parts(v0, a, counts[dominant]) {
+            for part in ramp_parts(v0, a, counts[dominant], MAX_PAUSE_TICKS / f) {
                 let mut sub = seg.clone();
                 // Other axes: the global distribution's counts at the part's bounds.
                 for (k, c) in sub.step_counts.iter_mut().enumerate() {
@@ -167,8 +167,11 @@ fn fill_timing(seg: &mut StepSegment, part: &Part, a: f64, f: f64) {
 }
 
 /// Split an `n`-step ramp from rate `v0` at acceleration `a` (steps/s, steps/s²) into exact
-/// single steps where the recurrence would be inaccurate and one recurrence-timed ramp.
-fn ramp_parts(v0: f64, a: f64, n: u32) -> Vec<Part> {
+/// single steps where the recurrence would be inaccurate and recurrence-timed ramps. A
+/// machine plays segments shorter than its step clock's range: a cruise or ramp longer than
+/// `max_part_s` is cut at step boundaries (a slow crawl, a fast step timer), each piece of
+/// a ramp starting from the rate where the one before it ended.
+fn ramp_parts(v0: f64, a: f64, n: u32, max_part_s: f64) -> Vec<Part> {
     let speed2 = |i: f64| (v0 * v0 + 2.0 * a * i).max(0.0);
     let step_time = |i: u32| {
         // Exact time of step i (1-based) under constant acceleration.
@@ -176,12 +179,19 @@ fn ramp_parts(v0: f64, a: f64, n: u32) -> Vec<Part> {
         2.0 / (u + v)
     };
     if a.abs() <= 1e-9 * (v0 * v0 + 1.0) {
-        return vec![Part {
-            start: 0,
-            end: n,
-            shape: Shape::Cruise { period_s: 1.0 / v0 },
-            duration_s: n as f64 / v0,
-        }];
+        let pieces = (n as f64 / v0 / max_part_s).ceil().clamp(1.0, n as f64) as u64;
+        let bound = |k: u64| (n as u64 * k / pieces) as u32;
+        return (0..pieces)
+            .map(|k| {
+                let (start, end) = (bound(k), bound(k + 1));
+                Part {
+                    start,
+                    end,
+                    shape: Shape::Cruise { period_s: 1.0 / v0 },
+                    duration_s: (end - start) as f64 / v0,
+                }
+            })
+            .collect();
     }
     let single = |i: u32| Part {
         start: i - 1,
@@ -204,6 +214,19 @@ fn ramp_parts(v0: f64, a: f64, n: u32) -> Vec<Part> {
             duration_s,
         }
     };
+    let push_ramp = |parts: &mut Vec<Part>, start: u32, end: u32| {
+        let mut pending = vec![(start, end)];
+        while let Some((start, end)) = pending.pop() {
+            let part = ramp(start, end);
+            if part.duration_s > max_part_s && end - start > 1 {
+                let middle = start + (end - start) / 2;
+                pending.push((middle, end));
+                pending.push((start, middle));
+            } else {
+                parts.push(part);
+            }
+        }
+    };
     let x_ok = |i: u32| 2.0 * a.abs() <= MAX_RAMP_X * speed2(i as f64);
     let mut parts = Vec::new();
     if a > 0.0 {
@@ -214,7 +237,7 @@ fn ramp_parts(v0: f64, a: f64, n: u32) -> Vec<Part> {
             i += 1;
         }
         if i <= n {
-            parts.push(ramp(i - 1, n));
+            push_ramp(&mut parts, i - 1, n);
         }
     } else {
         // Ramp while the speed at a step's end stays high enough, then exact steps.
@@ -223,7 +246,7 @@ fn ramp_parts(v0: f64, a: f64, n: u32) -> Vec<Part> {
             last_ramp += 1;
         }
         if last_ramp > 0 {
-            parts.push(ramp(0, last_ramp));
+            push_ramp(&mut parts, 0, last_ramp);
         }
         for i in last_ramp + 1..=n {
             parts.push(single(i));
@@ -294,7 +317,7 @@ mod tests {
         let f = 1e6;
         let mut times = Vec::new();
         let mut t0 = 0.0;
-        for part in ramp_parts(v0, a, n) {
+        for part in ramp_parts(v0, a, n, f64::INFINITY) {
             let steps = part.end - part.start;
             let mut seg = StepSegment {
                 step_counts: vec![steps, 0, 0],

@@ -55,14 +55,36 @@ fn assert_plan_ok(name: &str, moves: &[GcodeMove], options: &PlannerOptions) -> 
     planned
 }
 
+/// An arm that reaches 150 mm on both sides of the centre, crossing it with a negative r.
+fn crossing_options() -> PlannerOptions {
+    let mut options = PlannerOptions {
+        allow_negative_r: true,
+        ..PlannerOptions::default()
+    };
+    options.joints[1].position = Some((-0.15, 0.15));
+    options
+}
+
+/// The shipped arm stops at the centre: crossing it is refused where the planner is made,
+/// naming the joint and its limits, not found out on the first line through the centre.
+#[test]
+fn negative_radii_need_an_arm_that_reaches_past_the_centre() {
+    let options = PlannerOptions {
+        allow_negative_r: true,
+        ..PlannerOptions::default()
+    };
+    let error = Planner::new(options).err().expect("refused").to_string();
+    assert!(
+        error.contains("arm_r") && error.contains("[0, 0.15]"),
+        "{error}"
+    );
+    assert!(Planner::new(crossing_options()).is_ok());
+}
+
 #[test]
 fn both_fixtures_plan_within_tolerance_and_limits() {
     for name in ["finger.gcode", "polartest.gcode"] {
-        for allow_negative_r in [false, true] {
-            let options = PlannerOptions {
-                allow_negative_r,
-                ..PlannerOptions::default()
-            };
+        for options in [PlannerOptions::default(), crossing_options()] {
             assert_plan_ok(name, &fixture(name), &options);
         }
     }
@@ -119,11 +141,7 @@ fn lines_through_the_centre_turn_or_cross() {
         .iter()
         .all(|p| p.qd[1] == 0.0 && p.tool_speed == 0.0));
     // With them: the arm crosses with theta held.
-    let options = PlannerOptions {
-        allow_negative_r: true,
-        ..PlannerOptions::default()
-    };
-    let planned = assert_plan_ok("through, cross", &moves, &options);
+    let planned = assert_plan_ok("through, cross", &moves, &crossing_options());
     let thetas: Vec<f64> = planned[1].points.iter().map(|p| p.q[0]).collect();
     assert!(
         thetas.iter().all(|t| (t - thetas[0]).abs() < 1e-12),
@@ -207,6 +225,102 @@ fn out_of_range_targets_are_errors() {
         ..PlannerOptions::default()
     };
     assert!(Planner::new(bad).is_err());
+}
+
+/// An arm that cannot reach the centre (lower limit 5 mm): a line whose ends are both in
+/// reach but which passes the centre closer than that is refused, naming how near it comes;
+/// one that stays out of that circle is planned.
+#[test]
+fn a_line_passing_closer_to_the_centre_than_the_arm_reaches_is_refused() {
+    let mut options = PlannerOptions {
+        initial_joints: [0.0, 0.02, 0.0],
+        ..PlannerOptions::default()
+    };
+    options.joints[1].position = Some((0.005, 0.15));
+    // From (20, 0) mm: to (-20, 3) passes 1.5 mm from the centre; to (0, 20) 14.1 mm.
+    let moves = moves_of(b"G1 X-20 Y3 F3000\nG1 X0 Y20 F3000\n");
+    let mut planner = Planner::new(options.clone()).unwrap();
+    let err = planner.push(&moves[0], &mut Vec::new()).unwrap_err();
+    assert!(
+        err.to_string().contains("arm_r would reach 0.0014"),
+        "{err}"
+    );
+    let mut planner = Planner::new(options).unwrap();
+    let mut out = Vec::new();
+    planner.push(&moves[1], &mut out).unwrap();
+    planner.flush(&mut out);
+    let nearest = out
+        .iter()
+        .flat_map(|m| &m.points)
+        .map(|p| p.q[1])
+        .fold(f64::INFINITY, f64::min);
+    // 14.1 mm at the line's closest point, a node spacing's sagitta more at the nearest point.
+    assert!((0.01414..0.0145).contains(&nearest), "{nearest}");
+}
+
+/// A start a rounding below r = 0 (within the slack a stop position from steps may have) is
+/// the centre: the path after it keeps r ≥ 0 (it used to take the sign of that -5 µm and
+/// drive the arm to -50 mm, past its stop, with negative radii not allowed).
+#[test]
+fn a_start_a_rounding_below_the_centre_plans_positive_radii() {
+    let options = PlannerOptions {
+        initial_joints: [0.0, -5e-6, 0.0],
+        ..PlannerOptions::default()
+    };
+    let moves = moves_of(b"G1 X0 Y50 F1800\nG1 X30 Y40 F1800\n");
+    let planned = plan(&moves, options.clone());
+    let radii: Vec<f64> = planned
+        .iter()
+        .flat_map(|m| &m.points)
+        .map(|p| p.q[1])
+        .collect();
+    assert!(radii.iter().all(|r| *r >= 0.0), "{radii:?}");
+    let end = planned.last().unwrap().points.last().unwrap().q;
+    assert!((end[1] - 0.05).abs() < 1e-12, "{end:?}");
+    assert_eq!(limit_usage(&moves, &planned, &options).out_of_range, 0);
+}
+
+/// A slow move at a fast step clock (0.5 mm/s at 1 GHz: each 2 mm of its cruise is 4·10⁹
+/// ticks, past the 2³¹ a machine can time in one segment) comes in segments a machine can
+/// play; its steps still add up to the target and keep their pace across the cuts.
+#[test]
+fn a_slow_move_at_a_fast_step_clock_comes_in_playable_segments() {
+    let moves = moves_of(b"G1 X50 F1800\nG1 X60 F30\n");
+    let steps = StepOptions {
+        timer_hz: 1e9,
+        ..StepOptions::default()
+    };
+    let program = polar_planner::plan_program(&moves, PlannerOptions::default(), steps).unwrap();
+    let mut t0 = 0.0;
+    let mut arm_steps = 0i64;
+    let mut crawl_pulses = Vec::new();
+    for seg in &program.segments {
+        assert!(seg.duration_s * 1e9 < (1u64 << 31) as f64, "{seg:?}");
+        let mut pulses = Vec::new();
+        decode(seg, &mut pulses).unwrap();
+        for p in pulses.iter().filter(|p| p.axis == 1) {
+            arm_steps += seg.directions[1] as i64;
+            if seg.move_sequence == 1 {
+                crawl_pulses.push(t0 + p.t);
+            }
+        }
+        t0 += seg.duration_s;
+    }
+    assert_eq!(arm_steps, 4800, "60 mm at 80 steps/mm");
+    let crawl_segments = program
+        .segments
+        .iter()
+        .filter(|s| s.move_sequence == 1)
+        .count();
+    assert!(crawl_segments >= 20, "{crawl_segments} segments for 24 s");
+    // 800 steps; the first 8 mm cruise at 25 ms a step (0.5 mm/s at 80 steps/mm), cuts or
+    // not (the last 2 mm slow to rest).
+    assert_eq!(crawl_pulses.len(), 800);
+    let worst = crawl_pulses[..640]
+        .windows(2)
+        .map(|w| ((w[1] - w[0]) - 0.025).abs())
+        .fold(0.0, f64::max);
+    assert!(worst < 1e-6, "a step off the cruise's pace by {worst} s");
 }
 
 /// Found by fuzzing (tests/fuzz, target move_stream): a G28 whose X was NaN was planned into

@@ -261,7 +261,23 @@ impl Params {
             }),
         }
     }
+
+    /// A sampling period (s): 0 for none, else at least [`MIN_SAMPLE_PERIOD_S`]. A far
+    /// shorter one would publish samples without end before anything else is done.
+    pub fn sample_period_s(&self, name: &str) -> Result<f64, ParamError> {
+        match self.f64(name) {
+            period if period == 0.0 || period >= MIN_SAMPLE_PERIOD_S => Ok(period),
+            period => Err(ParamError::Invalid {
+                name: name.to_string(),
+                problem: format!("is {period} s: 0 (none) or at least {MIN_SAMPLE_PERIOD_S} s"),
+            }),
+        }
+    }
 }
+
+/// Shortest period of plan-time samples: a thousand a second of plan is far more than a
+/// viewer draws.
+pub const MIN_SAMPLE_PERIOD_S: f64 = 1e-3;
 
 /// The node sections of a params file: the path of keys down to each `ros__parameters` map
 /// (`/cell/streamer:` or `cell:` → `streamer:`, as rcl's parser nests namespaces), with it.
@@ -465,6 +481,23 @@ mod tests {
             ParamSpec::new("consumers", ParamValue::StringArray(vec![]), "who acks"),
             ParamSpec::new("limits.v", ParamValue::DoubleArray(vec![1.0]), "nested"),
         ]
+    }
+
+    #[test]
+    fn a_sample_period_is_none_or_at_least_a_millisecond() {
+        let period = |value: &str| {
+            Params::resolve(&specs(), "/streamer", &[], &[o(None, "rate_hz", value)])
+                .unwrap()
+                .sample_period_s("rate_hz")
+        };
+        assert_eq!(period("0.0").unwrap(), 0.0);
+        assert_eq!(period("0.001").unwrap(), 0.001);
+        assert_eq!(period("2.5").unwrap(), 2.5);
+        let error = period("0.0005").unwrap_err().to_string();
+        assert!(
+            error.contains("parameter `rate_hz`: is 0.0005 s: 0 (none) or at least 0.001 s"),
+            "{error}"
+        );
     }
 
     #[test]

@@ -75,7 +75,7 @@ pub fn stream_options_from_params(p: &Params) -> anyhow::Result<StreamOptions> {
     Ok(StreamOptions {
         screw: options_from_params(p)?,
         command_period_s: p.f64("command_period_s"),
-        joint_state_period_s: p.f64("joint_state_period_s"),
+        joint_state_period_s: p.sample_period_s("joint_state_period_s")?,
         max_buffer_s: p.f64("max_buffer_s"),
         max_buffer_moves: p.i64("max_buffer_moves") as usize,
     })

@@ -191,13 +191,14 @@ impl<L: McuLink> McuMachine<L> {
         self.session.on_screw(msg, plan_s.max(0.0), self.now_us())
     }
 
-    /// The session's error, unless it is the echo of an emergency stop asked for here.
+    /// The session's error, unless it is the echo of an emergency stop asked for here (by
+    /// the node, or after a line error).
     fn session_error(&self) -> Option<&SessionError> {
         match self.session.error() {
             Some(SessionError::Fault {
                 code: cell_protocol::message::FaultCode::EmergencyStop,
                 ..
-            }) if self.estop_requested => None,
+            }) if self.estop_requested || self.link_error.is_some() => None,
             other => other,
         }
     }
@@ -242,9 +243,13 @@ impl<L: McuLink> McuMachine<L> {
         let hz = self.session.timer_hz();
         let left_s = end.saturating_sub(plan_now) as f64 / hz;
         let all_sent = self.session.waiting().0 == 0;
+        // Segments waiting for room on the MCU (a small queue of short segments, a short
+        // horizon) are no underrun: holding for them would wait for room that only motion
+        // makes, for ever.
+        let held_back = self.session.plan_held_back();
         match self.hold {
             // Dry at a rest the MCU waits, its plan clock standing: nothing to do.
-            None if !at_rest => {
+            None if !at_rest && !held_back => {
                 // A hold from full feed covers 1/(2ρ) of plan time; start it with a margin
                 // for the state's age and the loop's period.
                 let stopping_s = self.stopping_s();
@@ -256,6 +261,7 @@ impl<L: McuLink> McuMachine<L> {
             }
             Some(HoldReason::Underrun)
                 if left_s >= (self.horizon_s / 2.0).max(2.0 * self.stopping_s())
+                    || held_back
                     || at_rest
                     || (self.input_finished && all_sent) =>
             {
@@ -391,7 +397,11 @@ impl<L: McuLink> Machine for McuMachine<L> {
     fn free_slots(&self) -> (usize, usize) {
         // Nothing until the MCU is identified, configured and its clock known: the schedule
         // needs its timer and its clock.
-        if !self.session.is_ready() || self.session_error().is_some() || self.estop_requested {
+        if !self.session.is_ready()
+            || self.session_error().is_some()
+            || self.link_error.is_some()
+            || self.estop_requested
+        {
             return (0, 0);
         }
         let (segments, screw) = self.session.waiting();
@@ -411,7 +421,14 @@ impl<L: McuLink> Machine for McuMachine<L> {
     fn on_tick(&mut self, now_ns: i64) -> Result<(), Self::Error> {
         let result = self.tick(now_ns);
         if let Err(e) = result {
-            self.link_error.get_or_insert(e.to_string());
+            // Reported stopped from here on, so the node sends no stop of its own: stop the
+            // MCU now, or it plays what it holds while the bridge keeps feeding it.
+            if self.link_error.is_none() {
+                self.link_error = Some(e.to_string());
+                self.session.emergency_stop();
+                self.forget();
+                let _ = self.send_all();
+            }
             return Err(e);
         }
         match self.session_error() {
@@ -584,10 +601,12 @@ impl<L: McuLink> Machine for McuMachine<L> {
 /// MCU not at rest is stopped at once rather than left to its watchdog.
 impl<L: McuLink> Drop for McuMachine<L> {
     fn drop(&mut self) {
-        let moving = self
-            .session
-            .state()
-            .is_some_and(|s| !matches!(s.mode, Mode::Idle | Mode::Fault));
+        // Idle from before the last segments arrived is about to move.
+        let moving = self.session.state().is_some_and(|s| match s.mode {
+            Mode::Fault => false,
+            Mode::Idle => !self.session.idle_after_last_sent(s),
+            _ => true,
+        });
         if moving {
             self.session.emergency_stop();
             let mut out = [0u8; MAX_WIRE_FRAME];

@@ -166,6 +166,8 @@ pub struct McuSession {
     on_mcu: VecDeque<(u64, f64)>,
     /// Start clocks of the screw commands sent that the MCU may still hold queued.
     screw_on_mcu: VecDeque<u64>,
+    /// The last feed left segments waiting for the MCU's queue or the horizon.
+    held_back: bool,
     /// Screw commands that reached the line too late for their start, and were sent to start
     /// as soon as the MCU could take them ([`SCREW_MARGIN_S`] ahead); the worst lateness.
     pub screw_late: u64,
@@ -198,7 +200,9 @@ pub struct McuSession {
 /// a few ms to arrive, more when it is resent. A command that would start sooner — the
 /// screw driver's, say, for a pin opening before the plan's first move — starts this far
 /// ahead instead: late material, reported. One that still arrives late (resent on a damaged
-/// line) the MCU starts at arrival (PROTOCOL.md, SCREW).
+/// line) the MCU starts at arrival (PROTOCOL.md, SCREW). While the plan clock stands (held,
+/// or waiting at rest for the next segment) there is no margin: the MCU takes a command up
+/// where it stands, whenever it arrives.
 pub const SCREW_MARGIN_S: f64 = 0.02;
 
 /// Plan time sent at once: nothing is sent until something lies within the horizon less
@@ -243,6 +247,7 @@ impl McuSession {
             sent_since_state: 0,
             on_mcu: VecDeque::new(),
             screw_on_mcu: VecDeque::new(),
+            held_back: false,
             screw_late: 0,
             screw_late_worst_ticks: 0,
             controls: VecDeque::new(),
@@ -327,6 +332,12 @@ impl McuSession {
         }
     }
 
+    /// Whether the last feed left segments waiting because the MCU's queue or the horizon
+    /// had no room for them: the plan is not short, however little the MCU holds.
+    pub fn plan_held_back(&self) -> bool {
+        self.held_back
+    }
+
     /// Segments and screw ramps converted and not yet sent.
     pub fn waiting(&self) -> (usize, usize) {
         (self.segments.len(), self.screw.len())
@@ -335,6 +346,7 @@ impl McuSession {
     /// Everything converted has been sent and played: the MCU is idle after the last one.
     pub fn is_drained(&self) -> bool {
         self.segments.is_empty()
+            && self.screw.is_empty()
             && self.state().is_some_and(|s| {
                 self.idle_after_last_sent(s) && self.last_sent_tag.is_none_or(|t| s.done_tag == t)
             })
@@ -366,14 +378,18 @@ impl McuSession {
         let (state, _) = self.state?;
         let mcu_now = self.clock.mcu_at(now_us as i64 * 1000)?;
         let lag = state.clock.saturating_sub(state.plan_clock);
-        // Held, or idle inside the schedule (ran dry at rest, waiting for the next segment):
-        // the plan clock stands. (Faulted, the MCU moves it on, but nothing is scheduled
-        // any more: taken as standing.)
-        let waiting = state.mode == Mode::Idle && self.last_sent_tag.is_some();
-        if state.mode == Mode::Held || state.mode == Mode::Fault || waiting {
+        if self.plan_clock_stands(&state) {
             return Some(state.plan_clock);
         }
         Some(mcu_now.saturating_sub(lag))
+    }
+
+    /// Held, or idle inside the schedule (ran dry at rest, waiting for the next segment):
+    /// the plan clock stands. (Faulted, the MCU moves it on, but nothing is scheduled any
+    /// more: taken as standing.)
+    fn plan_clock_stands(&self, state: &McuState) -> bool {
+        let waiting = state.mode == Mode::Idle && self.last_sent_tag.is_some();
+        state.mode == Mode::Held || state.mode == Mode::Fault || waiting
     }
 
     /// A planned segment: converted now, sent when the horizon and the MCU's queue allow.
@@ -624,7 +640,19 @@ impl McuSession {
                     self.fail(SessionError::Fault { code, clock, tag });
                 }
                 FromMcu::Message(McuMessage::Counters(_)) | FromMcu::Undecodable => {}
-                FromMcu::Restarted { lost } => self.fail(SessionError::Restarted { lost }),
+                FromMcu::Restarted { lost } => {
+                    self.fail(SessionError::Restarted { lost });
+                    // A new MCU session: its clock began again, it knows no configuration,
+                    // it may even run other firmware. Learn it all again (the error stays
+                    // until the operator's reset), or a reset could never bring it back.
+                    self.identity = None;
+                    self.configured = false;
+                    self.state = None;
+                    self.queries.clear();
+                    self.clock.reset();
+                    self.reset = ResetProgress::NotSent;
+                    self.forget_plan();
+                }
             }
         }
     }
@@ -675,7 +703,9 @@ impl McuSession {
             return Ok(());
         };
         let hz = identity.timer_hz as f64;
-        if !self.configured {
+        // An MCU speaking another version may read CONFIGURE and RESET as anything.
+        let other_version = matches!(self.error, Some(SessionError::Version { .. }));
+        if !self.configured && !other_version {
             self.endpoint.send(&HostMessage::Configure {
                 host_timeout_ticks: ticks(self.options.host_timeout_s, hz),
                 state_period_ticks: ticks(self.options.state_period_s, hz),
@@ -698,11 +728,13 @@ impl McuSession {
             }
         }
         if now_us >= self.next_query_us && self.endpoint.can_send() {
+            // Queries are the idle host's keep-alive: four per host timeout at least.
             let period_s = if self.clock.sample_count() >= CLOCK_SETTLE_SAMPLES {
-                (self.options.clock_query_settled_period_s).min(self.options.host_timeout_s / 4.0)
+                self.options.clock_query_settled_period_s
             } else {
                 self.options.clock_query_period_s
-            };
+            }
+            .min(self.options.host_timeout_s / 4.0);
             self.next_query_us = now_us + (period_s * 1e6) as u64;
             let token = self.next_token;
             self.next_token = self.next_token.wrapping_add(1);
@@ -733,6 +765,7 @@ impl McuSession {
     }
 
     fn feed(&mut self, now_us: u64) -> Result<(), LinkError> {
+        self.held_back = false;
         self.send_controls()?;
         if !self.controls.is_empty() {
             return Ok(()); // the window is full: controls first
@@ -758,6 +791,7 @@ impl McuSession {
                 .front()
                 .is_some_and(|r| r.start_clock <= due_line);
         if !due {
+            self.held_back = !self.segments.is_empty();
             return Ok(());
         }
         // Room in the MCU's queue: what its last state reported less what was sent since,
@@ -770,7 +804,11 @@ impl McuSession {
             .saturating_sub(self.sent_since_state)
             .min(capacity.saturating_sub(self.on_mcu.len()));
         while let Some(next) = self.segments.front() {
-            if room == 0 || next.start_clock > plan_now + horizon || !self.endpoint.can_send() {
+            if room == 0 || next.start_clock > plan_now + horizon {
+                self.held_back = true;
+                break;
+            }
+            if !self.endpoint.can_send() {
                 break;
             }
             let next = *next;
@@ -805,8 +843,14 @@ impl McuSession {
                 break;
             }
             let mut ramp = *ramp;
-            let earliest = (plan_now + ticks(SCREW_MARGIN_S, self.timer_hz()) as u64)
-                .max(self.screw_on_mcu.back().copied().unwrap_or(0));
+            // A standing plan clock is where the MCU will take the command up, however long
+            // the line takes (a margin past it would wait for the next segment, or for ever).
+            let margin = if self.plan_clock_stands(&state) {
+                0
+            } else {
+                ticks(SCREW_MARGIN_S, self.timer_hz()) as u64
+            };
+            let earliest = (plan_now + margin).max(self.screw_on_mcu.back().copied().unwrap_or(0));
             if ramp.start_clock < earliest {
                 // Keep where a ramp ends; start it when the MCU can take it.
                 let end = ramp.start_clock + ramp.ramp_ticks as u64;

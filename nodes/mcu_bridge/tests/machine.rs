@@ -607,6 +607,41 @@ fn a_stalled_upstream_waits_at_rest_or_holds_on_the_path() {
     }
 }
 
+/// With a short horizon (0.3 s, under twice a hold's stopping time) an underrun hold still
+/// ends once the plan is back: when as much is on its way as the horizon lets go. (Its
+/// resume used to wait for more plan than the horizon ever lets out: held for ever.)
+#[test]
+fn an_underrun_hold_ends_once_a_short_horizon_is_full() {
+    let segments = finger_start(300);
+    let moving = (10..segments.len())
+        .find(|&i| !segments[i - 1].ends_at_rest && segments[i - 1].duration_s > 0.05)
+        .expect("a segment ending in motion");
+    let horizon_s = 0.3;
+    let mut options = common::session_options();
+    options.horizon_s = horizon_s;
+    let link = InProcess {
+        mcu: mcu_emulator::Emulator::new(EmulatorOptions::default()),
+        edges: Vec::new(),
+    };
+    let session = mcu_bridge::McuSession::new(options, 0x5EED);
+    let mut rig = Rig {
+        machine: McuMachine::new(session, link, 64, horizon_s),
+        now_ns: 0,
+        fed: 0,
+    };
+    let played_s: f64 = segments[..moving].iter().map(|s| s.duration_s).sum();
+    rig.run_for(&segments[..moving], 8.0 + played_s);
+    let state = rig.machine.state();
+    assert_eq!(
+        (state.state, state.hold),
+        (PlayerState::Held, Some(HoldReason::Underrun))
+    );
+    rig.run_to_end(&segments, 60.0);
+    assert_eq!(rig.executed_steps(), end_steps(&segments));
+    assert_eq!(rig.machine.underruns(), 1);
+    assert!(rig.machine.session().error().is_none());
+}
+
 /// A power cycle of the MCU mid-print is noticed within 100 ms and ends the print as a fault
 /// with the reason; the machine reports itself stopped.
 #[test]
@@ -633,6 +668,127 @@ fn a_restarted_mcu_is_a_fault_noticed_within_100_ms() {
         rig.machine.session().error(),
         Some(SessionError::Restarted { .. })
     ));
+}
+
+/// After a power cycle the operator's reset brings the MCU back: the bridge learns it anew
+/// (identity, configuration, clock) and a new plan plays from where the restarted MCU
+/// stands. (Before, the reset met the old session's clock and state, failed at once as a
+/// silent MCU and repeated its emergency stop for ever.)
+#[test]
+fn after_a_restart_a_reset_brings_the_mcu_back_for_a_new_plan() {
+    let segments = finger_start(300);
+    let mut rig = Rig::new(EmulatorOptions {
+        reset_at_s: Some(6.0),
+        ..EmulatorOptions::default()
+    });
+    while rig.ms(&segments).is_ok() {
+        assert!(rig.now_ns < 20_000_000_000, "no fault");
+    }
+    // The operator looks, then resets; meanwhile the fault stands.
+    rig.fed = 0;
+    for _ in 0..1000 {
+        let error = rig.ms(&[]).unwrap_err();
+        assert!(error.contains("restarted"), "{error}");
+    }
+    rig.machine.reset();
+    for _ in 0..500 {
+        rig.ms(&[]).unwrap();
+    }
+    assert_eq!(rig.machine.state().state, PlayerState::Idle);
+    assert!(rig.machine.free_slots().0 > 0);
+    assert_eq!(rig.steps_now(), [0; 3], "a restarted MCU counts from 0");
+    let mut again = finger_start(40);
+    stamp(&mut again, EPOCH_NS + 3_600_000_000_000);
+    rig.fed = 0;
+    let edges_before = rig.edges().len();
+    rig.run_to_end(&again, 30.0);
+    let mut made = [0i64; 3];
+    for e in &rig.edges()[edges_before..] {
+        for (k, step) in made.iter_mut().enumerate() {
+            if e.axes >> k & 1 == 1 {
+                *step += if e.negative >> k & 1 == 1 { -1 } else { 1 };
+            }
+        }
+    }
+    assert_eq!(made, end_steps(&again));
+    // Reported as made once the MCU's next states are in (the clock fit is young).
+    rig.fed = 0;
+    rig.run_for(&[], 0.1);
+    assert_eq!(rig.steps_now(), end_steps(&again));
+    assert!(rig.machine.session().error().is_none());
+}
+
+/// A line whose writes fail from a given instant until one has failed (a USB port stalled
+/// past its write timeout): those bytes are lost.
+struct FailingWrite {
+    inner: InProcess,
+    fail_at_ns: Option<i64>,
+}
+
+impl mcu_bridge::McuLink for FailingWrite {
+    type Error = String;
+    fn read(&mut self, now_ns: i64, into: &mut Vec<u8>) -> Result<(), String> {
+        mcu_bridge::McuLink::read(&mut self.inner, now_ns, into).map_err(|never| match never {})
+    }
+    fn write(&mut self, now_ns: i64, bytes: &[u8]) -> Result<(), String> {
+        if self.fail_at_ns.is_some_and(|at| now_ns >= at) {
+            self.fail_at_ns = None;
+            return Err("write timed out".into());
+        }
+        mcu_bridge::McuLink::write(&mut self.inner, now_ns, bytes).map_err(|never| match never {})
+    }
+}
+
+/// A failed write ends the print, and the bridge stops the MCU at once: reported stopped
+/// from then on, it gets no stop from the node, and the MCU would play the two seconds of
+/// plan it holds (and more, fed on) while the cell says it has stopped.
+#[test]
+fn a_failed_write_stops_the_mcu_at_once() {
+    let segments = finger_start(300);
+    let link = FailingWrite {
+        inner: InProcess {
+            mcu: mcu_emulator::Emulator::new(EmulatorOptions::default()),
+            edges: Vec::new(),
+        },
+        fail_at_ns: Some(5_000_000_000),
+    };
+    let session = mcu_bridge::McuSession::new(common::session_options(), 0x5EED);
+    let mut machine = McuMachine::new(session, link, 64, 2.0);
+    let (mut fed, mut now_ns, mut failed_at) = (0, 0i64, None);
+    while now_ns < 6_000_000_000 {
+        let (room, _) = machine.free_slots();
+        for s in segments[fed..].iter().take(room) {
+            machine.on_segment(s).unwrap();
+            fed += 1;
+        }
+        now_ns += 1_000_000;
+        if let Err(e) = machine.on_tick(now_ns) {
+            assert!(e.to_string().contains("write timed out"), "{e}");
+            failed_at.get_or_insert(now_ns);
+        }
+    }
+    // The first write from 5 s on.
+    let failed_at = failed_at.expect("the failed write is an error");
+    assert!(
+        (5_000_000_000..5_100_000_000).contains(&failed_at),
+        "{failed_at}"
+    );
+    assert!(fed < segments.len(), "the plan was still being fed");
+    let mcu = &machine.link().inner.mcu;
+    let failed_s = failed_at as f64 * 1e-9;
+    let (before, stop) = (
+        mcu.clock_at(failed_s - 0.1),
+        mcu.clock_at(failed_s) + 1000, // the stop goes out on the failed tick
+    );
+    let edges = &machine.link().inner.edges;
+    assert!(
+        edges.iter().any(|e| e.clock > before),
+        "moving when the write failed"
+    );
+    let late = edges.iter().filter(|e| e.clock > stop).count();
+    assert_eq!(late, 0, "edges after the failed write");
+    assert_eq!(machine.state().state, PlayerState::Stopped);
+    assert_eq!(machine.free_slots(), (0, 0), "nothing fed once stopped");
 }
 
 /// The MCU executes what the virtual executor executes: at the plan instant of every state

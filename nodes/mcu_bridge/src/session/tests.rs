@@ -430,6 +430,41 @@ fn a_screw_command_too_late_for_its_start_starts_when_the_mcu_can_take_it() {
     assert!((0.4..0.5).contains(&late_s), "late by {late_s} s");
 }
 
+/// A command for the plan's last instant that arrives once the MCU stands there (the screw
+/// driver's final stop, published late) starts there: the plan clock stands, so a margin
+/// past it would never come, and the pin would stay open after the print.
+#[test]
+fn a_screw_command_for_a_standing_plan_clock_starts_where_it_stands() {
+    let segments = finger_start(20);
+    let plan_s: f64 = segments.iter().map(|s| s.duration_s).sum();
+    let mut rig = printing(EmulatorOptions::default(), &segments);
+    while !rig.session.is_drained() {
+        rig.round();
+        assert!(rig.now_us < 60_000_000, "not played");
+    }
+    for _ in 0..50 {
+        rig.round(); // at rest at the end, the plan clock standing
+    }
+    let command = ScrewCommand {
+        rpm: 42.0,
+        pin_open: true,
+        ..ScrewCommand::default()
+    };
+    rig.session.on_screw(&command, plan_s, rig.now_us).unwrap();
+    assert!(
+        !rig.session.is_drained(),
+        "a command not yet sent is not drained"
+    );
+    for _ in 0..100 {
+        rig.round();
+    }
+    assert!(rig.session.error().is_none(), "{:?}", rig.session.error());
+    let state = rig.session.state().unwrap();
+    assert_eq!((state.screw_millirpm, state.pin_open), (42_000, true));
+    assert_eq!(rig.session.screw_late, 0, "due where the plan clock stands");
+    assert!(rig.session.is_drained());
+}
+
 /// The same moves printed twice end on the same tag, and the MCU keeps its done tag: right
 /// after the second plan is sent, the last state (idle, done with that tag, from before the
 /// segments arrived) must not pass for the plan played (a node took the print as done at

@@ -325,3 +325,32 @@ def test_a_best_effort_topic_is_recorded_with_the_qos_its_publisher_offers(tmp_p
                  if t["topic_metadata"]["name"] == "/chatter"]
     [offered] = yaml.safe_load(chatter["offered_qos_profiles"])
     assert (offered["reliability"], offered["durability"]) == (2, 2), offered
+
+
+def test_a_recorder_stopped_while_it_starts_leaves_a_finished_bag(tmp_path):
+    """SIGINT while the recorder still waits for the QoS an outside topic's publisher offers
+    (its bag file already created): the default action used to kill it there, leaving an
+    MCAP without its end where the bag was asked for. Caught from the start, the signal
+    ends the recording as any other stop does: a bag every reader opens."""
+    import os
+    import signal
+    import subprocess
+    from mcap.reader import make_reader as plain_reader
+    from conftest import BIN_DIR
+
+    out = tmp_path / "early.mcap"
+    recorder = subprocess.Popen(
+        [str(BIN_DIR / "bag_recorder"), "--ros-args", "-p", f"output:={out}",
+         "-p", "topics:=[/chatter:std_msgs/msg/String]",
+         "-p", "acknowledge_moves:=false", "-p", "qos_wait_s:=5.0"],
+        env=dict(os.environ, ROS_DOMAIN_ID="92"),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(2.0)
+    assert recorder.poll() is None, recorder.communicate()
+    assert out.exists(), "the bag is created before the QoS wait"
+    recorder.send_signal(signal.SIGINT)
+    _, stderr = recorder.communicate(timeout=30)
+    assert recorder.returncode == 0, (recorder.returncode, stderr)
+    with open(out, "rb") as f:
+        summary = plain_reader(f).get_summary()
+    assert summary is not None, "no summary: the bag was not finished"

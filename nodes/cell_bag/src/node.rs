@@ -37,7 +37,7 @@ use crate::{metadata_yaml, BagWriter, ChannelId, Compression, QosRecord, WriterO
 /// participant's cache even after the reader took them, so the depth is also memory held for
 /// the whole print: a print at machine pace sets it by its rate ([`executed_reader_depth`]).
 /// A recorder that falls further behind loses samples, and says so
-/// ([`RecordSummary::missed`]).
+/// ([`RecordSummary::losses`]).
 pub const DEFAULT_READER_DEPTH: usize = 100_000;
 
 /// The reader depth when the recorder grants the plan credit (a dry run through
@@ -46,7 +46,7 @@ pub const DEFAULT_READER_DEPTH: usize = 100_000;
 /// is in flight to the bag on any topic is a few thousand samples (2 s of plan: 1,000 screw
 /// commands at 2 ms, a few hundred moves and their segments on a slicer file). Twice the
 /// machine's queue, it leaves room for files of far shorter moves; a recorder that still
-/// falls behind it says so ([`RecordSummary::missed`]). At 100,000 a 200,000-move dry run
+/// falls behind it says so ([`RecordSummary::losses`]). At 100,000 a 200,000-move dry run
 /// peaked at 294 MB; at this depth 92 MB.
 pub const CREDITED_READER_DEPTH: usize = 8192;
 
@@ -259,18 +259,28 @@ pub struct RecordSummary {
     pub path: PathBuf,
     pub topics: Vec<(String, String, u64)>,
     pub messages: u64,
-    /// Topics whose writers numbered samples the recorder never took, with how many: the
-    /// bag is missing them (empty: nothing was lost on the way in).
-    pub missed: Vec<(String, u64)>,
+    /// Topics with samples the bag lacks: numbered by their writers and never taken, or
+    /// taken and not decodable (empty: nothing was lost on the way in).
+    pub losses: Vec<TopicLoss>,
 }
 
 /// The flow-controlled topic: a loss there has its own cause.
 const MOVES_TOPIC: &str = "/gcode/moves";
 
-/// What a tap tells when it ends: its topic and the samples it never took (see
-/// [`crate::gaps`]); `None` for taps that record nothing or lost nothing (the flow-controlled
-/// moves: only those it was never told where to start taking).
-type TapReport = Option<(String, u64)>;
+/// What a tap tells when it ends, for each topic it records: the samples it never took
+/// (see [`crate::gaps`]; for the flow-controlled moves, those it was never told where to
+/// start taking) and the samples it could not decode. Empty: nothing recorded.
+type TapReport = Vec<TopicLoss>;
+
+/// Samples of one topic a tap did not record.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TopicLoss {
+    pub topic: String,
+    /// Published and never taken.
+    pub missed: u64,
+    /// Taken, and not decodable as the topic's type (a writer with another definition).
+    pub unreadable: u64,
+}
 
 /// What the bag writer thread is handed.
 enum Item {
@@ -603,7 +613,11 @@ fn spawn_tap<T: Recordable>(
                 gaps.out_of_order()
             );
         }
-        Some((topic, gaps.missed()))
+        vec![TopicLoss {
+            topic,
+            missed: gaps.missed(),
+            unreadable: unreadable.count,
+        }]
     }))
 }
 
@@ -649,7 +663,7 @@ fn spawn_credit_grant(
                         });
                     }
                 }
-                _ = stop.changed() => return None,
+                _ = stop.changed() => return Vec::new(),
             }
         }
     }))
@@ -688,6 +702,9 @@ fn spawn_moves_consumer(
         // for any move still learns from a progress report that its bag lacks them.
         let mut streamer_published = 0u64;
         let mut unreadable = Unreadable::default();
+        let mut unreadable_progress = Unreadable::default();
+        // Progress is not flow-controlled: numbered by its writer like any other topic.
+        let mut progress_gaps = SequenceGaps::default();
         loop {
             tokio::select! {
                 taken = moves.async_take() => match taken {
@@ -697,7 +714,7 @@ fn spawn_moves_consumer(
                             continue;
                         }
                         if !record_move(&mut tracker, &mut unrecorded, &tx, moves_channel, &m, &info).await {
-                            return None;
+                            return Vec::new();
                         }
                         if let Some(ack) = tracker.ack_due(false) {
                             let _ = acks.publish(GcodeAck::from(ack));
@@ -705,10 +722,18 @@ fn spawn_moves_consumer(
                     }
                     Err(e) => unreadable.note("/gcode/moves", &e),
                 },
-                taken = progress.async_take() => if let Ok((p, info)) = taken {
+                taken = progress.async_take() => {
+                    let (p, info) = match taken {
+                        Ok(taken) => taken,
+                        Err(e) => {
+                            unreadable_progress.note("/gcode/progress", &e);
+                            continue;
+                        }
+                    };
                     if !producer.admits(&info) {
                         continue;
                     }
+                    progress_gaps.observe(info.publisher_gid(), info.sequence_number());
                     streamer_published = streamer_published.max(p.moves_published);
                     if tracker.on_progress(&p.consumers, &p.consumer_next_expected) {
                         // Confirm the resume point: the streamer starts sending on this.
@@ -744,13 +769,14 @@ fn spawn_moves_consumer(
                             continue;
                         }
                         if !record_move(&mut tracker, &mut unrecorded, &tx, moves_channel, &m, &info).await {
-                            return None;
+                            return Vec::new();
                         }
                     }
-                    while let Some((p, info)) = unreadable.take_next(&progress, "/gcode/progress") {
+                    while let Some((p, info)) = unreadable_progress.take_next(&progress, "/gcode/progress") {
                         if !producer.admits(&info) {
                             continue;
                         }
+                        progress_gaps.observe(info.publisher_gid(), info.sequence_number());
                         streamer_published = streamer_published.max(p.moves_published);
                         if let Some(channel) = progress_channel {
                             forward(&tx, channel, &p, &info).await;
@@ -760,8 +786,21 @@ fn spawn_moves_consumer(
                     // consumers (so never told it where to start, nor waited for it): the
                     // bag lacks them. Said, not an empty topic and a success.
                     let lacking = unrecorded.max(streamer_published);
-                    return (tracker.needs_hello() && lacking > 0)
-                        .then(|| (MOVES_TOPIC.to_string(), lacking));
+                    unreadable.report("/gcode/moves");
+                    unreadable_progress.report("/gcode/progress");
+                    let mut losses = vec![TopicLoss {
+                        topic: MOVES_TOPIC.to_string(),
+                        missed: if tracker.needs_hello() { lacking } else { 0 },
+                        unreadable: unreadable.count,
+                    }];
+                    if progress_channel.is_some() {
+                        losses.push(TopicLoss {
+                            topic: "/gcode/progress".to_string(),
+                            missed: progress_gaps.missed(),
+                            unreadable: unreadable_progress.count,
+                        });
+                    }
+                    return losses;
                 }
             }
         }
@@ -928,13 +967,13 @@ impl Recorder {
                 tokio::select! {
                     _ = tokio::time::sleep(flush_period(base_flush_period, flushes)) => {
                         if flusher.send(Item::Flush).await.is_err() {
-                            return None;
+                            return Vec::new();
                         }
                     }
-                    _ = flush_stop.changed() => return None,
+                    _ = flush_stop.changed() => return Vec::new(),
                 }
             }
-            None
+            Vec::new()
         }));
         drop(tx);
         cell_runtime::cell_log!(
@@ -1036,18 +1075,32 @@ impl Recorder {
     /// Stop recording: take what the readers still hold, finish the bag, report.
     pub async fn stop(self) -> anyhow::Result<RecordSummary> {
         let _ = self.stop.send(true);
-        let mut missed = Vec::new();
+        let mut losses = Vec::new();
+        let mut failed_taps = Vec::new();
+        // Every tap awaited and the writer joined whatever one of them did: returning at a
+        // failed tap would leave the bag without its end.
         for tap in self.taps {
-            if let Some((topic, count)) = tap.await.context("recorder task")? {
-                if count > 0 {
-                    missed.push((topic, count));
-                }
+            match tap.await {
+                Ok(report) => losses.extend(
+                    report
+                        .into_iter()
+                        .filter(|loss| loss.missed > 0 || loss.unreadable > 0),
+                ),
+                Err(e) => failed_taps.push(e.to_string()),
             }
         }
         let mut summary = tokio::task::spawn_blocking(move || self.writer.join())
             .await?
             .map_err(|_| anyhow!("bag writer thread panicked"))??;
-        summary.missed = missed;
+        if !failed_taps.is_empty() {
+            bail!(
+                "recorder: {} of its topic readers failed ({}); the bag {} is finished but may lack what they held",
+                failed_taps.len(),
+                failed_taps.join("; "),
+                summary.path.display()
+            );
+        }
+        summary.losses = losses;
         Ok(summary)
     }
 }
@@ -1117,7 +1170,7 @@ fn write_bag(
             .map(|t| (t.topic, t.type_name, t.stats.message_count))
             .collect(),
         messages,
-        missed: Vec::new(),
+        losses: Vec::new(),
     })
 }
 
@@ -1127,10 +1180,14 @@ pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
     if !rest.is_empty() {
         bail!("unexpected arguments {rest:?}: use --ros-args -p output:=FILE -p topics:=[...]");
     }
+    // Caught from the start: a signal while the recorder starts (the bag file is already
+    // created, the QoS of outside topics awaited) ends it with a finished bag, where the
+    // default action left an MCAP without its end.
+    let mut signals = cell_runtime::ShutdownSignals::new().context("catching SIGINT/SIGTERM")?;
     let node = CellNode::start(NODE_NAME, &param_specs(), &ros_args)?;
     let recorder = Recorder::start(node)?;
     tokio::select! {
-        _ = cell_runtime::shutdown_signal() => {}
+        _ = signals.next() => {}
         reason = recorder.failed() => bail!(reason),
     }
     let summary = recorder.stop().await?;
@@ -1151,36 +1208,60 @@ pub fn print_summary(summary: &RecordSummary) {
     for (topic, type_name, count) in &summary.topics {
         eprintln!("  {topic:<28} {type_name:<40} {count}");
     }
-    for (topic, count) in &summary.missed {
-        eprintln!("  {topic}: {count} samples published but never received (the bag lacks them)");
+    for loss in &summary.losses {
+        if loss.missed > 0 {
+            eprintln!(
+                "  {}: {} samples published but never received (the bag lacks them)",
+                loss.topic, loss.missed
+            );
+        }
+        if loss.unreadable > 0 {
+            eprintln!(
+                "  {}: {} samples received that could not be decoded (the bag lacks them)",
+                loss.topic, loss.unreadable
+            );
+        }
     }
 }
 
 impl RecordSummary {
     /// What the bag lacks, in one line (`None`: nothing was lost on the way in).
     pub fn loss(&self) -> Option<String> {
-        if self.missed.is_empty() {
-            return None;
+        let missed: Vec<&TopicLoss> = self.losses.iter().filter(|l| l.missed > 0).collect();
+        let unreadable: Vec<&TopicLoss> = self.losses.iter().filter(|l| l.unreadable > 0).collect();
+        let mut parts = Vec::new();
+        if !missed.is_empty() {
+            let total: u64 = missed.iter().map(|l| l.missed).sum();
+            let topics: Vec<String> = (missed.iter())
+                .map(|l| format!("{} {}", l.topic, l.missed))
+                .collect();
+            let mut causes = Vec::new();
+            if missed.iter().any(|l| l.topic == MOVES_TOPIC) {
+                causes.push(
+                    "the streamer does not count this recorder among its consumers (its \
+                     `consumers` parameter), so it never said where the moves start",
+                );
+            }
+            if missed.iter().any(|l| l.topic != MOVES_TOPIC) {
+                causes.push("the recorder fell behind their keep-last history");
+            }
+            parts.push(format!(
+                "the bag lacks {total} samples its writers published ({}): {}",
+                topics.join(", "),
+                causes.join("; ")
+            ));
         }
-        let total: u64 = self.missed.iter().map(|(_, n)| n).sum();
-        let topics: Vec<String> = (self.missed.iter())
-            .map(|(topic, n)| format!("{topic} {n}"))
-            .collect();
-        let mut causes = Vec::new();
-        if self.missed.iter().any(|(topic, _)| topic == MOVES_TOPIC) {
-            causes.push(
-                "the streamer does not count this recorder among its consumers (its \
-                 `consumers` parameter), so it never said where the moves start",
-            );
+        if !unreadable.is_empty() {
+            let total: u64 = unreadable.iter().map(|l| l.unreadable).sum();
+            let topics: Vec<String> = (unreadable.iter())
+                .map(|l| format!("{} {}", l.topic, l.unreadable))
+                .collect();
+            parts.push(format!(
+                "{total} samples received could not be decoded ({}): a writer whose message definition differs",
+                topics.join(", ")
+            ));
         }
-        if self.missed.iter().any(|(topic, _)| topic != MOVES_TOPIC) {
-            causes.push("the recorder fell behind their keep-last history");
-        }
-        Some(format!(
-            "the bag lacks {total} samples its writers published ({}): {}",
-            topics.join(", "),
-            causes.join("; ")
-        ))
+        (!parts.is_empty()).then(|| parts.join("; "))
     }
 }
 
@@ -1273,6 +1354,35 @@ pub fn cdr_publisher(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A recording that lost samples, or took samples it could not decode, says which and
+    /// why in one line (the recorder then exits non-zero); one that lost nothing says nothing.
+    #[test]
+    fn a_loss_names_its_topics_and_causes() {
+        let summary = |losses: Vec<TopicLoss>| RecordSummary {
+            path: PathBuf::from("out.mcap"),
+            topics: Vec::new(),
+            messages: 0,
+            losses,
+        };
+        let loss = |topic: &str, missed, unreadable| TopicLoss {
+            topic: topic.into(),
+            missed,
+            unreadable,
+        };
+        assert_eq!(summary(vec![]).loss(), None);
+        let text = summary(vec![loss("/gcode/progress", 3, 0), loss("/tf", 0, 2)])
+            .loss()
+            .unwrap();
+        assert_eq!(
+            text,
+            "the bag lacks 3 samples its writers published (/gcode/progress 3): the recorder \
+             fell behind their keep-last history; 2 samples received could not be decoded \
+             (/tf 2): a writer whose message definition differs"
+        );
+        let text = summary(vec![loss(MOVES_TOPIC, 12, 0)]).loss().unwrap();
+        assert!(text.starts_with("the bag lacks 12 samples its writers published (/gcode/moves 12): the streamer does not count this recorder"), "{text}");
+    }
 
     #[test]
     fn a_topic_named_twice_is_recorded_once_and_two_types_are_refused() {

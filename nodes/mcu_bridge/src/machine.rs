@@ -55,6 +55,12 @@ pub enum McuMachineError<E: std::fmt::Display + std::fmt::Debug> {
         /// The MCU's position in joint units (rad, m, m), to start a plan from.
         mcu_joints: [f64; 3],
     },
+    #[error(
+        "the MCU restarted since this bridge began: its step count began again at 0, so where \
+         the machine stands is unknown; home it and print again with a new bridge \
+         (`polar-cell print --start-joints`)"
+    )]
+    PositionLost,
 }
 
 /// Reports kept: a second of them at the default 10 ms period.
@@ -106,6 +112,9 @@ pub struct McuMachine<L: McuLink> {
     /// Where the plan's steps start; checked against the MCU's report before the first
     /// segment goes out (steps counted from elsewhere would print the part displaced).
     start_steps: Option<[i64; 3]>,
+    /// The MCU restarted: its step count no longer says where the machine stands, and no
+    /// plan may play until a new bridge is told (a plan continues from the last one's end).
+    position_lost: bool,
 }
 
 impl<L: McuLink> McuMachine<L> {
@@ -135,6 +144,7 @@ impl<L: McuLink> McuMachine<L> {
             link_error: None,
             bytes_sent: 0,
             start_steps: Some([0; 3]),
+            position_lost: false,
         }
     }
 
@@ -244,12 +254,18 @@ impl<L: McuLink> McuMachine<L> {
         let left_s = end.saturating_sub(plan_now) as f64 / hz;
         let all_sent = self.session.waiting().0 == 0;
         // Segments waiting for room on the MCU (a small queue of short segments, a short
-        // horizon) are no underrun: holding for them would wait for room that only motion
-        // makes, for ever.
+        // horizon) are no underrun while they cover the stopping distance: holding for them
+        // would wait for room that only motion makes, for ever. What the host holds counts.
         let held_back = self.session.plan_held_back();
+        let known_left_s = self
+            .session
+            .schedule_end_clock()
+            .map_or(0.0, |end| end.saturating_sub(plan_now) as f64 / hz);
+        let resume_s = (self.horizon_s / 2.0).max(2.0 * self.stopping_s());
+        let covered = held_back && known_left_s >= self.stopping_s();
         match self.hold {
             // Dry at a rest the MCU waits, its plan clock standing: nothing to do.
-            None if !at_rest && !held_back => {
+            None if !at_rest && !covered => {
                 // A hold from full feed covers 1/(2ρ) of plan time; start it with a margin
                 // for the state's age and the loop's period.
                 let stopping_s = self.stopping_s();
@@ -260,8 +276,8 @@ impl<L: McuLink> McuMachine<L> {
                 }
             }
             Some(HoldReason::Underrun)
-                if left_s >= (self.horizon_s / 2.0).max(2.0 * self.stopping_s())
-                    || held_back
+                if left_s >= resume_s
+                    || (held_back && known_left_s >= resume_s)
                     || at_rest
                     || (self.input_finished && all_sent) =>
             {
@@ -350,6 +366,9 @@ impl<L: McuLink> Machine for McuMachine<L> {
     type Error = McuMachineError<L::Error>;
 
     fn on_segment(&mut self, msg: &StepSegment) -> Result<(), Self::Error> {
+        if self.position_lost {
+            return Err(McuMachineError::PositionLost);
+        }
         if let Some(plan_steps) = self.start_steps {
             // free_slots offers no room before a report (`is_ready`), so there is one.
             let mcu_steps = self.session.state().map_or([0; 3], |s| s.position_steps);
@@ -420,6 +439,9 @@ impl<L: McuLink> Machine for McuMachine<L> {
 
     fn on_tick(&mut self, now_ns: i64) -> Result<(), Self::Error> {
         let result = self.tick(now_ns);
+        if matches!(self.session.error(), Some(SessionError::Restarted { .. })) {
+            self.position_lost = true;
+        }
         if let Err(e) = result {
             // Reported stopped from here on, so the node sends no stop of its own: stop the
             // MCU now, or it plays what it holds while the bridge keeps feeding it.

@@ -309,7 +309,9 @@ impl McuSession {
 
     /// Identified, configured and clock-synchronised: ready to take a plan.
     pub fn is_ready(&self) -> bool {
-        self.configured
+        self.identity
+            .is_some_and(|i| i.protocol_version == PROTOCOL_VERSION)
+            && self.configured
             && self.clock.fit().is_some()
             && self.state.is_some()
             && self.reset == ResetProgress::Done
@@ -345,8 +347,11 @@ impl McuSession {
 
     /// Everything converted has been sent and played: the MCU is idle after the last one.
     pub fn is_drained(&self) -> bool {
+        // A screw command past the plan's end would never take effect (the plan clock
+        // stands there); every other one must be out.
+        let end = self.schedule.as_ref().map_or(0, Schedule::end_clock);
         self.segments.is_empty()
-            && self.screw.is_empty()
+            && self.screw.iter().all(|ramp| ramp.start_clock > end)
             && self.state().is_some_and(|s| {
                 self.idle_after_last_sent(s) && self.last_sent_tag.is_none_or(|t| s.done_tag == t)
             })
@@ -703,9 +708,9 @@ impl McuSession {
             return Ok(());
         };
         let hz = identity.timer_hz as f64;
-        // An MCU speaking another version may read CONFIGURE and RESET as anything.
-        let other_version = matches!(self.error, Some(SessionError::Version { .. }));
-        if !self.configured && !other_version {
+        // An MCU speaking another version may read CONFIGURE and RESET as anything (asked
+        // of its identity, not of the error: a reset clears that, and an earlier one hides it).
+        if !self.configured && identity.protocol_version == PROTOCOL_VERSION {
             self.endpoint.send(&HostMessage::Configure {
                 host_timeout_ticks: ticks(self.options.host_timeout_s, hz),
                 state_period_ticks: ticks(self.options.state_period_s, hz),

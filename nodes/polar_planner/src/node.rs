@@ -138,6 +138,8 @@ pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, S
             _ => None,
         },
     };
+    // Not an option of the plan, but refused with them, so pre-flight refuses it too.
+    params.sample_period_s("joint_state_period_s")?;
     let steps = StepOptions {
         steps_per_unit: steps_per_unit(params)?,
         timer_hz: params.f64("step_timer_hz"),
@@ -519,7 +521,7 @@ mod tests {
     /// print starts, a graph launched node by node not at all): refused with the planner's
     /// options, so `polar-cell check` says so too.
     #[test]
-    fn steps_per_unit_must_be_positive_and_bounded() {
+    fn steps_per_unit_and_the_sample_period_are_checked_with_the_options() {
         for bad in ["[0.0, 80000.0, 400000.0]", "[5000.0, 1.0e9, 400000.0]"] {
             let error = options_from_params(&params_with("steps_per_unit", bad))
                 .unwrap_err()
@@ -529,6 +531,12 @@ mod tests {
                 "{bad}: {error}"
             );
         }
+        // Pre-flight reads the options only: a sample period the node would refuse is
+        // refused there too.
+        let error = options_from_params(&params_with("joint_state_period_s", "0.0001"))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("joint_state_period_s"), "{error}");
         let good = options_from_params(&params_with("steps_per_unit", "[5000.0, 80000.0, 1.0]"));
         assert_eq!(good.unwrap().1.steps_per_unit, [5000.0, 80000.0, 1.0]);
     }

@@ -293,6 +293,11 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
                     Cut::Now
                 };
             }
+            // The file ended inside a run whose moves were all published (cut at a full
+            // window or a stall): its close, or the pin would stay open after the print.
+            if input_complete && stream.buffered_moves() == 0 && stream.pin_open() {
+                cut = Cut::All;
+            }
             if let Some(ack) = intake.ack(stream.commanded_until(), started.elapsed()) {
                 let _ = acks.publish(GcodeAck::from(ack));
             }

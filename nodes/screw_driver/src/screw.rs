@@ -302,12 +302,22 @@ pub fn breakpoints_from(
     let mut previous_extruding = state.extruding;
     let mut pin_closed_at = state.closed_at;
     let mut retracted_m = state.retracted_m;
+    // Where the chunk's last move ends: the close at the end of the input goes there when
+    // the moves after the last run are only instants (a trailing `G92 E0`).
+    let mut last_instant = None;
     for m in moves {
         let fed = fed_after_retractions(m, &mut retracted_m);
         let mut m = fed.as_ref().unwrap_or(m);
         let (Some(&t0), Some(&t1)) = (m.t.first(), m.t.last()) else {
             continue;
         };
+        last_instant = Some(Command {
+            t: t1,
+            rpm: 0.0,
+            pin_open: true,
+            source_line: m.source_line,
+            sequence: m.sequence,
+        });
         // A prime after a non-extruding move under `Stop` opens with the planner's pin rest
         // (the delay at rest, in the same trajectory as the prime's own): it feeds after it,
         // when the melt can pass, not from the rest's start. Only where that rest is.
@@ -385,7 +395,7 @@ pub fn breakpoints_from(
         previous_extruding = m.extrude;
     }
     if previous_extruding && end_of_input {
-        if let Some(last) = out.last().copied() {
+        if let Some(last) = out.last().copied().or(last_instant) {
             out.push(Command {
                 rpm: 0.0,
                 pin_open: false,

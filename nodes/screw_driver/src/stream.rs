@@ -457,7 +457,11 @@ impl Stream {
     /// belongs to the move after it.
     pub fn cut(&mut self, how: Cut) -> Option<Chunk> {
         if self.timed.is_empty() {
-            return None;
+            return if how == Cut::All {
+                self.close_at_end()
+            } else {
+                None
+            };
         }
         let full = self.buffered_s() > self.options.max_buffer_s
             || self.timed.len() >= self.options.max_buffer_moves;
@@ -501,6 +505,39 @@ impl Stream {
             how == Cut::All,
             options.command_period_s,
         );
+        Some(self.chunk_of(commands))
+    }
+
+    /// Whether the pin is open after the last chunk (a run not yet closed).
+    pub fn pin_open(&self) -> bool {
+        self.carried.pin.extruding
+    }
+
+    /// The input ended inside a run whose moves were all published already (a chunk cut at
+    /// a full window or a stall took the last of them): the close the last chunk would have
+    /// carried, at the end of what was commanded. Nothing if the pin is closed.
+    fn close_at_end(&mut self) -> Option<Chunk> {
+        let c = &mut self.carried;
+        if !c.pin.extruding {
+            return None;
+        }
+        let end_ns = c.commanded_end_ns?;
+        let close = Command {
+            t: (end_ns - c.base_ns.unwrap_or(0)) as f64 * 1e-9,
+            rpm: 0.0,
+            pin_open: false,
+            source_line: c.repeats.last_kept().map_or(0, |(_, _, line)| line),
+            sequence: c.next_sequence.saturating_sub(1),
+        };
+        c.pin.extruding = false;
+        c.pin.closed_at = close.t;
+        Some(self.chunk_of(vec![close]))
+    }
+
+    /// The messages of a chunk's `commands`, numbered and stamped after the last chunk's.
+    fn chunk_of(&mut self, commands: Vec<Command>) -> Chunk {
+        let options = &self.options;
+        let c = &mut self.carried;
         let base = c.base_ns.unwrap_or(0);
         let mut chunk = Chunk::default();
         for command in c.repeats.chunk(&commands, self.hold) {
@@ -523,7 +560,7 @@ impl Stream {
             // The stream's own angle is past the chunk at once: its checkpoint.
             angle.advance(&commands);
         }
-        Some(chunk)
+        chunk
     }
 
     /// The state after the last chunk, for the move [`Stream::commanded_until`].

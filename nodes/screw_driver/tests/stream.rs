@@ -421,3 +421,69 @@ fn a_print_started_away_from_home_feeds_its_material() {
         );
     }
 }
+
+/// The moves of `src` and their trajectories, as the planner publishes them.
+fn planned_src(src: &str) -> (Vec<GcodeMove>, Vec<JointTrajectory>) {
+    let moves = gcode_streamer::parse_all(
+        src.as_bytes(),
+        "test",
+        gcode_streamer::InterpreterOptions::default(),
+    )
+    .unwrap()
+    .0;
+    let mut planner = Planner::new(PlannerOptions::default()).unwrap();
+    let mut plans = Vec::new();
+    for m in &moves {
+        planner.push(m, &mut plans).unwrap();
+    }
+    planner.flush(&mut plans);
+    let trajectories = plans
+        .iter()
+        .map(|p| trajectory_message(p, EPOCH_NS))
+        .collect();
+    (moves, trajectories)
+}
+
+/// The pin closes at the end of the print however the last run was cut: a chunk cut at a
+/// full window or a stall that took the file's last extruding move (the end of the file
+/// then found nothing left to close), or a last chunk of nothing but an instant (a trailing
+/// `G92 E0`). Either left the last command with the pin open.
+#[test]
+fn the_pin_closes_at_the_end_however_the_last_run_was_cut() {
+    let raw = StreamOptions {
+        screw: ScrewOptions::default(),
+        command_period_s: 0.0,
+        joint_state_period_s: 0.02,
+        max_buffer_s: 2.0,
+        max_buffer_moves: 64,
+    };
+    for options in [raw, compensated()] {
+        for trailing in ["", "G92 E0\n"] {
+            let src = format!("G1 X10 Y0 F1800\nG1 X20 Y5 E1.0\nG1 X25 Y10 E1.5\n{trailing}");
+            let (moves, trajectories) = planned_src(&src);
+            let mut stream = Stream::new(options.clone());
+            let mut commands = Vec::new();
+            for (k, (m, t)) in moves.iter().zip(&trajectories).enumerate() {
+                stream.on_move(m.clone());
+                stream.on_trajectory(t.clone()).unwrap();
+                // Everything up to the last extruding move goes out mid-run.
+                let how = if k == 2 { Cut::Now } else { Cut::IfFull };
+                commands.extend(stream.cut(how).into_iter().flat_map(|c| c.commands));
+            }
+            assert!(
+                commands.last().unwrap().pin_open,
+                "the mid-run chunk leaves the pin open"
+            );
+            // The end of the file: everything, or nothing left but its close.
+            commands.extend(stream.cut(Cut::All).into_iter().flat_map(|c| c.commands));
+            let last = commands.last().unwrap();
+            assert!(!last.pin_open && last.rpm == 0.0, "{trailing:?}: {last:?}");
+            let end_ns = trajectories[2].span_ns().1;
+            assert_eq!(last.header.stamp.as_nanos(), end_ns, "{trailing:?}");
+            assert!(!stream.pin_open());
+            assert!(stream.cut(Cut::All).is_none(), "closed once");
+            let numbers: Vec<u64> = commands.iter().map(|c| c.sequence).collect();
+            assert_eq!(numbers, (0..commands.len() as u64).collect::<Vec<_>>());
+        }
+    }
+}

@@ -554,8 +554,11 @@ pub fn smooth(commands: &[Command], taps: &[f64], period_s: f64) -> Vec<Command>
     };
     let n = ((last.t - first.t) / period_s).ceil().max(1.0) as usize;
     let start = first.t;
-    // The breakpoint in force at the start of each interval.
+    // The breakpoint in force at the start of each interval, and whether the pin is open
+    // anywhere in it: an interval that opens the pin carries the flow after the opening (a
+    // period longer than the pin's delay), which a closed interval would drop.
     let mut in_force = Vec::with_capacity(n);
+    let mut open = Vec::with_capacity(n);
     let mut j = 0;
     for k in 0..n {
         let t = start + k as f64 * period_s;
@@ -563,6 +566,12 @@ pub fn smooth(commands: &[Command], taps: &[f64], period_s: f64) -> Vec<Command>
             j += 1;
         }
         in_force.push(j);
+        open.push(
+            commands[j..]
+                .iter()
+                .take_while(|c| c.t < t + period_s)
+                .any(|c| c.pin_open),
+        );
     }
     let averages: Vec<f64> = (0..n)
         .map(|k| {
@@ -573,12 +582,12 @@ pub fn smooth(commands: &[Command], taps: &[f64], period_s: f64) -> Vec<Command>
     let mut rpm = vec![0.0; n];
     let mut k = 0;
     while k < n {
-        if !commands[in_force[k]].pin_open {
+        if !open[k] {
             k += 1;
             continue;
         }
         let run_start = k;
-        while k < n && commands[in_force[k]].pin_open {
+        while k < n && open[k] {
             k += 1;
         }
         let raw = &averages[run_start..k];
@@ -595,7 +604,7 @@ pub fn smooth(commands: &[Command], taps: &[f64], period_s: f64) -> Vec<Command>
             Command {
                 t: start + k as f64 * period_s,
                 rpm: rpm[k],
-                pin_open: c.pin_open,
+                pin_open: open[k],
                 source_line: c.source_line,
                 sequence: c.sequence,
             }

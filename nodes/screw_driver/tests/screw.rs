@@ -281,11 +281,21 @@ fn a_print_feeds_its_extrusion_net_of_retractions() {
 fn fixed_rate_commands_keep_the_material() {
     let moves = timed(&fixture("polartest.gcode"), 0.0);
     let raw = breakpoints(&moves, &ScrewOptions::default());
-    let held = smooth(&raw, &[1.0], 0.01);
-    assert!(held
-        .windows(2)
-        .all(|w| (w[1].t - w[0].t - 0.01).abs() < 1e-9));
-    let total_raw = integral(&raw, raw[0].t, raw.last().unwrap().t);
-    let total_held = integral_held(&held, held[0].t, held.last().unwrap().t);
-    assert!((total_raw - total_held).abs() < 1e-9 * total_raw);
+    // Periods shorter and longer than the pin's delay (0.25 s): an interval in which the
+    // pin opens and the move starts carries that move's first material (it was dropped
+    // when the interval took the closed pin it began with).
+    for period_s in [0.01, 0.5, 1.0] {
+        let held = smooth(&raw, &[1.0], period_s);
+        assert!(held
+            .windows(2)
+            .all(|w| (w[1].t - w[0].t - period_s).abs() < 1e-9));
+        let total_raw = integral(&raw, raw[0].t, raw.last().unwrap().t);
+        let total_held = integral_held(&held, held[0].t, held.last().unwrap().t);
+        assert!(
+            (total_raw - total_held).abs() < 1e-9 * total_raw,
+            "{period_s} s: {total_held} of {total_raw}"
+        );
+        // Material turns only with the pin open.
+        assert!(held.iter().all(|c| c.pin_open || c.rpm == 0.0));
+    }
 }

@@ -259,8 +259,8 @@ pub struct RecordSummary {
     pub path: PathBuf,
     pub topics: Vec<(String, String, u64)>,
     pub messages: u64,
-    /// Topics with samples the bag lacks: numbered by their writers and never taken, or
-    /// taken and not decodable (empty: nothing was lost on the way in).
+    /// Topics with samples the bag lacks: numbered by their writers and never taken (empty:
+    /// nothing was lost on the way in).
     pub losses: Vec<TopicLoss>,
 }
 
@@ -269,7 +269,9 @@ const MOVES_TOPIC: &str = "/gcode/moves";
 
 /// What a tap tells when it ends, for each topic it records: the samples it never took
 /// (see [`crate::gaps`]; for the flow-controlled moves, those it was never told where to
-/// start taking) and the samples it could not decode. Empty: nothing recorded.
+/// start taking). Empty: nothing recorded. (Samples a reader could not decode are only
+/// warned about: RustDDS hands one up now and then, a trajectory cut short, while the bag
+/// still has every sample its writer numbered.)
 type TapReport = Vec<TopicLoss>;
 
 /// Samples of one topic a tap did not record.
@@ -278,8 +280,6 @@ pub struct TopicLoss {
     pub topic: String,
     /// Published and never taken.
     pub missed: u64,
-    /// Taken, and not decodable as the topic's type (a writer with another definition).
-    pub unreadable: u64,
 }
 
 /// What the bag writer thread is handed.
@@ -616,7 +616,6 @@ fn spawn_tap<T: Recordable>(
         vec![TopicLoss {
             topic,
             missed: gaps.missed(),
-            unreadable: unreadable.count,
         }]
     }))
 }
@@ -791,13 +790,11 @@ fn spawn_moves_consumer(
                     let mut losses = vec![TopicLoss {
                         topic: MOVES_TOPIC.to_string(),
                         missed: if tracker.needs_hello() { lacking } else { 0 },
-                        unreadable: unreadable.count,
                     }];
                     if progress_channel.is_some() {
                         losses.push(TopicLoss {
                             topic: "/gcode/progress".to_string(),
                             missed: progress_gaps.missed(),
-                            unreadable: unreadable_progress.count,
                         });
                     }
                     return losses;
@@ -1081,11 +1078,7 @@ impl Recorder {
         // failed tap would leave the bag without its end.
         for tap in self.taps {
             match tap.await {
-                Ok(report) => losses.extend(
-                    report
-                        .into_iter()
-                        .filter(|loss| loss.missed > 0 || loss.unreadable > 0),
-                ),
+                Ok(report) => losses.extend(report.into_iter().filter(|loss| loss.missed > 0)),
                 Err(e) => failed_taps.push(e.to_string()),
             }
         }
@@ -1209,59 +1202,38 @@ pub fn print_summary(summary: &RecordSummary) {
         eprintln!("  {topic:<28} {type_name:<40} {count}");
     }
     for loss in &summary.losses {
-        if loss.missed > 0 {
-            eprintln!(
-                "  {}: {} samples published but never received (the bag lacks them)",
-                loss.topic, loss.missed
-            );
-        }
-        if loss.unreadable > 0 {
-            eprintln!(
-                "  {}: {} samples received that could not be decoded (the bag lacks them)",
-                loss.topic, loss.unreadable
-            );
-        }
+        eprintln!(
+            "  {}: {} samples published but never received (the bag lacks them)",
+            loss.topic, loss.missed
+        );
     }
 }
 
 impl RecordSummary {
     /// What the bag lacks, in one line (`None`: nothing was lost on the way in).
     pub fn loss(&self) -> Option<String> {
-        let missed: Vec<&TopicLoss> = self.losses.iter().filter(|l| l.missed > 0).collect();
-        let unreadable: Vec<&TopicLoss> = self.losses.iter().filter(|l| l.unreadable > 0).collect();
-        let mut parts = Vec::new();
-        if !missed.is_empty() {
-            let total: u64 = missed.iter().map(|l| l.missed).sum();
-            let topics: Vec<String> = (missed.iter())
-                .map(|l| format!("{} {}", l.topic, l.missed))
-                .collect();
-            let mut causes = Vec::new();
-            if missed.iter().any(|l| l.topic == MOVES_TOPIC) {
-                causes.push(
-                    "the streamer does not count this recorder among its consumers (its \
-                     `consumers` parameter), so it never said where the moves start",
-                );
-            }
-            if missed.iter().any(|l| l.topic != MOVES_TOPIC) {
-                causes.push("the recorder fell behind their keep-last history");
-            }
-            parts.push(format!(
-                "the bag lacks {total} samples its writers published ({}): {}",
-                topics.join(", "),
-                causes.join("; ")
-            ));
+        if self.losses.is_empty() {
+            return None;
         }
-        if !unreadable.is_empty() {
-            let total: u64 = unreadable.iter().map(|l| l.unreadable).sum();
-            let topics: Vec<String> = (unreadable.iter())
-                .map(|l| format!("{} {}", l.topic, l.unreadable))
-                .collect();
-            parts.push(format!(
-                "{total} samples received could not be decoded ({}): a writer whose message definition differs",
-                topics.join(", ")
-            ));
+        let total: u64 = self.losses.iter().map(|l| l.missed).sum();
+        let topics: Vec<String> = (self.losses.iter())
+            .map(|l| format!("{} {}", l.topic, l.missed))
+            .collect();
+        let mut causes = Vec::new();
+        if self.losses.iter().any(|l| l.topic == MOVES_TOPIC) {
+            causes.push(
+                "the streamer does not count this recorder among its consumers (its \
+                 `consumers` parameter), so it never said where the moves start",
+            );
         }
-        (!parts.is_empty()).then(|| parts.join("; "))
+        if self.losses.iter().any(|l| l.topic != MOVES_TOPIC) {
+            causes.push("the recorder fell behind their keep-last history");
+        }
+        Some(format!(
+            "the bag lacks {total} samples its writers published ({}): {}",
+            topics.join(", "),
+            causes.join("; ")
+        ))
     }
 }
 
@@ -1355,8 +1327,8 @@ pub fn cdr_publisher(
 mod tests {
     use super::*;
 
-    /// A recording that lost samples, or took samples it could not decode, says which and
-    /// why in one line (the recorder then exits non-zero); one that lost nothing says nothing.
+    /// A recording that lost samples says which and why in one line (the recorder then
+    /// exits non-zero); one that lost nothing says nothing.
     #[test]
     fn a_loss_names_its_topics_and_causes() {
         let summary = |losses: Vec<TopicLoss>| RecordSummary {
@@ -1365,22 +1337,20 @@ mod tests {
             messages: 0,
             losses,
         };
-        let loss = |topic: &str, missed, unreadable| TopicLoss {
+        let loss = |topic: &str, missed| TopicLoss {
             topic: topic.into(),
             missed,
-            unreadable,
         };
         assert_eq!(summary(vec![]).loss(), None);
-        let text = summary(vec![loss("/gcode/progress", 3, 0), loss("/tf", 0, 2)])
+        let text = summary(vec![loss("/gcode/progress", 3), loss("/tf", 2)])
             .loss()
             .unwrap();
         assert_eq!(
             text,
-            "the bag lacks 3 samples its writers published (/gcode/progress 3): the recorder \
-             fell behind their keep-last history; 2 samples received could not be decoded \
-             (/tf 2): a writer whose message definition differs"
+            "the bag lacks 5 samples its writers published (/gcode/progress 3, /tf 2): the \
+             recorder fell behind their keep-last history"
         );
-        let text = summary(vec![loss(MOVES_TOPIC, 12, 0)]).loss().unwrap();
+        let text = summary(vec![loss(MOVES_TOPIC, 12)]).loss().unwrap();
         assert!(text.starts_with("the bag lacks 12 samples its writers published (/gcode/moves 12): the streamer does not count this recorder"), "{text}");
     }
 

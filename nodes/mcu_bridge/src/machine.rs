@@ -261,19 +261,17 @@ impl<L: McuLink> McuMachine<L> {
             .session
             .schedule_end_clock()
             .map_or(0.0, |end| end.saturating_sub(plan_now) as f64 / hz);
-        let resume_s = (self.horizon_s / 2.0).max(2.0 * self.stopping_s());
-        let covered = held_back && known_left_s >= self.stopping_s();
+        // A hold from full feed covers 1/(2ρ) of plan time; started with a margin for the
+        // state's age and the loop's period.
+        let stopping_s = self.stopping_s();
+        let resume_s = (self.horizon_s / 2.0).max(2.0 * stopping_s);
+        let covered = held_back && known_left_s >= stopping_s;
         match self.hold {
             // Dry at a rest the MCU waits, its plan clock standing: nothing to do.
-            None if !at_rest && !covered => {
-                // A hold from full feed covers 1/(2ρ) of plan time; start it with a margin
-                // for the state's age and the loop's period.
-                let stopping_s = self.stopping_s();
-                if left_s < stopping_s {
-                    self.session.pause()?;
-                    self.hold = Some(HoldReason::Underrun);
-                    self.underruns += 1;
-                }
+            None if !at_rest && !covered && left_s < stopping_s => {
+                self.session.pause()?;
+                self.hold = Some(HoldReason::Underrun);
+                self.underruns += 1;
             }
             Some(HoldReason::Underrun)
                 if left_s >= resume_s

@@ -220,10 +220,7 @@ fn mcu_a_host_left() -> (
     rig.run_to_end(&part_one, 60.0);
     let stop_steps = end_steps(&part_one);
     // The first host goes away; the MCU runs on alone past its host timeout (1 s).
-    let placeholder = InProcess {
-        mcu: mcu_emulator::Emulator::new(EmulatorOptions::default()),
-        edges: Vec::new(),
-    };
+    let placeholder = InProcess::new(EmulatorOptions::default());
     let mut link = std::mem::replace(rig.machine.link_mut(), placeholder);
     // What the MCU says meanwhile waits in the line (a pseudo-terminal or a USB CDC port
     // buffers it) for whoever opens it next.
@@ -619,13 +616,8 @@ fn an_underrun_hold_ends_once_a_short_horizon_is_full() {
     let horizon_s = 0.3;
     let mut options = common::session_options();
     options.horizon_s = horizon_s;
-    let link = InProcess {
-        mcu: mcu_emulator::Emulator::new(EmulatorOptions::default()),
-        edges: Vec::new(),
-    };
-    let session = mcu_bridge::McuSession::new(options, 0x5EED);
     let mut rig = Rig {
-        machine: McuMachine::new(session, link, 64, horizon_s),
+        machine: common::mcu_machine_on(options, InProcess::new(EmulatorOptions::default())),
         now_ns: 0,
         fed: 0,
     };
@@ -642,10 +634,9 @@ fn an_underrun_hold_ends_once_a_short_horizon_is_full() {
     assert!(rig.machine.session().error().is_none());
 }
 
-/// A power cycle of the MCU mid-print is noticed within 100 ms and ends the print as a fault
-/// with the reason; the machine reports itself stopped.
-#[test]
-fn a_restarted_mcu_is_a_fault_noticed_within_100_ms() {
+/// Finger's start printed on an MCU power-cycled at 6 s, until the machine tells the fault:
+/// the rig then, and the error.
+fn printing_through_a_restart_at_6_s() -> (Rig, String) {
     let segments = finger_start(300);
     let mut rig = Rig::new(EmulatorOptions {
         reset_at_s: Some(6.0),
@@ -657,6 +648,14 @@ fn a_restarted_mcu_is_a_fault_noticed_within_100_ms() {
         }
         assert!(rig.now_ns < 20_000_000_000, "no fault");
     };
+    (rig, error)
+}
+
+/// A power cycle of the MCU mid-print is noticed within 100 ms and ends the print as a fault
+/// with the reason; the machine reports itself stopped.
+#[test]
+fn a_restarted_mcu_is_a_fault_noticed_within_100_ms() {
+    let (rig, error) = printing_through_a_restart_at_6_s();
     let noticed_after_ms = (rig.now_ns - 6_000_000_000) as f64 * 1e-6;
     assert!(
         noticed_after_ms <= 100.0,
@@ -677,14 +676,7 @@ fn a_restarted_mcu_is_a_fault_noticed_within_100_ms() {
 /// the last one's end) is refused with what to do, not played displaced.
 #[test]
 fn after_a_restart_a_reset_brings_the_mcu_back_and_a_plan_needs_a_new_start() {
-    let segments = finger_start(300);
-    let mut rig = Rig::new(EmulatorOptions {
-        reset_at_s: Some(6.0),
-        ..EmulatorOptions::default()
-    });
-    while rig.ms(&segments).is_ok() {
-        assert!(rig.now_ns < 20_000_000_000, "no fault");
-    }
+    let (mut rig, _) = printing_through_a_restart_at_6_s();
     // The operator looks, then resets; meanwhile the fault stands.
     rig.fed = 0;
     for _ in 0..1000 {
@@ -737,14 +729,10 @@ impl mcu_bridge::McuLink for FailingWrite {
 fn a_failed_write_stops_the_mcu_at_once() {
     let segments = finger_start(300);
     let link = FailingWrite {
-        inner: InProcess {
-            mcu: mcu_emulator::Emulator::new(EmulatorOptions::default()),
-            edges: Vec::new(),
-        },
+        inner: InProcess::new(EmulatorOptions::default()),
         fail_at_ns: Some(5_000_000_000),
     };
-    let session = mcu_bridge::McuSession::new(common::session_options(), 0x5EED);
-    let mut machine = McuMachine::new(session, link, 64, 2.0);
+    let mut machine = common::mcu_machine_on(common::session_options(), link);
     let (mut fed, mut now_ns, mut failed_at) = (0, 0i64, None);
     while now_ns < 6_000_000_000 {
         let (room, _) = machine.free_slots();
@@ -912,8 +900,8 @@ impl SlowLine {
 /// up to a tick more before it is seen.
 #[test]
 fn clock_sync_with_a_crystal_100_ppm_fast_after_10_s_and_10_min() {
-    use mcu_bridge::{McuMachine, McuSession, SessionOptions};
-    use mcu_emulator::{Crystal, Emulator};
+    use mcu_bridge::SessionOptions;
+    use mcu_emulator::Crystal;
     let crystal = Crystal {
         timer_hz: 1e6,
         offset_ticks: 987_654_321,
@@ -921,13 +909,10 @@ fn clock_sync_with_a_crystal_100_ppm_fast_after_10_s_and_10_min() {
         drift_ppm_per_s: 0.0,
     };
     let line = SlowLine {
-        inner: InProcess {
-            mcu: Emulator::new(EmulatorOptions {
-                crystal,
-                ..EmulatorOptions::default()
-            }),
-            edges: Vec::new(),
-        },
+        inner: InProcess::new(EmulatorOptions {
+            crystal,
+            ..EmulatorOptions::default()
+        }),
         to_mcu: Default::default(),
         to_host: Default::default(),
         seed: 0x9E37_79B9_7F4A_7C15,
@@ -937,7 +922,7 @@ fn clock_sync_with_a_crystal_100_ppm_fast_after_10_s_and_10_min() {
         std::array::from_fn(|j| PlannerOptions::default().joints[j].acceleration),
         0.25,
     );
-    let mut machine = McuMachine::new(McuSession::new(options, 0x5EED), line, 64, 2.0);
+    let mut machine = common::mcu_machine_on(options, line);
     let mut now_ns = 0i64;
     let mut figures = Vec::new();
     for until_s in [10, 600] {

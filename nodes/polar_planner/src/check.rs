@@ -114,12 +114,8 @@ pub fn limit_usage(
                 let l = &options.joints[j];
                 r.velocity[j] = r.velocity[j].max(p.qd[j].abs() / l.velocity);
                 r.acceleration[j] = r.acceleration[j].max(p.qdd[j].abs() / l.acceleration);
-                if let Some((min, max)) = l.position {
-                    let min = if j == 1 && options.allow_negative_r {
-                        -max
-                    } else {
-                        min
-                    };
+                if l.position.is_some() {
+                    let (min, max) = crate::planner::position_range(options, j);
                     if p.q[j] < min - 1e-12 || p.q[j] > max + 1e-12 {
                         r.out_of_range += 1;
                     }

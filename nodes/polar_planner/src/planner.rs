@@ -628,13 +628,8 @@ impl Planner {
             if self.options.joints[j].position.is_none() {
                 continue;
             }
+            // (With negative radii allowed the arm's range is symmetric: checked in `new`.)
             let (min, max) = position_range(&self.options, j);
-            // With negative radii allowed the range is symmetric (checked in `new`).
-            let min = if j == 1 && self.options.allow_negative_r {
-                -max
-            } else {
-                min
-            };
             if value < min - 1e-12 || value > max + 1e-12 {
                 return Err(PlanError::OutOfRange {
                     sequence: m.sequence,
@@ -1107,7 +1102,7 @@ impl Planner {
 
 /// A joint's position limits as the planner keeps to them (none: unbounded); with negative
 /// radii allowed, the arm's is symmetric about the centre.
-fn position_range(options: &PlannerOptions, joint: usize) -> (f64, f64) {
+pub(crate) fn position_range(options: &PlannerOptions, joint: usize) -> (f64, f64) {
     let (min, max) = options.joints[joint]
         .position
         .unwrap_or((f64::NEG_INFINITY, f64::INFINITY));

@@ -20,6 +20,16 @@ pub struct InProcess {
     pub edges: Vec<StepEdge>,
 }
 
+impl InProcess {
+    /// An MCU just powered up with these options, no edges yet.
+    pub fn new(options: EmulatorOptions) -> InProcess {
+        InProcess {
+            mcu: Emulator::new(options),
+            edges: Vec::new(),
+        }
+    }
+}
+
 impl McuLink for InProcess {
     type Error = Infallible;
     fn read(&mut self, now_ns: i64, into: &mut Vec<u8>) -> Result<(), Infallible> {
@@ -123,9 +133,11 @@ pub fn mcu_machine_with(
     options: SessionOptions,
     emulator: EmulatorOptions,
 ) -> McuMachine<InProcess> {
-    let link = InProcess {
-        mcu: Emulator::new(emulator),
-        edges: Vec::new(),
-    };
-    McuMachine::new(McuSession::new(options, 0x5EED), link, 64, 2.0)
+    mcu_machine_on(options, InProcess::new(emulator))
+}
+
+/// The MCU machine with these session options on `link`: 64 places, the session's horizon.
+pub fn mcu_machine_on<L: McuLink>(options: SessionOptions, link: L) -> McuMachine<L> {
+    let horizon_s = options.horizon_s;
+    McuMachine::new(McuSession::new(options, 0x5EED), link, 64, horizon_s)
 }

@@ -710,14 +710,21 @@ impl Interpreter {
         let a0 = (sy - cy).atan2(sx - cx);
         let a1 = (ey - cy).atan2(ex - cx);
         let tau = std::f64::consts::TAU;
-        let mut sweep = a1 - a0;
         let same_point = (ex - sx).hypot(ey - sy) < 1e-9;
-        if clockwise {
-            if sweep >= 0.0 || same_point {
+        // An arc back to its start is a full circle. Its two angles may still differ by a
+        // whole turn (atan2 answers +π or -π for a start at -0.0 or a hair below the
+        // centre's Y), so the sweep is set, not corrected.
+        let mut sweep = match (same_point, clockwise) {
+            (true, true) => -tau,
+            (true, false) => tau,
+            (false, _) => a1 - a0,
+        };
+        if !same_point {
+            if clockwise && sweep >= 0.0 {
                 sweep -= tau;
+            } else if !clockwise && sweep <= 0.0 {
+                sweep += tau;
             }
-        } else if sweep <= 0.0 || same_point {
-            sweep += tau;
         }
         if let Some(turns) = p.get(b'P') {
             if turns.fract() != 0.0 || turns < 1.0 {

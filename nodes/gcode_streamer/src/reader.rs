@@ -77,7 +77,7 @@ impl<R: BufRead> GcodeReader<R> {
         self.finished = true;
         GcodeError {
             file: self.file.clone(),
-            line: self.line_number + 1,
+            line: self.line_number,
             column: MAX_LINE_BYTES as u32,
             kind: ErrorKind::LineTooLong {
                 limit: MAX_LINE_BYTES,
@@ -141,6 +141,8 @@ impl<R: BufRead> GcodeReader<R> {
                     self.partial.extend_from_slice(buf);
                     let n = buf.len();
                     if self.partial.len() > MAX_LINE_BYTES {
+                        // The line has no end yet, but it is the next one: name it.
+                        self.line_number += 1;
                         (n, Err(()))
                     } else {
                         (n, Ok(Ok(())))
@@ -157,7 +159,6 @@ impl<R: BufRead> GcodeReader<R> {
                     return Err(e);
                 }
                 Err(()) => {
-                    self.line_number = self.line_number.saturating_sub(1);
                     return Err(self.too_long());
                 }
             }
@@ -239,23 +240,34 @@ mod tests {
     }
 
     #[test]
-    fn too_long_lines_are_errors_whether_buffered_or_not() {
+    fn too_long_lines_are_errors_naming_their_line_whether_buffered_or_not() {
         let long = vec![b' '; MAX_LINE_BYTES + 10];
-        let mut with_newline = long.clone();
-        with_newline.push(b'\n');
-        for src in [&long, &with_newline] {
-            for capacity in [1024, 1 << 20] {
-                let reader = std::io::BufReader::with_capacity(capacity, &src[..]);
-                let err = GcodeReader::new(reader, "l", InterpreterOptions::default())
-                    .find_map(|e| e.err())
-                    .unwrap();
-                assert_eq!(
-                    err.kind,
-                    ErrorKind::LineTooLong {
-                        limit: MAX_LINE_BYTES
-                    }
-                );
-                assert_eq!(err.line, 1);
+        for (prefix, line) in [
+            (&b""[..], 1),
+            (&b"G1 X1\n"[..], 2),
+            (&b"G1 X1\n\nM107\n"[..], 4),
+        ] {
+            for newline in [false, true] {
+                let mut src = prefix.to_vec();
+                src.extend_from_slice(&long);
+                if newline {
+                    src.push(b'\n');
+                }
+                // Smaller than the line (cut while no newline is in sight), exactly the limit,
+                // and larger than the whole input (the line arrives in one piece).
+                for capacity in [1024, MAX_LINE_BYTES, 1 << 20] {
+                    let reader = std::io::BufReader::with_capacity(capacity, &src[..]);
+                    let err = GcodeReader::new(reader, "l", InterpreterOptions::default())
+                        .find_map(|e| e.err())
+                        .unwrap();
+                    assert_eq!(
+                        err.kind,
+                        ErrorKind::LineTooLong {
+                            limit: MAX_LINE_BYTES
+                        }
+                    );
+                    assert_eq!(err.line, line, "capacity {capacity}, newline {newline}");
+                }
             }
         }
     }

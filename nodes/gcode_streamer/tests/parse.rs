@@ -164,6 +164,46 @@ fn full_circle_with_ij() {
     assert_eq!((last.x_m, last.y_m), (0.010, 0.0));
 }
 
+/// A circle that starts where atan2 answers -π (a start Y of -0.000 straight left of the
+/// centre) or a hair off the start (G91 sums that do not cancel in binary) is still one whole
+/// turn, clockwise or not: not lost to a zero sweep, not doubled to two turns.
+#[test]
+fn full_circles_are_one_turn_wherever_atan2_puts_the_start() {
+    let path_length_m = |chords: &[GcodeMove], from: (f64, f64)| {
+        let mut at = from;
+        let mut length = 0.0;
+        for c in chords {
+            length += (c.x_m - at.0).hypot(c.y_m - at.1);
+            at = (c.x_m, c.y_m);
+        }
+        length
+    };
+    let circumference_m = std::f64::consts::TAU * 0.010;
+    for (src, turn_at_x_m) in [
+        ("G1 X0 Y-0.000\nG2 X0 Y0 I10 J0\n", 0.020),
+        ("G1 X0 Y-0.000\nG3 X0 Y0 I10 J0\n", 0.020),
+        (
+            "G91\nG1 X0.1\nG1 X0.2\nG1 X-0.3\nG90\nG2 X0 Y0 I10 J0\n",
+            0.020,
+        ),
+        ("G1 X20 Y-0.000\nG3 X20 Y0 I-10 J0\n", 0.0),
+    ] {
+        let m = parse(src);
+        let first_chord = m.iter().position(|c| c.segment_count > 1).unwrap();
+        let start = &m[first_chord - 1];
+        let chords = &m[first_chord..];
+        let length = path_length_m(chords, (start.x_m, start.y_m));
+        assert!(
+            close(length, circumference_m, 2e-5),
+            "{src:?}: {length} m of arc, a turn is {circumference_m} m"
+        );
+        assert!(
+            chords.iter().any(|c| close(c.x_m, turn_at_x_m, 1e-5)),
+            "{src:?} never reaches the far side"
+        );
+    }
+}
+
 fn error_of(src: &str) -> gcode_streamer::GcodeError {
     parse_all(src.as_bytes(), "bad.gcode", InterpreterOptions::default()).unwrap_err()
 }

@@ -433,10 +433,15 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             }
             _ => {}
         }
+        // A start clock from the wire so late that the segment would end past the clock's
+        // range: no schedule can follow it (and the sum would wrap).
+        let Some(end) = queued.start_clock.checked_add(queued.duration_ticks as u64) else {
+            return self.latch(FaultCode::BadSegment, tag);
+        };
         if self.queue.push_back(queued).is_err() {
             return self.latch(FaultCode::QueueOverflow, tag);
         }
-        self.schedule_end = Some(queued.start_clock + queued.duration_ticks as u64);
+        self.schedule_end = Some(end);
         self.schedule_tag = tag;
     }
 
@@ -482,8 +487,12 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
                 // Ran dry at rest: the plan clock stands where the schedule ends, so the
                 // host's next segment starts there whenever it comes (plan time = the
                 // plan's time, as the virtual executor keeps it).
-                self.clock = until.min(self.watchdog_deadline());
-                self.step_ramp();
+                // A hold or resume asked for meanwhile still ramps σ at its rate per tick
+                // (applied for the whole stretch at once), so the machine is held at the same
+                // tick however its caller chunks the time.
+                let from = self.clock;
+                self.clock = self.next_rest_event(until);
+                self.ramp_over(self.clock - from);
             } else if self.sigma_q32 == ONE && self.ramp == Ramp::Steady {
                 // The pulses in a tight loop up to the last one due (the pass's end then
                 // handles that tick: a segment ending there, the next taken up); with none
@@ -498,14 +507,7 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             } else if at_rest {
                 // Held: the plan clock stands; only the watchdog or the end of a resume's
                 // wait can happen.
-                let mut next = until.min(self.watchdog_deadline());
-                if let Ramp::ResumeWait {
-                    until: wait_end, ..
-                } = self.ramp
-                {
-                    next = next.min(wait_end.max(self.clock + 1));
-                }
-                self.clock = next;
+                self.clock = self.next_rest_event(until);
                 self.step_ramp();
             } else {
                 // Ramping: σ changes every tick, so the plan clock is stepped tick by tick,
@@ -678,6 +680,43 @@ impl<const Q: usize, const S: usize> Machine<Q, S> {
             return u64::MAX;
         }
         (self.last_host_frame + self.host_timeout_ticks as u64 + 1).max(self.clock + 1)
+    }
+
+    /// Where a pass that moves nothing on the plan clock ends: `until`, the watchdog, or the
+    /// end of a resume's wait (the tick σ starts to rise).
+    fn next_rest_event(&self, until: u64) -> u64 {
+        let mut next = until.min(self.watchdog_deadline());
+        if let Ramp::ResumeWait {
+            until: wait_end, ..
+        } = self.ramp
+        {
+            next = next.min(wait_end.max(self.clock + 1));
+        }
+        next
+    }
+
+    /// `ticks` calls of [`Machine::step_ramp`] at once, for a stretch in which the plan clock
+    /// stands (a resume's wait ends only at the stretch's last tick: see
+    /// [`Machine::next_rest_event`]).
+    fn ramp_over(&mut self, ticks: u64) {
+        match self.ramp {
+            Ramp::Hold { rate } => {
+                self.sigma_q32 = self.sigma_q32.saturating_sub(rate.saturating_mul(ticks));
+                if self.sigma_q32 == 0 {
+                    self.ramp = Ramp::Steady;
+                }
+            }
+            Ramp::Resume { rate } => {
+                self.sigma_q32 = self
+                    .sigma_q32
+                    .saturating_add(rate.saturating_mul(ticks))
+                    .min(ONE);
+                if self.sigma_q32 == ONE {
+                    self.ramp = Ramp::Steady;
+                }
+            }
+            Ramp::Steady | Ramp::ResumeWait { .. } => self.step_ramp(),
+        }
     }
 
     fn step_ramp(&mut self) {

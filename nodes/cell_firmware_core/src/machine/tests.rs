@@ -165,6 +165,20 @@ fn a_gap_between_segments_is_a_bad_segment() {
     assert_eq!(m.fault(), FaultCode::BadSegment);
 }
 
+/// A start clock off the end of the clock's range (bytes from the wire) is refused as a bad
+/// segment: its end would wrap.
+#[test]
+fn a_segment_ending_past_the_clocks_range_is_a_bad_segment() {
+    let mut m = machine();
+    queue(
+        &mut m,
+        cruise(u64::MAX - 500, 10, 100, SEGMENT_ENDS_AT_REST, 9),
+    );
+    assert_eq!(m.fault(), FaultCode::BadSegment);
+    assert_eq!(m.mode(), Mode::Fault);
+    assert!(run(&mut m, 10_000).is_empty());
+}
+
 #[test]
 fn running_dry_while_moving_is_an_underrun_but_not_at_rest() {
     let mut m = machine();
@@ -534,6 +548,57 @@ fn a_hold_and_resume_generated_in_big_chunks_match_tick_by_tick() {
     let chunked = script(&mut machine(), 5_000);
     assert_eq!(tick_by_tick.0.len(), 300);
     assert_eq!(chunked, tick_by_tick);
+}
+
+/// A hold asked for while the schedule has run dry (the host's next segment not yet in) ramps
+/// σ per tick like any hold: held after the ramp's ticks, not after as many `advance` calls,
+/// so a pause there is as quick with a 1 ms timer pass as tick by tick; likewise the resume.
+#[test]
+fn a_hold_while_waiting_for_segments_ramps_per_tick_however_time_is_chunked() {
+    let rate = (ONE / 2000) as u32;
+    let script = |m: &mut M, chunk: u64| {
+        let mut edges = Vec::new();
+        let mut samples = Vec::new();
+        let advance = |m: &mut M, until: u64, edges: &mut Vec<StepEdge>| {
+            while m.clock() < until {
+                let next = (m.clock() + chunk).min(until);
+                m.advance(next, &mut |e| edges.push(e));
+            }
+        };
+        queue(m, cruise(0, 100, 50, SEGMENT_ENDS_AT_REST, 1));
+        advance(m, 6_000, &mut edges);
+        assert_eq!(m.mode(), Mode::Idle, "ran dry at 5000, waiting for more");
+        m.handle(&HostMessage::FeedHold { rate_q32: rate }, m.clock());
+        for until in [7_000, 7_999, 8_100, 9_000] {
+            advance(m, until, &mut edges);
+            samples.push((m.clock(), m.mode(), m.plan_clock(), m.positions()));
+        }
+        // The next segment arrives while held, then a resume.
+        queue(m, cruise(5_000, 100, 50, SEGMENT_ENDS_AT_REST, 2));
+        advance(m, 10_000, &mut edges);
+        m.handle(
+            &HostMessage::FeedResume {
+                rate_q32: rate,
+                delay_ticks: 100,
+            },
+            m.clock(),
+        );
+        for until in [10_050, 10_700, 11_333, 40_000] {
+            advance(m, until, &mut edges);
+            samples.push((m.clock(), m.mode(), m.plan_clock(), m.positions()));
+        }
+        (edges, samples, m.state())
+    };
+    let tick_by_tick = script(&mut machine(), 1);
+    // σ from 1 to 0 in 2000 ticks from 6000 (2001 with the rate rounded down).
+    assert_eq!(tick_by_tick.1[0].1, Mode::Ramping);
+    assert_eq!(tick_by_tick.1[1].1, Mode::Ramping);
+    assert_eq!(tick_by_tick.1[2].1, Mode::Held);
+    assert_eq!(tick_by_tick.0.len(), 200);
+    assert_eq!(tick_by_tick.2.position_steps[0], 200);
+    for chunk in [1_000, 5_000, 777] {
+        assert_eq!(script(&mut machine(), chunk), tick_by_tick, "chunk {chunk}");
+    }
 }
 
 #[test]

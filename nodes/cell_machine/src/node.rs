@@ -776,13 +776,7 @@ pub async fn run<M: Machine>(
             let service = SERVICES[index].0;
             cell_runtime::cell_log!(node, LogLevel::Warn, "{service}: {problem}");
         }
-        // Once cancelled or stopped, what is still in flight for the dropped plan is dropped
-        // too: a stopped machine would refuse it, and that refusal is no fault of the print.
         control.observe(executor.state().state);
-        if control.plan_dropped || stopping_for.is_some() {
-            pending_steps.clear();
-            pending_screw.clear();
-        }
         // A restarted producer that sends nothing is seen in the graph's announcements
         // (looked at every half second, and at once after a producer's first message, which
         // fixes who announced it before), while the print lasts.
@@ -927,6 +921,14 @@ pub async fn run<M: Machine>(
                 executor.cancel();
             }
         }
+        // Once cancelled or stopped, what is still in flight for the dropped plan is dropped
+        // too: a stopped machine would refuse it, and that refusal is no fault of the print.
+        // (Here, after every check of this pass that may decide a stop: a stop decided above
+        // must not queue more plan into the machine it is stopping.)
+        if control.plan_dropped || stopping_for.is_some() {
+            pending_steps.clear();
+            pending_screw.clear();
+        }
         // Queue what the core has room for; the rest waits (the credit bounds how much).
         let (mut free_steps, free_screw) = executor.free_slots();
         for _ in 0..free_screw.min(pending_screw.len()) {
@@ -957,6 +959,7 @@ pub async fn run<M: Machine>(
                         late_ns as f64 * 1e-9
                     ));
                     pending_screw.clear();
+                    pending_steps.clear();
                     break;
                 }
             }

@@ -147,6 +147,11 @@ pub struct Player {
     state: PlayerState,
     /// The plan clock τ (Q32 ticks); with no segment playing, where the next one starts.
     plan_q32: u128,
+    /// Plan-time dominant step rate (steps/s) of the last period of the stepping segment
+    /// played last, while the plan has gone on from it without a break or a piece without
+    /// steps: with the next
+    /// segment's first, it gives the plan's acceleration at a single-step segment.
+    previous_rate: Option<f64>,
     now_q32: u128,
     last_edge_q32: u128,
     /// Feed scale σ; it heads for 0 while `hold` is set, else for 1.
@@ -169,6 +174,7 @@ impl Player {
             position_steps: options.initial_steps,
             state: PlayerState::Idle,
             plan_q32: 0,
+            previous_rate: None,
             now_q32: 0,
             last_edge_q32: 0,
             feed: 1.0,
@@ -304,27 +310,35 @@ impl Player {
         true
     }
 
-    /// The σ̇ interval at the current point of the plan (per second of machine time).
-    fn feed_rate_bounds(&self) -> (f64, f64) {
+    /// The σ̇ interval at the current point of the plan (per second of machine time), to
+    /// hold for the next `period_s` of machine time.
+    fn feed_rate_bounds(&self, period_s: f64) -> (f64, f64) {
         // The stepping segment whose constraints hold now: the one playing; during one
         // without steps (a dwell at rest, or a piece of a move shorter than half a step on
         // every axis, inside motion) the next that steps, from its start. (At rest that is a
         // move's first step, slow: σ may then change within milliseconds, and nothing moves.)
         let upcoming;
-        let train = match self
+        let (train, mut after, before) = match self
             .active
             .as_ref()
             .filter(|a| a.job.segment.dominant_steps() > 0)
         {
-            Some(active) => &active.train,
-            None => match self.queue.iter().find(|j| j.segment.dominant_steps() > 0) {
-                Some(job) => {
-                    upcoming = PulseTrain::new(&job.segment);
-                    &upcoming
+            Some(active) => (&active.train, self.queue.iter(), self.previous_rate),
+            None => {
+                let mut queued = self.queue.iter();
+                match queued.find(|j| j.segment.dominant_steps() > 0) {
+                    Some(job) => {
+                        upcoming = PulseTrain::new(&job.segment);
+                        // The step before it is known only if nothing stepless (playing, or
+                        // queued before it) lies between them.
+                        let adjacent = self.active.is_none()
+                            && self.queue.front().is_some_and(|j| std::ptr::eq(j, job));
+                        (&upcoming, queued, self.previous_rate.filter(|_| adjacent))
+                    }
+                    // Nothing steps before the plan ends: at rest there, no constraint.
+                    None => return (f64::NEG_INFINITY, f64::INFINITY),
                 }
-                // Nothing steps before the plan ends: at rest there, no constraint.
-                None => return (f64::NEG_INFINITY, f64::INFINITY),
-            },
+            }
         };
         let seg = train.segment();
         let rate = self.dominant_rate(train);
@@ -336,14 +350,55 @@ impl Player {
                 limit = limit.min(a * total / seg.step_counts[k] as f64);
             }
         }
-        // r·p² (dimensionless) times the rate² is the dominant acceleration in steps/s².
-        let accel =
-            train.ramp_q62() as f64 / (1u64 << 62) as f64 * rate * rate * train.phase() as f64;
-        let s2a = self.feed * self.feed * accel;
-        (
-            ((-limit - s2a) / rate).min(0.0),
-            ((limit - s2a) / rate).max(0.0),
-        )
+        // The plan's own dominant acceleration (steps/s²), as an interval that holds it.
+        let (accel_min, accel_max) = if total == 1.0 && train.ramp_q62() == 0 {
+            // A single step, timed exactly by the planner near rest where a ramp's
+            // recurrence is inexact: its period says nothing of the acceleration, which is
+            // a ramp's all the same. Under constant acceleration 1/period is the speed at
+            // the step's middle in time, so two neighbours' rates give it exactly; the
+            // interval spans the one before and the one after (they differ across a rest
+            // point, where the plan turns from slowing to speeding up).
+            let next = after
+                .find(|j| j.segment.dominant_steps() > 0)
+                .map(|j| self.dominant_rate(&PulseTrain::new(&j.segment)));
+            // (Within the limit: a plan keeps to it, and a jump in rate — steps cut apart by
+            // a dwell, a plan from elsewhere — must not stop a hold from taking hold.)
+            let between =
+                |r1: f64, r2: f64| ((r2 - r1) * 2.0 * r1 * r2 / (r1 + r2)).clamp(-limit, limit);
+            let estimates = [
+                before.map(|r| between(r, rate)),
+                next.map(|r| between(rate, r)),
+            ];
+            // (0 stays in the interval: with no neighbour known, as a cruise; and the
+            // bounds only widen towards safety.)
+            let known = estimates.into_iter().flatten();
+            (known.clone().fold(0.0, f64::min), known.fold(0.0, f64::max))
+        } else {
+            // r·p² (dimensionless) times the rate² is the dominant acceleration in steps/s².
+            let accel =
+                train.ramp_q62() as f64 / (1u64 << 62) as f64 * rate * rate * train.phase() as f64;
+            (accel, accel)
+        };
+        // The machine's acceleration is σ̇·rate + σ²·(the plan's): within ±limit for any
+        // plan acceleration in the interval, and for σ where the period leaves it, not only
+        // where it starts: σ rising while the plan speeds up (or falling while it slows)
+        // takes more of the limit as it goes, and at a slow rate σ moves far in a period.
+        let feed2 = self.feed * self.feed;
+        let lo = (-limit - feed2 * accel_min) / rate;
+        let hi = (limit - feed2 * accel_max) / rate;
+        let lo = if accel_min > 0.0 {
+            let end = (self.feed + lo * period_s).max(0.0);
+            (-limit - end * end * accel_min) / rate
+        } else {
+            lo
+        };
+        let hi = if accel_max > 0.0 {
+            let end = (self.feed + hi * period_s).min(1.0);
+            (limit - end * end * accel_max) / rate
+        } else {
+            hi
+        };
+        (lo.min(0.0), hi.max(0.0))
     }
 
     /// Plan time a hold begun now with σ̇ = `lo` would still consume before rest, with a
@@ -405,6 +460,8 @@ impl Player {
                     // feed it ran dry with.
                     self.feed = 0.0;
                 }
+                // What comes next starts after a break in the plan, at rest.
+                self.previous_rate = None;
                 self.state = PlayerState::Idle;
                 break;
             }
@@ -424,7 +481,8 @@ impl Player {
         t1: u128,
         on_edge: &mut impl FnMut(Edge),
     ) -> Result<(), PlayerError> {
-        let (lo, hi) = self.feed_rate_bounds();
+        let h = q32_to_seconds(t1 - t0, self.options.steps.timer_hz);
+        let (lo, hi) = self.feed_rate_bounds(h);
         // Hold before the queued plan runs out; resume once enough is queued again.
         if !self.input_finished {
             let needed = self.stopping_plan_q32(lo);
@@ -439,7 +497,6 @@ impl Player {
         } else if self.hold == Some(HoldReason::Underrun) {
             self.release();
         }
-        let h = q32_to_seconds(t1 - t0, self.options.steps.timer_hz);
         let feed0 = self.feed;
         self.feed = if self.hold.is_some() {
             (feed0 + lo * h).max(0.0)
@@ -510,6 +567,13 @@ impl Player {
                 return Ok(());
             }
             self.plan_q32 = end_q32;
+            // (Not across a piece without steps: a dwell at rest between them.)
+            self.previous_rate = (active.job.segment.dominant_steps() > 0).then(|| {
+                1.0 / q32_to_seconds(
+                    active.train.period_q32().into(),
+                    self.options.steps.timer_hz,
+                )
+            });
             self.completed += 1;
             self.last_completed = Some((active.job.move_sequence, active.job.source_line));
             self.active = None;
@@ -520,6 +584,7 @@ impl Player {
     /// the plan clock stands.
     fn clear_plan(&mut self) {
         self.active = None;
+        self.previous_rate = None;
         self.queue.clear();
         self.queued_q32 = 0;
     }

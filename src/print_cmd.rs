@@ -598,6 +598,10 @@ pub async fn run_job(
     } else if bag_grants_credit {
         ours.push(param("credit_producer", format!("{recorder_name:?}")));
     }
+    if options.execution.is_none() {
+        // No machine node to publish the cell's description: the bag has it all the same.
+        ours.push(param("publish_robot_description", "true".into()));
+    }
     ours.push(producer());
     let mut planner_node = start_node(
         polar_planner::node::NODE_NAME,

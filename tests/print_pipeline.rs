@@ -136,6 +136,11 @@ fn small_window_forces_flow_control_and_still_loses_nothing() {
         progress.len()
     );
     assert_file_end_told_right_and_no_instant_pin_closing(&bag, 1766);
+    // A dry run has no machine node, yet its bag has the cell's description (the
+    // planner's URDF), once.
+    let description: Vec<polar_cell_msgs::StringMsg> = topic_messages(&bag, "/robot_description");
+    assert_eq!(description.len(), 1);
+    assert!(description[0].data.contains("<robot name=\"polar_cell\""));
     std::fs::remove_dir_all(&dir).ok();
     assert_eq!(count, 1766, "{log}");
     assert_eq!(seqs, (0..1766).collect::<Vec<u64>>());

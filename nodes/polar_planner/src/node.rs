@@ -31,7 +31,7 @@ use cell_runtime::{
 };
 use polar_cell_msgs::{
     DiagnosticStatus, GcodeAck, GcodeMove, GcodeProgress, Header, JointState, JointTrajectory,
-    PlanCredit, StepSegment, Time,
+    PlanCredit, StepSegment, StringMsg, Time,
 };
 
 use crate::resume::{options_digest, Checkpoint};
@@ -63,6 +63,7 @@ pub fn param_specs() -> Vec<ParamSpec> {
         ParamSpec::new("steps_per_unit", ParamValue::DoubleArray(s.steps_per_unit.to_vec()), "steps per rad (bed), per m (arm), per m (z)"),
         ParamSpec::new("step_timer_hz", ParamValue::Double(s.timer_hz), "step timer frequency").range(1.0, 1e9),
         ParamSpec::new("publish_steps", ParamValue::Bool(true), "publish /polar/steps"),
+        ParamSpec::new("publish_robot_description", ParamValue::Bool(false), "publish the URDF planned with on /robot_description (transient local), for a graph without a machine node to publish it (a dry run's bag)"),
         ParamSpec::new("joint_state_period_s", ParamValue::Double(0.02), "plan-time period of /polar/planned_joint_states samples (0: none)").range(0.0, 10.0),
         ParamSpec::new("follow_execution", ParamValue::Bool(false), "plan no further ahead of execution than the executor's /cell/plan_credit allows"),
         ParamSpec::new("plan_epoch_ns", ParamValue::Integer(-1), "stamp of plan time 0 (-1: wall clock at the first move)"),
@@ -103,12 +104,17 @@ fn steps_per_unit(params: &Params) -> anyhow::Result<[f64; 3]> {
     Ok(v)
 }
 
-/// Planner and step options from the node's parameters and the URDF.
-pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, StepOptions)> {
-    let urdf_text = match params.string("urdf_file") {
+/// The URDF the node plans with: `urdf_file`, or the shipped one.
+fn urdf_text(params: &Params) -> anyhow::Result<String> {
+    Ok(match params.string("urdf_file") {
         "" => crate::urdf::POLAR_CELL_URDF.to_string(),
         path => std::fs::read_to_string(path).with_context(|| format!("reading URDF {path}"))?,
-    };
+    })
+}
+
+/// Planner and step options from the node's parameters and the URDF.
+pub fn options_from_params(params: &Params) -> anyhow::Result<(PlannerOptions, StepOptions)> {
+    let urdf_text = urdf_text(params)?;
     let mut joints = crate::urdf::joint_limits(&urdf_text).context("URDF")?;
     let accelerations = three(params, "joint_accelerations")?;
     let jumps = three(params, "velocity_jumps")?;
@@ -254,6 +260,17 @@ pub async fn run(node: &mut CellNode) -> anyhow::Result<()> {
         "/polar/planned_joint_states",
         &publisher_qos("/polar/planned_joint_states"),
     )?;
+    if params.bool("publish_robot_description") {
+        let description = node
+            .publisher::<StringMsg>("/robot_description", &publisher_qos("/robot_description"))?;
+        description
+            .publish(StringMsg {
+                data: urdf_text(&params)?,
+            })
+            .map_err(|e| anyhow!("/robot_description: {e:?}"))?;
+        // Latched: the writer lives as long as the node, for late readers.
+        node.keep(description);
+    }
     let follow_execution = params.bool("follow_execution");
     let credit_sub = node.subscription::<PlanCredit>("/cell/plan_credit", &reliable_qos(10))?;
     let mut credit: Option<PlanCredit> = None;

@@ -646,10 +646,41 @@ impl Player {
         };
         let seg = &active.job.segment;
         let dominant_rate = self.feed * self.dominant_rate(&active.train);
-        let total = seg.dominant_steps() as f64;
+        // The other axes' share of the dominant's steps. A segment of a few steps (the
+        // planner's single steps near rest) has 0 or 1 of each, a share of 0 or 1: over
+        // the next segments of the same move, up to RATIO_WINDOW_STEPS dominant steps, the
+        // share is the move's there.
+        const RATIO_WINDOW_STEPS: u32 = 32;
+        let mut counts = seg.step_counts;
+        let mut directions: [f64; MAX_AXES] = std::array::from_fn(|k| seg.direction(k) as f64);
+        let dominant = seg.dominant_axis as usize;
+        for job in self
+            .queue
+            .iter()
+            .take_while(|j| j.move_sequence == active.job.move_sequence)
+        {
+            if counts[dominant] >= RATIO_WINDOW_STEPS {
+                break;
+            }
+            let next = &job.segment;
+            if (0..MAX_AXES).any(|k| {
+                next.step_counts[k] > 0
+                    && counts[k] > 0
+                    && next.direction(k) as f64 != directions[k]
+            }) {
+                break; // an axis turns back: another stretch of the move
+            }
+            for k in 0..MAX_AXES {
+                if counts[k] == 0 {
+                    directions[k] = next.direction(k) as f64;
+                }
+                counts[k] += next.step_counts[k];
+            }
+        }
+        let total = counts[dominant] as f64;
         std::array::from_fn(|k| {
-            let rate = dominant_rate * seg.step_counts[k] as f64 / total;
-            seg.direction(k) as f64 * rate / self.options.steps.steps_per_unit[k]
+            let rate = dominant_rate * counts[k] as f64 / total;
+            directions[k] * rate / self.options.steps.steps_per_unit[k]
         })
     }
 

@@ -830,3 +830,48 @@ fn holds_and_resumes_over_single_step_segments_keep_to_the_limit() {
     // 1.62 before the single steps' acceleration was known).
     assert!(worst <= 1.12, "resume: {worst} of the limit");
 }
+
+/// A two-axis stretch of the plan in one-step segments (as the planner makes them near rest):
+/// the follower steps in 3 of every 8, so each segment alone says it moves at 0 or at the
+/// dominant's rate. Its published velocity is the move's share there, 3/8 of the dominant's
+/// steps, not a flicker between the two.
+#[test]
+fn a_followers_velocity_over_single_steps_is_the_moves_share() {
+    let steps = StepOptions::default().steps_per_unit;
+    let segment = |counts: [u32; MAX_AXES], sequence: u64| {
+        let segment = Segment::from_fields(&step_core::SegmentFields {
+            step_counts: counts,
+            directions: [1; MAX_AXES],
+            dominant_axis: 0,
+            cruise_period_ticks: 500.0,
+            cruise_steps: counts[0],
+            ..Default::default()
+        })
+        .unwrap();
+        SegmentJob {
+            segment,
+            duration_q32: u128::from(counts[0]) * 500 * Q32,
+            move_sequence: sequence,
+            source_line: 10,
+        }
+    };
+    let mut player = Player::new(options());
+    let follower = |i: u32| (i + 1) * 3 / 8 - i * 3 / 8;
+    for i in 0..40 {
+        player.push(segment([1, follower(i), 0], 1)).unwrap();
+    }
+    player.push(segment([800, 300, 0], 1)).unwrap();
+    player.finish_input();
+    collect(&mut player, 0);
+    let mut shares = Vec::new();
+    play(&mut player, 0, 30_000, |p, _| {
+        let v = p.velocity();
+        if v[0] > 0.0 {
+            shares.push(v[1] * steps[1] / (v[0] * steps[0]));
+        }
+    });
+    assert_eq!(shares.len(), 30);
+    for share in &shares {
+        assert!((share - 0.375).abs() <= 1.0 / 32.0, "{shares:?}");
+    }
+}

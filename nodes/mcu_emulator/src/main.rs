@@ -175,6 +175,9 @@ fn main() -> Result<()> {
     let start = Instant::now();
     let mut input = [0u8; 4096];
     let mut output = Vec::new();
+    let mut outbox = Outbox::default();
+    let mut dropped_reported = 0;
+    let mut last_drop_report = None;
     loop {
         let host_s = start.elapsed().as_secs_f64() * args.speed;
         let received = read_some(&mut port, &mut input)?;
@@ -200,7 +203,19 @@ fn main() -> Result<()> {
         if let Some(w) = edges.as_mut() {
             w.flush().context("writing the edge file")?;
         }
-        write_all(&mut port, &output)?;
+        outbox.push(&output);
+        send(&mut port, &mut outbox)?;
+        // (Said at most once a second: a host that stopped reading would fill the log.)
+        if outbox.dropped_bytes > dropped_reported
+            && last_drop_report.is_none_or(|at: Instant| at.elapsed() >= Duration::from_secs(1))
+        {
+            last_drop_report = Some(Instant::now());
+            eprintln!(
+                "mcu_emulator: the host reads nothing: {} bytes for it dropped (more than {} waiting)",
+                outbox.dropped_bytes, OUTBOX_BYTES
+            );
+            dropped_reported = outbox.dropped_bytes;
+        }
         wait_readable(&port, Duration::from_millis(1))?;
     }
 }
@@ -314,37 +329,73 @@ fn libc_eio() -> i32 {
     nix::errno::Errno::EIO as i32
 }
 
-/// Send `bytes` to the host; with nobody listening they are lost, as on a real line.
-fn write_all(port: &mut Port, bytes: &[u8]) -> Result<()> {
-    if bytes.is_empty() {
-        return Ok(());
+/// How much output may wait for a host that reads slowly (a tty's or socket's buffer holds
+/// about this much): past it, the host has stopped reading.
+const OUTBOX_BYTES: usize = 64 * 1024;
+
+/// Output for the host that the line has not taken yet. A host that reads late gets every
+/// byte, in order, as from a USB CDC port (a non-blocking write takes part of a frame when the
+/// kernel's buffer is nearly full; the rest used to be dropped, a cut frame the host saw as
+/// line damage). Only past [`OUTBOX_BYTES`] are new bytes dropped, and counted.
+#[derive(Default)]
+struct Outbox {
+    pending: Vec<u8>,
+    dropped_bytes: u64,
+}
+
+impl Outbox {
+    fn push(&mut self, bytes: &[u8]) {
+        let room = OUTBOX_BYTES.saturating_sub(self.pending.len());
+        let taken = bytes.len().min(room);
+        self.pending.extend_from_slice(&bytes[..taken]);
+        self.dropped_bytes += (bytes.len() - taken) as u64;
     }
-    let result = match port {
-        Port::Pty { master, .. } => master.write_all(bytes),
+
+    /// Write what `line` takes now. `Ok(false)`: nobody is there to read (the bytes are lost,
+    /// as on a line nobody listens to).
+    fn write_to(&mut self, line: &mut impl Write) -> std::io::Result<bool> {
+        let mut written = 0;
+        let result = loop {
+            if written == self.pending.len() {
+                break Ok(true);
+            }
+            match line.write(&self.pending[written..]) {
+                Ok(0) => break Ok(true),
+                Ok(n) => written += n,
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                Err(e) if e.kind() == ErrorKind::WouldBlock => break Ok(true),
+                Err(e)
+                    if matches!(e.kind(), ErrorKind::BrokenPipe | ErrorKind::ConnectionReset)
+                        || e.raw_os_error() == Some(libc_eio()) =>
+                {
+                    written = self.pending.len();
+                    break Ok(false);
+                }
+                Err(e) => break Err(e),
+            }
+        };
+        self.pending.drain(..written);
+        result
+    }
+}
+
+/// Send what waits for the host; a socket peer that left is forgotten (what waited for it
+/// with it), and with nobody connected the bytes are lost, as on a real line.
+fn send(port: &mut Port, outbox: &mut Outbox) -> Result<()> {
+    match port {
+        Port::Pty { master, .. } => {
+            outbox.write_to(master).context("writing to the host")?;
+        }
         Port::Socket { stream, .. } => match stream {
-            Some(s) => s.write_all(bytes),
-            None => return Ok(()),
-        },
-    };
-    match result {
-        Ok(()) => Ok(()),
-        // Nobody reading (slave closed, socket gone) or the host not keeping up: dropped
-        // like bytes into a UART nobody listens to.
-        Err(e)
-            if matches!(
-                e.kind(),
-                ErrorKind::WouldBlock | ErrorKind::BrokenPipe | ErrorKind::ConnectionReset
-            ) || e.raw_os_error() == Some(libc_eio()) =>
-        {
-            if let Port::Socket { stream, .. } = port {
-                if e.kind() != ErrorKind::WouldBlock {
+            Some(s) => {
+                if !outbox.write_to(s).context("writing to the host")? {
                     *stream = None;
                 }
             }
-            Ok(())
-        }
-        Err(e) => Err(e).context("writing to the host"),
+            None => outbox.pending.clear(),
+        },
     }
+    Ok(())
 }
 
 /// Sleep until input arrives or `timeout` passes.
@@ -361,5 +412,87 @@ fn wait_readable(port: &Port, timeout: Duration) -> Result<()> {
     match poll(&mut fds, PollTimeout::from(ms)) {
         Ok(_) | Err(nix::errno::Errno::EINTR) => Ok(()),
         Err(e) => Err(e).context("waiting for input"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A line whose buffer takes `room` bytes per pass, then would block; or is gone.
+    struct SlowLine {
+        received: Vec<u8>,
+        room: usize,
+        left: usize,
+        gone: bool,
+    }
+
+    impl SlowLine {
+        fn new(room: usize) -> SlowLine {
+            SlowLine {
+                received: Vec::new(),
+                room,
+                left: room,
+                gone: false,
+            }
+        }
+        fn next_pass(&mut self) {
+            self.left = self.room;
+        }
+    }
+
+    impl Write for SlowLine {
+        fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+            if self.gone {
+                return Err(ErrorKind::BrokenPipe.into());
+            }
+            if self.left == 0 {
+                return Err(ErrorKind::WouldBlock.into());
+            }
+            let n = bytes.len().min(self.left).min(7);
+            self.left -= n;
+            self.received.extend_from_slice(&bytes[..n]);
+            Ok(n)
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_host_that_reads_slowly_gets_every_byte_in_order() {
+        let mut outbox = Outbox::default();
+        let mut line = SlowLine::new(100);
+        let mut sent = Vec::new();
+        for pass in 0..50u32 {
+            let frame: Vec<u8> = (0..37).map(|i| (pass * 37 + i) as u8).collect();
+            sent.extend_from_slice(&frame);
+            outbox.push(&frame);
+            assert!(outbox.write_to(&mut line).unwrap());
+            line.next_pass();
+        }
+        while !outbox.pending.is_empty() {
+            assert!(outbox.write_to(&mut line).unwrap());
+            line.next_pass();
+        }
+        assert_eq!(line.received, sent);
+        assert_eq!(outbox.dropped_bytes, 0);
+    }
+
+    #[test]
+    fn a_host_that_stopped_reading_loses_only_what_overflows_and_it_is_counted() {
+        let mut outbox = Outbox::default();
+        let mut line = SlowLine::new(0);
+        let frame = vec![0x7e; 1000];
+        for _ in 0..100 {
+            outbox.push(&frame);
+            assert!(outbox.write_to(&mut line).unwrap());
+        }
+        assert_eq!(outbox.pending.len(), OUTBOX_BYTES);
+        assert_eq!(outbox.dropped_bytes, 100_000 - OUTBOX_BYTES as u64);
+        // The line goes: what waited is lost with it, and the caller is told.
+        line.gone = true;
+        assert!(!outbox.write_to(&mut line).unwrap());
+        assert!(outbox.pending.is_empty());
     }
 }

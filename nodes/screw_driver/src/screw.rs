@@ -228,6 +228,9 @@ pub struct PinState {
     /// Filament the G-code has retracted and not yet pushed back (m of E, ≥ 0): see
     /// [`fed_after_retractions`].
     pub retracted_m: f64,
+    /// The last breakpoint (s, rpm) of the rate-limited profile so far: the next chunk's
+    /// rpm rises from it no faster than `max_rpm_per_s`, as in one piece.
+    pub last_breakpoint: Option<(f64, f64)>,
 }
 
 impl Default for PinState {
@@ -237,6 +240,7 @@ impl Default for PinState {
             closed_at: f64::NEG_INFINITY,
             delivery: CompensatorState::default(),
             retracted_m: 0.0,
+            last_breakpoint: None,
         }
     }
 }
@@ -410,6 +414,7 @@ pub fn breakpoints_from(
         closed_at: pin_closed_at,
         delivery: state.delivery,
         retracted_m,
+        last_breakpoint: state.last_breakpoint,
     };
     // Plan order is time order, up to the nanosecond rounding of trajectory stamps.
     for i in 1..out.len() {
@@ -433,7 +438,10 @@ pub fn breakpoints_from(
     for i in 1..merged.len() {
         merged[i].t = merged[i].t.max(merged[i - 1].t);
     }
-    limit_rate(&mut merged, options.max_rpm_per_s);
+    limit_rate(&mut merged, options.max_rpm_per_s, state.last_breakpoint);
+    if let Some(last) = merged.last() {
+        state.last_breakpoint = Some((last.t, last.rpm));
+    }
     merged
 }
 
@@ -498,10 +506,15 @@ fn held_as_breakpoints(held: &[Command]) -> Vec<Command> {
 }
 
 /// Lower rpm where it would change faster than `max_rpm_per_s` (forward and backward), so
-/// the command never exceeds the plan and never jumps.
-fn limit_rate(commands: &mut [Command], max_rpm_per_s: f64) {
+/// the command never exceeds the plan and never jumps; forward from `previous` (the last
+/// breakpoint of the chunk before, s and rpm), as if in one piece with it. (Backward, a
+/// chunk cannot see the next: a fall at its start is met only from there on.)
+fn limit_rate(commands: &mut [Command], max_rpm_per_s: f64, previous: Option<(f64, f64)>) {
     if max_rpm_per_s <= 0.0 {
         return;
+    }
+    if let (Some((t, rpm)), Some(first)) = (previous, commands.first_mut()) {
+        first.rpm = first.rpm.min(rpm + max_rpm_per_s * (first.t - t).max(0.0));
     }
     for i in 1..commands.len() {
         let allowed = commands[i - 1].rpm + max_rpm_per_s * (commands[i].t - commands[i - 1].t);
@@ -849,6 +862,37 @@ mod tests {
         }
     }
 
+    /// With `max_rpm_per_s`, a chunk cut inside a run's ramp goes on from where the ramp
+    /// was, as the run in one piece does: the next chunk used to start at the plan's full
+    /// rpm, a jump the limit exists to prevent.
+    #[test]
+    fn a_rate_limited_ramp_continues_across_a_chunk_cut() {
+        let moves: Vec<TimedMove> = (0..3)
+            .map(|i| one_second(i, i as f64, 1e-3, 0.01))
+            .collect();
+        let full_rpm = breakpoints(&moves, &ScrewOptions::default())
+            .iter()
+            .map(|c| c.rpm)
+            .fold(0.0, f64::max);
+        // Up to full speed in 1.5 s: the ramp spans the cut at 1 s.
+        let options = ScrewOptions {
+            max_rpm_per_s: full_rpm / 1.5,
+            ..ScrewOptions::default()
+        };
+        let one_piece = breakpoints(&moves, &options);
+        let mut pin = PinState::default();
+        let mut cut = breakpoints_from(&moves[..1], &options, &mut pin, false);
+        cut.extend(breakpoints_from(&moves[1..], &options, &mut pin, true));
+        assert_eq!(cut, one_piece);
+        for w in cut.windows(2) {
+            assert!(
+                w[1].rpm - w[0].rpm <= options.max_rpm_per_s * (w[1].t - w[0].t) + 1e-9,
+                "{w:?}"
+            );
+        }
+        assert!(cut.iter().any(|c| c.t == 1.0 && c.rpm < 0.7 * full_rpm));
+    }
+
     /// A slicer's retraction and unretraction (`G1 E-1`, travel, `G1 E0.1`): the screw takes
     /// nothing back at the retraction (the pin closes), so the unretraction feeds only its
     /// 0.1 mm beyond it, not 1.1 mm; one that just undoes the retraction feeds nothing and
@@ -1021,7 +1065,7 @@ mod tests {
             c(3.0, 100.0),
             c(3.0, 0.0),
         ];
-        limit_rate(&mut commands, 50.0);
+        limit_rate(&mut commands, 50.0, None);
         let rpms: Vec<f64> = commands.iter().map(|c| c.rpm).collect();
         assert_eq!(
             rpms,
@@ -1029,7 +1073,7 @@ mod tests {
             "a step with no time to ramp is lowered"
         );
         let mut commands = vec![c(0.0, 0.0), c(1.0, 100.0), c(4.0, 100.0), c(5.0, 0.0)];
-        limit_rate(&mut commands, 50.0);
+        limit_rate(&mut commands, 50.0, None);
         let rpms: Vec<f64> = commands.iter().map(|c| c.rpm).collect();
         assert_eq!(rpms, [0.0, 50.0, 50.0, 0.0]);
         for w in commands.windows(2) {

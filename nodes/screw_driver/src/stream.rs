@@ -287,6 +287,9 @@ impl Stream {
                 extruding: c.pin_extruding,
                 closed_at: c.pin_closed_at_s,
                 retracted_m: c.retracted_m,
+                last_breakpoint: c
+                    .has_last_breakpoint
+                    .then_some((c.last_breakpoint_t_s, c.last_breakpoint_rpm)),
                 delivery: CompensatorState {
                     flow_rpm: c.flow_rpm,
                     t_s: c.flow_t_s,
@@ -531,6 +534,7 @@ impl Stream {
         };
         c.pin.extruding = false;
         c.pin.closed_at = close.t;
+        c.pin.last_breakpoint = Some((close.t, close.rpm));
         Some(self.chunk_of(vec![close]))
     }
 
@@ -593,6 +597,9 @@ impl Stream {
             pin_extruding: c.pin.extruding,
             pin_closed_at_s: c.pin.closed_at,
             retracted_m: c.pin.retracted_m,
+            has_last_breakpoint: c.pin.last_breakpoint.is_some(),
+            last_breakpoint_t_s: c.pin.last_breakpoint.map_or(0.0, |b| b.0),
+            last_breakpoint_rpm: c.pin.last_breakpoint.map_or(0.0, |b| b.1),
             flow_rpm: d.flow_rpm,
             flow_t_s: d.t_s,
             flow_command_rpm: d.command_rpm,
@@ -621,7 +628,7 @@ impl Stream {
 }
 
 /// The format this build writes and reads.
-pub const CHECKPOINT_FORMAT: u32 = 2;
+pub const CHECKPOINT_FORMAT: u32 = 3;
 
 /// A screw driver's state after every move before `next_sequence` was commanded: the bytes
 /// it acknowledges with (CDR, like every message here, led by a format number and a digest of
@@ -637,6 +644,9 @@ pub struct Checkpoint {
     pub pin_extruding: bool,
     pub pin_closed_at_s: f64,
     pub retracted_m: f64,
+    pub has_last_breakpoint: bool,
+    pub last_breakpoint_t_s: f64,
+    pub last_breakpoint_rpm: f64,
     pub flow_rpm: f64,
     pub flow_t_s: f64,
     pub flow_command_rpm: f64,
@@ -696,6 +706,8 @@ impl Checkpoint {
         // The pin's closing time may be −∞ (never opened); nothing may be NaN, and what is
         // measured must be finite.
         let finite = [
+            c.last_breakpoint_t_s,
+            c.last_breakpoint_rpm,
             c.flow_rpm,
             c.flow_t_s,
             c.flow_command_rpm,

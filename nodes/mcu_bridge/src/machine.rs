@@ -222,6 +222,11 @@ impl<L: McuLink> McuMachine<L> {
         if bytes.is_empty() {
             return Ok(());
         }
+        if self.bytes_sent == 0 {
+            // A delimiter first (PROTOCOL.md §1): it ends whatever the MCU's decoder held
+            // from before, which would otherwise swallow the session's first frame.
+            bytes.insert(0, 0);
+        }
         self.bytes_sent += bytes.len() as u64;
         self.link.write(self.now_ns, &bytes)
     }
@@ -333,7 +338,10 @@ impl<L: McuLink> McuMachine<L> {
                 Some(previous) if state.clock > previous.state.clock => {
                     let dt = (state.clock - previous.state.clock) as f64 / self.session.timer_hz();
                     std::array::from_fn(|j| {
-                        (state.position_steps[j] - previous.state.position_steps[j]) as f64
+                        // (In i64: counts from the wire may be far apart.)
+                        (i64::from(state.position_steps[j])
+                            - i64::from(previous.state.position_steps[j]))
+                            as f64
                             / self.steps_per_unit[j]
                             / dt
                     })

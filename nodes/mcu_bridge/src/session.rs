@@ -107,6 +107,17 @@ impl SessionOptions {
 pub enum SessionError {
     #[error("the MCU speaks protocol version {mcu}, this host {PROTOCOL_VERSION}")]
     Version { mcu: u16 },
+    #[error(
+        "the MCU cannot run a plan from this host: its timer runs at {timer_hz} Hz, it queues \
+         {queue_capacity} segments and {screw_queue_capacity} screw commands (needed: a \
+         running timer, a segment queue, and 2 screw places, one kept free for a command \
+         not yet taken up)"
+    )]
+    Unusable {
+        timer_hz: u32,
+        queue_capacity: u16,
+        screw_queue_capacity: u16,
+    },
     #[error("the MCU reported fault {code:?} at its clock {clock} (segment tag {tag})")]
     Fault {
         code: FaultCode,
@@ -360,12 +371,19 @@ impl McuSession {
     /// Whether `state` shows the MCU idle with the last segment sent taken up and played,
     /// not idle from before it arrived: a state can be a period old, and an MCU keeps its
     /// done tag across runs (the same file printed twice ends on the same tag). Its plan
-    /// clock tells: a segment is sent to start ahead of the plan clock the MCU had then.
+    /// clock tells: idle, it stands where the schedule ends, which is the last segment's end
+    /// once that was played. (Not its start: an MCU that ran dry at rest stands exactly
+    /// there, where the plan goes on, and its state from before the segment arrived passed
+    /// for one after it.) A segment without duration ends where it starts: its tag tells.
     pub fn idle_after_last_sent(&self, state: &McuState) -> bool {
         state.mode == Mode::Idle
-            && self
-                .last_sent_start
-                .is_none_or(|start| state.plan_clock >= start)
+            && match (self.last_sent_start, self.sent_end) {
+                (Some(start), Some((end, _))) => {
+                    state.plan_clock >= end
+                        && (end > start || self.last_sent_tag.is_none_or(|t| state.done_tag == t))
+                }
+                _ => true,
+            }
     }
 
     /// MCU plan clock at which the last segment sent starts.
@@ -585,8 +603,17 @@ impl McuSession {
                         self.fail(SessionError::Version {
                             mcu: identity.protocol_version,
                         });
+                    } else if identity.timer_hz == 0
+                        || identity.queue_capacity == 0
+                        || identity.screw_queue_capacity < 2
+                    {
+                        self.fail(SessionError::Unusable {
+                            timer_hz: identity.timer_hz,
+                            queue_capacity: identity.queue_capacity,
+                            screw_queue_capacity: identity.screw_queue_capacity,
+                        });
                     }
-                    self.clock = ClockSync::new(identity.timer_hz as f64, CLOCK_SAMPLES);
+                    self.clock = ClockSync::new(identity.timer_hz.max(1) as f64, CLOCK_SAMPLES);
                     self.identity = Some(identity);
                 }
                 FromMcu::Message(McuMessage::Clock { token, clock }) => {

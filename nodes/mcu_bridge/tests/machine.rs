@@ -604,6 +604,64 @@ fn a_stalled_upstream_waits_at_rest_or_holds_on_the_path() {
     }
 }
 
+/// A cancel just after the plan came back to an MCU that ran dry at rest: its last state
+/// (idle, plan clock standing where the next segment starts) is from before that segment
+/// arrived, and is not rest. The plan is dropped once the hold has the MCU at rest; it used
+/// to be dropped at once, and the MCU, already taking the segment up, faulted
+/// DROP_WHILE_MOVING.
+#[test]
+fn a_cancel_as_the_plan_returns_after_a_dry_rest_ends_at_rest_without_a_fault() {
+    let segments = finger_start(300);
+    let rest = segments
+        .iter()
+        .position(|s| s.ends_at_rest && s.duration_s > 0.0)
+        .expect("a segment ending at rest")
+        + 1;
+    for delay_ms in 0..5 {
+        let mut rig = Rig::new(EmulatorOptions::default());
+        rig.run_for(
+            &segments[..rest],
+            8.0 + segments[..rest].iter().map(|s| s.duration_s).sum::<f64>(),
+        );
+        assert_eq!(rig.machine.state().state, PlayerState::Idle);
+        // The plan comes back one segment first (it starts where the MCU's plan clock
+        // stands), then the rest.
+        let sent = rig.machine.session().sent_until_clock();
+        while rig.machine.session().sent_until_clock() == sent {
+            rig.ms(&segments[..rest + 1]).unwrap();
+            assert!(rig.now_ns < 60_000_000_000, "nothing more sent");
+        }
+        for _ in 0..delay_ms {
+            rig.ms(&segments[..rest + 1]).unwrap();
+        }
+        rig.machine.cancel();
+        let mut waited_ms = 0;
+        while !rig.machine.is_drained() {
+            rig.now_ns += 1_000_000;
+            let _ = rig.machine.on_tick(rig.now_ns);
+            waited_ms += 1;
+            assert!(
+                waited_ms < 3000,
+                "{delay_ms} ms: the cancel never came to rest"
+            );
+        }
+        for _ in 0..200 {
+            rig.now_ns += 1_000_000;
+            let _ = rig.machine.on_tick(rig.now_ns);
+        }
+        assert!(
+            rig.machine.session().error().is_none(),
+            "{delay_ms} ms: {:?}",
+            rig.machine.session().error()
+        );
+        assert_eq!(
+            rig.machine.epoch_ns(),
+            None,
+            "{delay_ms} ms: the plan is dropped"
+        );
+    }
+}
+
 /// With a short horizon (0.3 s, under twice a hold's stopping time) an underrun hold still
 /// ends once the plan is back: when as much is on its way as the horizon lets go. (Its
 /// resume used to wait for more plan than the horizon ever lets out: held for ever.)
@@ -1025,4 +1083,22 @@ fn finger_plays_through_a_line_damaging_one_percent_of_bytes_at_10x() {
             "the line did damage: {counters:?}"
         );
     }
+}
+
+/// The MCU's decoder holds bytes from before the bridge (a host that died mid-frame, line
+/// noise at power-up): the bridge's first byte is a delimiter that ends them, so its
+/// session's first frame is taken at once, not swallowed and resent after a timeout.
+#[test]
+fn the_first_frame_is_not_lost_to_what_the_line_held_before() {
+    let mut machine = mcu_machine(EmulatorOptions::default());
+    machine.link_mut().mcu.receive(&[0x05, 0x41, 0x42], 0.0);
+    let mut now_ns = 0;
+    while !machine.session().is_ready() {
+        now_ns += 1_000_000;
+        machine.on_tick(now_ns).unwrap();
+        assert!(now_ns < 5_000_000_000, "never ready");
+    }
+    // 4 ms here; 58 ms without the delimiter (the frame resent after the link's timeout).
+    let ready_ms = now_ns / 1_000_000;
+    assert!(ready_ms < 40, "ready after {ready_ms} ms");
 }

@@ -543,3 +543,91 @@ fn a_device_that_never_answers_fails_the_session_with_what_is_missing() {
     assert!(rig.session.is_ready());
     assert!(rig.session.error().is_none(), "{:?}", rig.session.error());
 }
+
+/// The MCU's bytes with its IDENTITY changed by `edit` (frames re-encoded with their
+/// headers, so the link takes them as the MCU's own).
+fn with_identity_edited(
+    bytes: &[u8],
+    decoder: &mut cell_protocol::FrameDecoder,
+    edit: fn(&mut cell_protocol::message::Identity),
+) -> Vec<u8> {
+    use cell_protocol::message::mcu_messages;
+    use cell_protocol::MAX_PAYLOAD;
+    let mut out = Vec::new();
+    for &byte in bytes {
+        let Some(Ok(frame)) = decoder.push(byte) else {
+            continue;
+        };
+        let mut payload = Vec::new();
+        match frame.messages() {
+            Some(messages) => {
+                for message in mcu_messages(messages) {
+                    let mut message = message.unwrap();
+                    if let McuMessage::Identity(identity) = &mut message {
+                        edit(identity);
+                    }
+                    let mut buf = [0; MAX_PAYLOAD];
+                    let len = message.encode(&mut buf);
+                    payload.extend_from_slice(&buf[..len]);
+                }
+            }
+            None => payload.extend_from_slice(frame.payload),
+        }
+        let mut wire = [0; MAX_WIRE_FRAME];
+        let len = cell_protocol::encode_frame(&frame.header, &payload, &mut wire).unwrap();
+        out.extend_from_slice(&wire[..len]);
+    }
+    out
+}
+
+/// Two simulated seconds of the session with the MCU's IDENTITY changed by `edit`.
+fn identified_as(edit: fn(&mut cell_protocol::message::Identity)) -> Rig {
+    let mut rig = Rig::new();
+    let mut decoder = cell_protocol::FrameDecoder::new();
+    for _ in 0..2000 {
+        let t = rig.now_us as f64 * 1e-6;
+        rig.session.tick(rig.now_us).unwrap();
+        let mut out = [0; MAX_WIRE_FRAME];
+        while let Some(len) = rig.session.poll_transmit(rig.now_us, &mut out) {
+            rig.mcu.receive(&out[..len], t);
+        }
+        let mut bytes = Vec::new();
+        rig.mcu.run_until(t, &mut |_| {}, &mut bytes);
+        let edited = with_identity_edited(&bytes, &mut decoder, edit);
+        rig.session.receive(&edited, rig.now_us);
+        rig.now_us += 1000;
+    }
+    rig
+}
+
+/// An MCU that could not run a plan from this host — here one with a single place for screw
+/// commands, which the host (keeping one free for a command not yet taken up) would never
+/// fill, so a print never ended; or one without a timer — fails the session at once, saying
+/// what it lacks.
+#[test]
+fn an_mcu_without_room_for_a_plan_fails_the_session_saying_why() {
+    let rig = identified_as(|i| i.screw_queue_capacity = 1);
+    match rig.session.error() {
+        Some(SessionError::Unusable {
+            timer_hz: 1_000_000,
+            screw_queue_capacity: 1,
+            ..
+        }) => {}
+        other => panic!("{other:?}"),
+    }
+    let message = rig.session.error().unwrap().to_string();
+    assert!(message.contains("2 screw places"), "{message}");
+    let rig = identified_as(|i| i.timer_hz = 0);
+    assert!(
+        matches!(
+            rig.session.error(),
+            Some(SessionError::Unusable { timer_hz: 0, .. })
+        ),
+        "{:?}",
+        rig.session.error()
+    );
+    // Unedited (the frames taken apart and made again), the same MCU is ready and well.
+    let rig = identified_as(|_| {});
+    assert!(rig.session.is_ready(), "{:?}", rig.session.error());
+    assert!(rig.session.error().is_none(), "{:?}", rig.session.error());
+}

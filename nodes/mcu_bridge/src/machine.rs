@@ -27,6 +27,19 @@ pub trait McuLink {
     type Error: std::fmt::Display + std::fmt::Debug;
     /// Append whatever has arrived by machine time `now_ns` to `into`.
     fn read(&mut self, now_ns: i64, into: &mut Vec<u8>) -> Result<(), Self::Error>;
+    /// [`McuLink::read`], with when the bytes came: (end in `into`, machine time) for each
+    /// part, in order. A link that cannot tell says `now_ns` (clock sync then counts the
+    /// wait for the caller's look into the round trip).
+    fn read_arrivals(
+        &mut self,
+        now_ns: i64,
+        into: &mut Vec<u8>,
+        arrivals: &mut Vec<(usize, i64)>,
+    ) -> Result<(), Self::Error> {
+        let result = self.read(now_ns, into);
+        arrivals.push((into.len(), now_ns));
+        result
+    }
     /// Send `bytes` at machine time `now_ns`.
     fn write(&mut self, now_ns: i64, bytes: &[u8]) -> Result<(), Self::Error>;
 }
@@ -106,6 +119,10 @@ pub struct McuMachine<L: McuLink> {
     /// report before.
     reports: VecDeque<Report>,
     incoming: Vec<u8>,
+    /// Where each part of `incoming` ends, and when it came (machine time).
+    arrivals: Vec<(usize, i64)>,
+    /// When the latest bytes came (machine time).
+    arrived_ns: i64,
     link_error: Option<String>,
     /// Bytes written to the MCU so far (frames and their retransmissions).
     bytes_sent: u64,
@@ -141,6 +158,8 @@ impl<L: McuLink> McuMachine<L> {
             origin_ns: None,
             reports: VecDeque::new(),
             incoming: Vec::new(),
+            arrivals: Vec::new(),
+            arrived_ns: i64::MIN,
             link_error: None,
             bytes_sent: 0,
             start_steps: Some([0; 3]),
@@ -328,9 +347,28 @@ impl<L: McuLink> McuMachine<L> {
         self.now_ns = self.now_ns.max(now_ns);
         self.incoming.clear();
         let mut incoming = std::mem::take(&mut self.incoming);
-        let read = self.link.read(self.now_ns, &mut incoming);
-        self.session.receive(&incoming, self.now_us());
+        let mut arrivals = std::mem::take(&mut self.arrivals);
+        arrivals.clear();
+        let read = self
+            .link
+            .read_arrivals(self.now_ns, &mut incoming, &mut arrivals);
+        let mut from = 0;
+        for &(end, at_ns) in &arrivals {
+            // In order, and not after now (nor before what came already).
+            let at_ns = at_ns.clamp(self.arrived_ns, self.now_ns);
+            self.arrived_ns = at_ns;
+            if end > from {
+                self.session
+                    .receive(&incoming[from..end], (at_ns.max(0) / 1000) as u64);
+                from = end;
+            }
+        }
+        if from < incoming.len() || incoming.is_empty() {
+            // (Nothing came: the session still looks at the time.)
+            self.session.receive(&incoming[from..], self.now_us());
+        }
         self.incoming = incoming;
+        self.arrivals = arrivals;
         read.map_err(McuMachineError::Line)?;
         for state in self.session.take_reports() {
             let measured_ns = self.session.clock_sync().host_at(state.clock);

@@ -27,6 +27,7 @@ use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 use nix::sys::termios::{cfmakeraw, cfsetspeed, tcgetattr, tcsetattr, BaudRate, SetArg};
 use tokio::sync::{mpsc, watch};
 
+use crate::line_reader::{LineEnd, LineReader};
 use crate::machine::{McuLink, McuMachine};
 use crate::screw_line::{CommandTemplate, ScrewLine};
 use crate::screw_port::WithScrewLine;
@@ -304,11 +305,31 @@ fn baud_rate(baud: u32) -> anyhow::Result<BaudRate> {
 pub struct SerialLink {
     device: Device,
     name: String,
+    /// With [`SerialLink::stamping_arrivals`]: the bytes as they came, and the machine's
+    /// speed (machine seconds per wall second) to place them on its clock.
+    reader: Option<(LineReader, f64)>,
 }
 
 impl SerialLink {
     pub fn new(device: Device, name: String) -> SerialLink {
-        SerialLink { device, name }
+        SerialLink {
+            device,
+            name,
+            reader: None,
+        }
+    }
+
+    /// Read on a thread that notes when bytes arrive (see [`crate::line_reader`]): the MCU's
+    /// line, whose clock replies clock sync times. `speed`: machine time per wall time.
+    pub fn stamping_arrivals(mut self, speed: f64) -> anyhow::Result<SerialLink> {
+        let end: Box<dyn ReadFd> = match &self.device {
+            Device::Tty(f) => Box::new(f.try_clone()?),
+            Device::Socket(s) => Box::new(s.try_clone()?),
+        };
+        let reader = LineReader::start(end, &self.name)
+            .with_context(|| format!("{}: starting its reader", self.name))?;
+        self.reader = Some((reader, speed));
+        Ok(self)
     }
 
     fn io(&self, source: std::io::Error) -> DeviceError {
@@ -338,10 +359,45 @@ impl SerialLink {
 trait ReadWrite: Read + Write {}
 impl<T: Read + Write> ReadWrite for T {}
 
+/// A device's duplicate for the reader thread.
+trait ReadFd: Read + AsFd + Send {}
+impl<T: Read + AsFd + Send> ReadFd for T {}
+
 impl McuLink for SerialLink {
     type Error = DeviceError;
 
-    fn read(&mut self, _now_ns: i64, into: &mut Vec<u8>) -> Result<(), DeviceError> {
+    fn read_arrivals(
+        &mut self,
+        now_ns: i64,
+        into: &mut Vec<u8>,
+        arrivals: &mut Vec<(usize, i64)>,
+    ) -> Result<(), DeviceError> {
+        let Some((reader, speed)) = &mut self.reader else {
+            let result = self.read(now_ns, into);
+            arrivals.push((into.len(), now_ns));
+            return result;
+        };
+        let mut bursts = Vec::new();
+        let result = reader.take(into, &mut bursts);
+        // On the machine's clock: `now_ns` is now, give or take the caller's microseconds.
+        let now = std::time::Instant::now();
+        let speed = *speed;
+        arrivals.extend(bursts.into_iter().map(|(end, at)| {
+            let ago_ns = now.saturating_duration_since(at).as_nanos() as f64 * speed;
+            (end, now_ns - ago_ns as i64)
+        }));
+        result.map_err(|end| match end {
+            LineEnd::Closed => DeviceError::Closed {
+                device: self.name.clone(),
+            },
+            LineEnd::Failed(source) => self.io(source),
+        })
+    }
+
+    fn read(&mut self, now_ns: i64, into: &mut Vec<u8>) -> Result<(), DeviceError> {
+        if self.reader.is_some() {
+            return self.read_arrivals(now_ns, into, &mut Vec::new());
+        }
         let mut buf = [0u8; 4096];
         loop {
             match self.stream().read(&mut buf) {
@@ -468,7 +524,7 @@ pub fn probe_position(
     let give_up = std::time::Instant::now() + timeout;
     let (device, name) = open_waiting(spec, baud, timeout)?;
     let session = McuSession::new(options, session_nonce());
-    let link = SerialLink::new(device, name.clone());
+    let link = SerialLink::new(device, name.clone()).stamping_arrivals(1.0)?;
     // No plan goes to it (so its start is never checked): a place or two, any horizon.
     let mut machine = McuMachine::new(session, link, 2, 1.0);
     let started = std::time::Instant::now();
@@ -518,7 +574,7 @@ pub async fn run(
         tokio::task::spawn_blocking(move || open_waiting(&spec, baud, timeout)).await??;
     cell_runtime::cell_log!(node, LogLevel::Info, "MCU on {name}");
     let session = McuSession::new(session_options(node, &params), session_nonce());
-    let link = SerialLink::new(device, name);
+    let link = SerialLink::new(device, name).stamping_arrivals(params.speed)?;
     let machine = McuMachine::new(session, link, params.queue_capacity, params.horizon_s)
         .with_start_steps(params.initial_steps());
     let Some(port) = screw_port(node, &params)? else {

@@ -141,6 +141,12 @@ pub enum SessionError {
     Schedule(#[from] ScheduleError),
 }
 
+/// Whether an MCU so identified can run a plan from this host: a running timer, a segment
+/// queue, and 2 screw places (one is kept free for a command not yet taken up).
+fn can_run_a_plan(identity: &Identity) -> bool {
+    identity.timer_hz > 0 && identity.queue_capacity > 0 && identity.screw_queue_capacity >= 2
+}
+
 /// A session's RESET of the MCU: faults count only once the MCU has acted on it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum ResetProgress {
@@ -320,8 +326,9 @@ impl McuSession {
 
     /// Identified, configured and clock-synchronised: ready to take a plan.
     pub fn is_ready(&self) -> bool {
+        // (Asked of the identity, not of the error: an operator's reset clears that.)
         self.identity
-            .is_some_and(|i| i.protocol_version == PROTOCOL_VERSION)
+            .is_some_and(|i| i.protocol_version == PROTOCOL_VERSION && can_run_a_plan(&i))
             && self.configured
             && self.clock.fit().is_some()
             && self.state.is_some()
@@ -335,7 +342,7 @@ impl McuSession {
         } else if self.identity.is_none() {
             "no answer to IDENTIFY"
         } else if !self.configured {
-            "not configured (its protocol version is not ours)"
+            "not configured (its protocol version is not ours, or it cannot run a plan)"
         } else if self.clock.fit().is_none() {
             "too few answers to clock queries for a clock fit"
         } else if self.state.is_none() {
@@ -467,11 +474,16 @@ impl McuSession {
         self.error = None;
         self.emergency = false;
         self.controls.clear(); // a hold or drop still waiting is moot after a reset
-        self.control(HostMessage::Reset)?;
-        // The last state's arrival stands for now; the bound is generous against it.
-        self.reset = ResetProgress::Sent {
-            at_us: self.state.map_or(0, |(_, at)| at),
-        };
+                               // Only to an MCU configured by this session: one not yet configured gets its RESET
+                               // with CONFIGURE, and one speaking another version (or unable to run a plan) none,
+                               // since it may read it as anything.
+        if self.configured {
+            self.control(HostMessage::Reset)?;
+            // The last state's arrival stands for now; the bound is generous against it.
+            self.reset = ResetProgress::Sent {
+                at_us: self.state.map_or(0, |(_, at)| at),
+            };
+        }
         Ok(())
     }
 
@@ -603,10 +615,7 @@ impl McuSession {
                         self.fail(SessionError::Version {
                             mcu: identity.protocol_version,
                         });
-                    } else if identity.timer_hz == 0
-                        || identity.queue_capacity == 0
-                        || identity.screw_queue_capacity < 2
-                    {
+                    } else if !can_run_a_plan(&identity) {
                         self.fail(SessionError::Unusable {
                             timer_hz: identity.timer_hz,
                             queue_capacity: identity.queue_capacity,
@@ -737,7 +746,10 @@ impl McuSession {
         let hz = identity.timer_hz as f64;
         // An MCU speaking another version may read CONFIGURE and RESET as anything (asked
         // of its identity, not of the error: a reset clears that, and an earlier one hides it).
-        if !self.configured && identity.protocol_version == PROTOCOL_VERSION {
+        if !self.configured
+            && identity.protocol_version == PROTOCOL_VERSION
+            && can_run_a_plan(&identity)
+        {
             self.endpoint.send(&HostMessage::Configure {
                 host_timeout_ticks: ticks(self.options.host_timeout_s, hz),
                 state_period_ticks: ticks(self.options.state_period_s, hz),

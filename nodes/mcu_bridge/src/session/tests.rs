@@ -580,11 +580,14 @@ fn with_identity_edited(
     out
 }
 
-/// Two simulated seconds of the session with the MCU's IDENTITY changed by `edit`.
-fn identified_as(edit: fn(&mut cell_protocol::message::Identity)) -> Rig {
-    let mut rig = Rig::new();
-    let mut decoder = cell_protocol::FrameDecoder::new();
-    for _ in 0..2000 {
+/// `rounds` more milliseconds of the session with the MCU's IDENTITY changed by `edit`.
+fn run_identified_as(
+    rig: &mut Rig,
+    decoder: &mut cell_protocol::FrameDecoder,
+    edit: fn(&mut cell_protocol::message::Identity),
+    rounds: usize,
+) {
+    for _ in 0..rounds {
         let t = rig.now_us as f64 * 1e-6;
         rig.session.tick(rig.now_us).unwrap();
         let mut out = [0; MAX_WIRE_FRAME];
@@ -593,20 +596,75 @@ fn identified_as(edit: fn(&mut cell_protocol::message::Identity)) -> Rig {
         }
         let mut bytes = Vec::new();
         rig.mcu.run_until(t, &mut |_| {}, &mut bytes);
-        let edited = with_identity_edited(&bytes, &mut decoder, edit);
+        let edited = with_identity_edited(&bytes, decoder, edit);
         rig.session.receive(&edited, rig.now_us);
         rig.now_us += 1000;
     }
+}
+
+/// Two simulated seconds of a session with the MCU's IDENTITY changed by `edit`.
+fn identified_as(edit: fn(&mut cell_protocol::message::Identity)) -> Rig {
+    let mut rig = Rig::new();
+    run_identified_as(
+        &mut rig,
+        &mut cell_protocol::FrameDecoder::new(),
+        edit,
+        2000,
+    );
     rig
+}
+
+/// An MCU speaking another protocol version may read a RESET as anything: it is sent none,
+/// neither when it identifies itself nor on an operator's reset.
+#[test]
+fn an_mcu_of_another_version_is_never_sent_a_reset() {
+    let other_version = |i: &mut cell_protocol::message::Identity| i.protocol_version += 1;
+    let mut rig = Rig::new();
+    let mut decoder = cell_protocol::FrameDecoder::new();
+    run_identified_as(&mut rig, &mut decoder, other_version, 2000);
+    assert!(
+        matches!(rig.session.error(), Some(SessionError::Version { .. })),
+        "{:?}",
+        rig.session.error()
+    );
+    rig.session.reset().unwrap();
+    // What the host writes from here on, read as the MCU would.
+    let mut host_decoder = cell_protocol::FrameDecoder::new();
+    let mut sent = Vec::new();
+    for _ in 0..200 {
+        rig.session.tick(rig.now_us).unwrap();
+        let mut out = [0; MAX_WIRE_FRAME];
+        while let Some(n) = rig.session.poll_transmit(rig.now_us, &mut out) {
+            for &byte in &out[..n] {
+                if let Some(Ok(frame)) = host_decoder.push(byte) {
+                    if let Some(messages) = frame.messages() {
+                        sent.extend(
+                            cell_protocol::message::host_messages(messages).map(|m| m.unwrap()),
+                        );
+                    }
+                }
+            }
+        }
+        rig.now_us += 1000;
+    }
+    assert!(!sent.is_empty(), "the host went silent");
+    assert!(
+        !sent.iter().any(|m| matches!(m, HostMessage::Reset)),
+        "{sent:?}"
+    );
+    assert!(!rig.session.is_ready());
 }
 
 /// An MCU that could not run a plan from this host — here one with a single place for screw
 /// commands, which the host (keeping one free for a command not yet taken up) would never
 /// fill, so a print never ended; or one without a timer — fails the session at once, saying
-/// what it lacks.
+/// what it lacks, and an operator's reset does not make it ready.
 #[test]
 fn an_mcu_without_room_for_a_plan_fails_the_session_saying_why() {
-    let rig = identified_as(|i| i.screw_queue_capacity = 1);
+    let one_screw_place = |i: &mut cell_protocol::message::Identity| i.screw_queue_capacity = 1;
+    let mut rig = Rig::new();
+    let mut decoder = cell_protocol::FrameDecoder::new();
+    run_identified_as(&mut rig, &mut decoder, one_screw_place, 2000);
     match rig.session.error() {
         Some(SessionError::Unusable {
             timer_hz: 1_000_000,
@@ -617,6 +675,9 @@ fn an_mcu_without_room_for_a_plan_fails_the_session_saying_why() {
     }
     let message = rig.session.error().unwrap().to_string();
     assert!(message.contains("2 screw places"), "{message}");
+    rig.session.reset().unwrap();
+    run_identified_as(&mut rig, &mut decoder, one_screw_place, 2000);
+    assert!(!rig.session.is_ready(), "ready after a reset");
     let rig = identified_as(|i| i.timer_hz = 0);
     assert!(
         matches!(

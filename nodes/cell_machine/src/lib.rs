@@ -110,4 +110,7 @@ pub trait Machine {
     fn diagnostics(&self) -> Vec<(&'static str, String)> {
         Vec::new()
     }
+    /// Machine time 0 (every `now_ns` given) is the wall instant `origin`, and it runs `speed`
+    /// times wall time: for a backend that stamps what it receives as it arrives.
+    fn clock_started(&mut self, _origin: std::time::Instant, _speed: f64) {}
 }

@@ -517,6 +517,7 @@ pub async fn run<M: Machine>(
     let started = Instant::now();
     let speed = options.speed;
     let machine_ns = |at: Instant| ((at - started).as_nanos() as f64 * speed) as i64;
+    executor.clock_started(started, speed);
     let stamp_at = |machine_ns: i64| Time::from_nanos(wall_start_ns + machine_ns);
     tf_static
         .publish(TFMessage {

@@ -11,6 +11,7 @@
 
 pub mod clock;
 pub mod host;
+#[cfg(feature = "node")]
 pub mod line_reader;
 pub mod machine;
 #[cfg(feature = "node")]

@@ -8,9 +8,9 @@
 
 use std::io::{ErrorKind, Read};
 use std::os::fd::AsFd;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::os::unix::net::UnixStream;
 use std::sync::mpsc::{channel, Receiver, Sender, TryRecvError};
-use std::sync::Arc;
+use std::thread::JoinHandle;
 use std::time::Instant;
 
 use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
@@ -34,28 +34,29 @@ pub enum LineEnd {
     Failed(std::io::Error),
 }
 
-/// Bytes as they arrived, each burst with its instant; the thread stops when this is dropped.
+/// Bytes as they arrived, each burst with its instant. Dropped, it stops its thread and
+/// waits for it: the thread's duplicate of the line must not outlive it (the next session
+/// on the same tty shares its input, and a dying reader would take the bytes meant for it).
 pub struct LineReader {
     arrivals: Receiver<Arrival>,
-    stop: Arc<AtomicBool>,
+    /// Closed to wake the thread and make it stop.
+    wake: Option<UnixStream>,
+    thread: Option<JoinHandle<()>>,
     ended: bool,
 }
-
-/// How long the thread waits in `poll` before it looks whether it should stop.
-const STOP_LOOK_MS: u8 = 50;
 
 impl LineReader {
     /// Read `end` (non-blocking, as the device is) on a thread of its own.
     pub fn start(end: impl ReadEnd, name: &str) -> std::io::Result<LineReader> {
         let (tx, arrivals) = channel();
-        let stop = Arc::new(AtomicBool::new(false));
-        let stopping = stop.clone();
-        std::thread::Builder::new()
+        let (wake, woken) = UnixStream::pair()?;
+        let thread = std::thread::Builder::new()
             .name(format!("read {name}"))
-            .spawn(move || read_line(end, &tx, &stopping))?;
+            .spawn(move || read_line(end, &tx, &woken))?;
         Ok(LineReader {
             arrivals,
-            stop,
+            wake: Some(wake),
+            thread: Some(thread),
             ended: false,
         })
     }
@@ -97,22 +98,31 @@ impl LineReader {
 
 impl Drop for LineReader {
     fn drop(&mut self) {
-        // It notices within STOP_LOOK_MS (not joined: nothing to wait for).
-        self.stop.store(true, Ordering::Relaxed);
+        // Its end of the pair becomes readable (end of file): the thread returns at once.
+        drop(self.wake.take());
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
     }
 }
 
-fn read_line(mut end: impl ReadEnd, tx: &Sender<Arrival>, stop: &AtomicBool) {
+fn read_line(mut end: impl ReadEnd, tx: &Sender<Arrival>, woken: &UnixStream) {
     let mut buf = [0u8; 4096];
-    while !stop.load(Ordering::Relaxed) {
-        let mut fds = [PollFd::new(end.as_fd(), PollFlags::POLLIN)];
-        match poll(&mut fds, PollTimeout::from(STOP_LOOK_MS)) {
+    loop {
+        let mut fds = [
+            PollFd::new(end.as_fd(), PollFlags::POLLIN),
+            PollFd::new(woken.as_fd(), PollFlags::POLLIN),
+        ];
+        match poll(&mut fds, PollTimeout::NONE) {
             Ok(0) | Err(nix::errno::Errno::EINTR) => continue,
             Ok(_) => {}
             Err(e) => {
                 let _ = tx.send(Arrival::Failed(e.into()));
                 return;
             }
+        }
+        if fds[1].any().unwrap_or(true) {
+            return; // the reader was dropped
         }
         // The instant `poll` woke: the burst's arrival (its reads follow at once).
         let woke = Instant::now();
@@ -173,6 +183,21 @@ mod tests {
             let late = at.duration_since(*written_at);
             assert!(late < Duration::from_millis(10), "stamped {late:?} late");
         }
+    }
+
+    /// Dropped, the reader's thread is gone with it, its duplicate of the line closed: the
+    /// other end sees the line closed at once.
+    #[test]
+    fn a_dropped_reader_lets_go_of_the_line_at_once() {
+        let (reader, mcu) = reader_of_pair();
+        let dropped = Instant::now();
+        drop(reader);
+        assert!(dropped.elapsed() < Duration::from_millis(20));
+        // Both ends of `ours` are closed now (the pair's and the thread's duplicate).
+        let mut byte = [0u8; 1];
+        mcu.set_read_timeout(Some(Duration::from_millis(100)))
+            .unwrap();
+        assert_eq!((&mcu).read(&mut byte).unwrap(), 0, "the line is closed");
     }
 
     /// The other end's close comes after every byte sent before it, once.

@@ -42,6 +42,9 @@ pub trait McuLink {
     }
     /// Send `bytes` at machine time `now_ns`.
     fn write(&mut self, now_ns: i64, bytes: &[u8]) -> Result<(), Self::Error>;
+    /// Machine time 0 is the wall instant `origin`, and it runs `speed` times wall time: a
+    /// link that notes when bytes arrive places them on the machine's clock with this.
+    fn clock_started(&mut self, _origin: std::time::Instant, _speed: f64) {}
 }
 
 /// What goes wrong between the cell and its MCU.
@@ -354,8 +357,9 @@ impl<L: McuLink> McuMachine<L> {
             .read_arrivals(self.now_ns, &mut incoming, &mut arrivals);
         let mut from = 0;
         for &(end, at_ns) in &arrivals {
-            // In order, and not after now (nor before what came already).
-            let at_ns = at_ns.clamp(self.arrived_ns, self.now_ns);
+            // In order. (Not clamped to `now_ns`: a pass's first looks are at grid instants
+            // behind the wall clock, and bytes may have come since.)
+            let at_ns = at_ns.max(self.arrived_ns);
             self.arrived_ns = at_ns;
             if end > from {
                 self.session
@@ -621,6 +625,10 @@ impl<L: McuLink> Machine for McuMachine<L> {
             self.link_error = None;
             self.forget();
         }
+    }
+
+    fn clock_started(&mut self, origin: std::time::Instant, speed: f64) {
+        self.link.clock_started(origin, speed);
     }
 
     fn diagnostics(&self) -> Vec<(&'static str, String)> {

@@ -305,9 +305,11 @@ fn baud_rate(baud: u32) -> anyhow::Result<BaudRate> {
 pub struct SerialLink {
     device: Device,
     name: String,
-    /// With [`SerialLink::stamping_arrivals`]: the bytes as they came, and the machine's
-    /// speed (machine seconds per wall second) to place them on its clock.
-    reader: Option<(LineReader, f64)>,
+    /// With [`SerialLink::stamping_arrivals`]: the bytes as they came.
+    reader: Option<LineReader>,
+    /// The wall instant of machine time 0 and the machine's speed (machine seconds per wall
+    /// second), to place arrivals on the machine's clock.
+    clock: Option<(std::time::Instant, f64)>,
 }
 
 impl SerialLink {
@@ -316,19 +318,21 @@ impl SerialLink {
             device,
             name,
             reader: None,
+            clock: None,
         }
     }
 
     /// Read on a thread that notes when bytes arrive (see [`crate::line_reader`]): the MCU's
-    /// line, whose clock replies clock sync times. `speed`: machine time per wall time.
-    pub fn stamping_arrivals(mut self, speed: f64) -> anyhow::Result<SerialLink> {
+    /// line, whose clock replies clock sync times. The machine's clock comes with
+    /// [`McuLink::clock_started`].
+    pub fn stamping_arrivals(mut self) -> anyhow::Result<SerialLink> {
         let end: Box<dyn ReadFd> = match &self.device {
             Device::Tty(f) => Box::new(f.try_clone()?),
             Device::Socket(s) => Box::new(s.try_clone()?),
         };
         let reader = LineReader::start(end, &self.name)
             .with_context(|| format!("{}: starting its reader", self.name))?;
-        self.reader = Some((reader, speed));
+        self.reader = Some(reader);
         Ok(self)
     }
 
@@ -372,19 +376,20 @@ impl McuLink for SerialLink {
         into: &mut Vec<u8>,
         arrivals: &mut Vec<(usize, i64)>,
     ) -> Result<(), DeviceError> {
-        let Some((reader, speed)) = &mut self.reader else {
+        let Some(reader) = &mut self.reader else {
             let result = self.read(now_ns, into);
             arrivals.push((into.len(), now_ns));
             return result;
         };
         let mut bursts = Vec::new();
         let result = reader.take(into, &mut bursts);
-        // On the machine's clock: `now_ns` is now, give or take the caller's microseconds.
-        let now = std::time::Instant::now();
-        let speed = *speed;
-        arrivals.extend(bursts.into_iter().map(|(end, at)| {
-            let ago_ns = now.saturating_duration_since(at).as_nanos() as f64 * speed;
-            (end, now_ns - ago_ns as i64)
+        // On the machine's clock (before it started: as now, the only time there is).
+        arrivals.extend(bursts.into_iter().map(|(end, at)| match self.clock {
+            Some((origin, speed)) => (
+                end,
+                (at.saturating_duration_since(origin).as_nanos() as f64 * speed) as i64,
+            ),
+            None => (end, now_ns),
         }));
         result.map_err(|end| match end {
             LineEnd::Closed => DeviceError::Closed {
@@ -392,6 +397,10 @@ impl McuLink for SerialLink {
             },
             LineEnd::Failed(source) => self.io(source),
         })
+    }
+
+    fn clock_started(&mut self, origin: std::time::Instant, speed: f64) {
+        self.clock = Some((origin, speed));
     }
 
     fn read(&mut self, now_ns: i64, into: &mut Vec<u8>) -> Result<(), DeviceError> {
@@ -524,10 +533,11 @@ pub fn probe_position(
     let give_up = std::time::Instant::now() + timeout;
     let (device, name) = open_waiting(spec, baud, timeout)?;
     let session = McuSession::new(options, session_nonce());
-    let link = SerialLink::new(device, name.clone()).stamping_arrivals(1.0)?;
+    let link = SerialLink::new(device, name.clone()).stamping_arrivals()?;
     // No plan goes to it (so its start is never checked): a place or two, any horizon.
     let mut machine = McuMachine::new(session, link, 2, 1.0);
     let started = std::time::Instant::now();
+    machine.clock_started(started, 1.0);
     loop {
         let now_ns = started.elapsed().as_nanos() as i64;
         machine
@@ -574,7 +584,7 @@ pub async fn run(
         tokio::task::spawn_blocking(move || open_waiting(&spec, baud, timeout)).await??;
     cell_runtime::cell_log!(node, LogLevel::Info, "MCU on {name}");
     let session = McuSession::new(session_options(node, &params), session_nonce());
-    let link = SerialLink::new(device, name).stamping_arrivals(params.speed)?;
+    let link = SerialLink::new(device, name).stamping_arrivals()?;
     let machine = McuMachine::new(session, link, params.queue_capacity, params.horizon_s)
         .with_start_steps(params.initial_steps());
     let Some(port) = screw_port(node, &params)? else {
@@ -636,4 +646,45 @@ pub async fn main_with_args(argv: Vec<String>) -> anyhow::Result<()> {
         Box::pin(run(node, rx, tx))
     })
     .await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::{Duration, Instant};
+
+    /// Bytes go on the machine's clock by when they came, whatever `now_ns` the look that
+    /// takes them is given: the node's first looks of a pass are at grid instants behind the
+    /// wall clock (a stamp counted back from them came out early by the lag).
+    #[test]
+    fn arrivals_are_placed_on_the_machines_clock_not_counted_back_from_the_look() {
+        let (ours, mut mcu) = UnixStream::pair().unwrap();
+        ours.set_nonblocking(true).unwrap();
+        let mut link = SerialLink::new(Device::Socket(ours), "pair".into())
+            .stamping_arrivals()
+            .unwrap();
+        let origin = Instant::now();
+        let speed = 10.0;
+        link.clock_started(origin, speed);
+        std::thread::sleep(Duration::from_millis(20));
+        mcu.write_all(b"reply\x00").unwrap();
+        let sent_ns = (origin.elapsed().as_nanos() as f64 * speed) as i64;
+        std::thread::sleep(Duration::from_millis(30));
+        // A look at a grid instant 100 ms of machine time behind the wall clock.
+        let stale_now_ns = (origin.elapsed().as_nanos() as f64 * speed) as i64 - 100_000_000;
+        let (mut into, mut arrivals) = (Vec::new(), Vec::new());
+        link.read_arrivals(stale_now_ns, &mut into, &mut arrivals)
+            .unwrap();
+        assert_eq!(into, b"reply\x00");
+        let [(end, at_ns)] = arrivals[..] else {
+            panic!("{arrivals:?}")
+        };
+        assert_eq!(end, 6);
+        // Within a few ms of wall time (10× in machine time) of the write.
+        let late_ns = at_ns - sent_ns;
+        assert!(
+            (-1_000_000..50_000_000).contains(&late_ns),
+            "stamped {late_ns} ns after the write"
+        );
+    }
 }

@@ -282,6 +282,10 @@ impl<M: Machine, P: LinePort> Machine for WithScrewLine<M, P> {
         let _ = self.stop_screw(self.now_ns());
     }
 
+    fn clock_started(&mut self, origin: std::time::Instant, speed: f64) {
+        self.inner.clock_started(origin, speed);
+    }
+
     fn diagnostics(&self) -> Vec<(&'static str, String)> {
         let mut values = self.inner.diagnostics();
         let c = self.line.counters();

@@ -381,8 +381,8 @@ impl Player {
         };
         // The machine's acceleration is σ̇·rate + σ²·(the plan's): within ±limit for any
         // plan acceleration in the interval, and for σ where the period leaves it, not only
-        // where it starts: σ rising while the plan speeds up (or falling while it slows)
-        // takes more of the limit as it goes, and at a slow rate σ moves far in a period.
+        // where it starts: σ rising while the plan speeds up (or falling while it speeds
+        // up) takes more of the limit as it goes, and at a slow rate σ moves far in a period.
         let feed2 = self.feed * self.feed;
         let lo = (-limit - feed2 * accel_min) / rate;
         let hi = (limit - feed2 * accel_max) / rate;
@@ -648,8 +648,8 @@ impl Player {
         let dominant_rate = self.feed * self.dominant_rate(&active.train);
         // The other axes' share of the dominant's steps. A segment of a few steps (the
         // planner's single steps near rest) has 0 or 1 of each, a share of 0 or 1: over
-        // the next segments of the same move, up to RATIO_WINDOW_STEPS dominant steps, the
-        // share is the move's there.
+        // the next segments of the same move, until an axis has RATIO_WINDOW_STEPS steps,
+        // the share is the move's there.
         const RATIO_WINDOW_STEPS: u32 = 32;
         let mut counts = seg.step_counts;
         let mut directions: [f64; MAX_AXES] = std::array::from_fn(|k| seg.direction(k) as f64);
@@ -659,7 +659,8 @@ impl Player {
             .iter()
             .take_while(|j| j.move_sequence == active.job.move_sequence)
         {
-            if counts[dominant] >= RATIO_WINDOW_STEPS {
+            // (Any axis: another may lead in the segments ahead.)
+            if counts.iter().any(|&c| c >= RATIO_WINDOW_STEPS) {
                 break;
             }
             let next = &job.segment;

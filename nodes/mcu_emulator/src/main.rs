@@ -336,7 +336,8 @@ const OUTBOX_BYTES: usize = 64 * 1024;
 /// Output for the host that the line has not taken yet. A host that reads late gets every
 /// byte, in order, as from a USB CDC port (a non-blocking write takes part of a frame when the
 /// kernel's buffer is nearly full; the rest used to be dropped, a cut frame the host saw as
-/// line damage). Only past [`OUTBOX_BYTES`] are new bytes dropped, and counted.
+/// line damage). Only past [`OUTBOX_BYTES`] is new output dropped, and counted: a pass's
+/// output whole (its frames), never part of a frame.
 #[derive(Default)]
 struct Outbox {
     pending: Vec<u8>,
@@ -345,10 +346,11 @@ struct Outbox {
 
 impl Outbox {
     fn push(&mut self, bytes: &[u8]) {
-        let room = OUTBOX_BYTES.saturating_sub(self.pending.len());
-        let taken = bytes.len().min(room);
-        self.pending.extend_from_slice(&bytes[..taken]);
-        self.dropped_bytes += (bytes.len() - taken) as u64;
+        if self.pending.len() + bytes.len() <= OUTBOX_BYTES {
+            self.pending.extend_from_slice(bytes);
+        } else {
+            self.dropped_bytes += bytes.len() as u64;
+        }
     }
 
     /// Write what `line` takes now. `Ok(false)`: nobody is there to read (the bytes are lost,
@@ -488,8 +490,9 @@ mod tests {
             outbox.push(&frame);
             assert!(outbox.write_to(&mut line).unwrap());
         }
-        assert_eq!(outbox.pending.len(), OUTBOX_BYTES);
-        assert_eq!(outbox.dropped_bytes, 100_000 - OUTBOX_BYTES as u64);
+        // 65 whole frames wait; the other 35 are dropped whole.
+        assert_eq!(outbox.pending.len(), 65_000);
+        assert_eq!(outbox.dropped_bytes, 35_000);
         // The line goes: what waited is lost with it, and the caller is told.
         line.gone = true;
         assert!(!outbox.write_to(&mut line).unwrap());

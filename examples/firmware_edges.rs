@@ -43,7 +43,8 @@
 //! only, and the pins may stop short of the plan. After an emergency stop
 //! frame, no step, pin opening or PWM pulse may begin later than one control period
 //! ([`CONTROL_PERIOD_NS`]), and by then the pin is closed, the PWM low and the drivers
-//! disabled (GP14 high).
+//! disabled (GP14 high). From power-up the motors are free (GP14 high, coils released)
+//! until the host's CONFIGURE reaches the MCU, and held when the first step goes out.
 //!
 //! Exits 0 when every check holds; prints its figures either way.
 
@@ -66,6 +67,8 @@ const SCREW_FULL_SCALE_RPM: f64 = 300.0;
 const SCREW_SETTLE_NS: f64 = 1e6;
 const SCREW_TOLERANCE_RPM: f64 = 0.05;
 const ENABLE_PIN: u8 = 14;
+/// Coil pins of the bench rig (GP0–11).
+const COIL_PINS: u8 = 12;
 /// The firmware's main-loop period (`LOOP_PERIOD_TICKS`): an e-stop acts within it.
 const CONTROL_PERIOD_NS: f64 = 250e3;
 /// How far ahead of the pins the firmware generates (`LEAD_TICKS`): a hold changes the
@@ -156,6 +159,50 @@ struct Step {
 
 /// The highest step rate the pins kept up over [`PEAK_STEPS`] consecutive steps (steps per
 /// second); 0 with fewer steps.
+/// From power-up the motors are free — the drivers disabled (GP14 high from its first
+/// level) or the coils released — until the host's CONFIGURE reached the MCU (when the UART
+/// log has it), and held when the first step goes out. Prints its figures; true when they
+/// hold.
+fn check_power_up(
+    edges: &[(u64, u8, bool)],
+    configure_ns: Option<f64>,
+    first_step_ns: Option<f64>,
+    bench_rig: bool,
+) -> bool {
+    let held_from_ns = edges
+        .iter()
+        .find(|&&(_, pin, level)| {
+            if bench_rig {
+                level && pin < COIL_PINS
+            } else {
+                pin == ENABLE_PIN && !level
+            }
+        })
+        .map(|e| e.0 as f64);
+    let free_at_power_up = bench_rig
+        || edges
+            .iter()
+            .find(|e| e.1 == ENABLE_PIN)
+            .is_some_and(|e| e.2);
+    let before_host = matches!((held_from_ns, configure_ns), (Some(h), Some(c)) if h < c);
+    let after_first_step = match (held_from_ns, first_step_ns) {
+        (Some(h), Some(s)) => h > s,
+        (None, Some(_)) => true,
+        _ => false,
+    };
+    let ok = free_at_power_up && !before_host && !after_first_step;
+    let at = |t: Option<f64>| t.map_or("never".to_string(), |t| format!("{:.6} s", t * 1e-9));
+    println!(
+        "power-up: motors {} at first; held from {}, the host's CONFIGURE at {}, the first step at {}{}",
+        if free_at_power_up { "free" } else { "HELD" },
+        at(held_from_ns),
+        at(configure_ns),
+        at(first_step_ns),
+        if ok { "" } else { "  <-- FAILED" }
+    );
+    ok
+}
+
 fn peak_rate(steps: &[Step]) -> f64 {
     steps
         .windows(PEAK_STEPS + 1)
@@ -793,6 +840,15 @@ fn main() -> Result<()> {
         stop_ns.map(|t| t - offset_ns),
         tolerance_us * 1e3,
     );
+    let configure_ns = host_messages
+        .iter()
+        .find(|(_, m)| matches!(m, HostMessage::Configure { .. }))
+        .map(|(t, _)| *t);
+    let first_step_ns = executed
+        .iter()
+        .filter_map(|steps| steps.first().map(|s| s.t_ns))
+        .reduce(f64::min);
+    ok &= check_power_up(&edges, configure_ns, first_step_ns, bench_rig);
     match estop_ns {
         Some(estop_ns) => ok &= check_emergency_stop(&edges, estop_ns, bench_rig),
         None if expect_emergency_stop => {

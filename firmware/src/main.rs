@@ -29,8 +29,11 @@
 //!   shared enable for the cell, or four coil inputs per 28BYJ-48 for seed 001's bench rig;
 //!   the screw's pin on GP12 and its speed as PWM duty on GP13.
 //!
-//! Faults stop the outputs at once (edges dropped, drivers disabled or coils released, pin
-//! closed, screw 0) and are latched by the core until the host resets it.
+//! From power-up the drivers are disabled and the coils released until a host configures the
+//! MCU (or the bench rig's start switch starts seed 001's program): a board waiting hours for
+//! its host holds no current in the motors. Faults stop the outputs at once (edges dropped, a
+//! pulse already begun left to end, drivers disabled or coils released, pin closed, screw 0)
+//! and are latched by the core until the host resets it.
 //!
 //! No ROM calls: the clocks, UART and timer are set up through `rp2040-hal`, whose start-up
 //! does not call the boot ROM, so the same image runs on a Pico and in `rp2040js` (which
@@ -212,8 +215,10 @@ static RX: InterruptOwned<Producer<'static, u8>> = InterruptOwned(UnsafeCell::ne
 /// firmware-in-the-loop harness from RAM.
 #[no_mangle]
 pub static ISR_MAX_CYCLES: AtomicU32 = AtomicU32::new(0);
-/// Worst cycles of one main-loop pass (bytes decoded, edges generated, frames sent): it
-/// must stay well inside [`LEAD_TICKS`].
+/// Worst cycles of one main-loop pass (bytes decoded, edges generated, frames sent) with the
+/// outputs running from its start to its end: it must stay well inside [`LEAD_TICKS`]. A pass
+/// that stops them (the queued edges taken back with every interrupt masked) or runs while
+/// they are stopped has no edge to be late for, and is not counted.
 #[no_mangle]
 pub static MAIN_MAX_CYCLES: AtomicU32 = AtomicU32::new(0);
 /// Edges written to the pins.
@@ -603,7 +608,12 @@ fn stop_outputs(endpoint: &mut McuEndpoint, outputs: &mut Outputs) {
                     Output::Screw { .. } => continue,
                 }
             }));
-            let step_pins = writer.pulse.take().map_or(0, |(mask, _)| mask);
+            // A pulse already begun runs its width (at most PULSE_TICKS + 1): its step is
+            // counted in the positions, and cut short a driver could miss it.
+            let step_pins = writer.pulse.take().map_or(0, |(mask, high_until)| {
+                wait_for_tick(high_until);
+                mask
+            });
             outputs.resync(sio().gpio_out().read().bits());
             sio()
                 .gpio_out_clr()
@@ -615,8 +625,8 @@ fn stop_outputs(endpoint: &mut McuEndpoint, outputs: &mut Outputs) {
     set_screw_outputs(0, false);
 }
 
-/// Outputs on again after a reset cleared the fault: drivers enabled, coils energised at the
-/// phase they were released in.
+/// Outputs on once a host configured the MCU, and again after a reset cleared a fault:
+/// drivers enabled, coils energised at the phase they were released in.
 fn restart_outputs(outputs: &Outputs) {
     sio()
         .gpio_out_set()
@@ -653,7 +663,12 @@ fn main() -> ! {
     // Outputs: the profile's pins as SIO outputs, at their initial levels.
     let initial_steps = [0i32; 3];
     let mut outputs = Outputs::new(profile::STAGES, initial_steps);
-    profile::configure_pins(outputs.mask(), outputs.initial_levels());
+    // Coils released and drivers disabled until a host configures the MCU (or the start
+    // switch starts seed 001's program): `restart_outputs` then energises them.
+    profile::configure_pins(
+        outputs.mask(),
+        outputs.initial_levels() & !outputs.coil_mask(),
+    );
     let mut pwm_slices = hal::pwm::Slices::new(pac.PWM, &mut pac.RESETS);
     let screw_pwm = &mut pwm_slices.pwm6;
     screw_pwm.set_top(PWM_TOP);
@@ -762,6 +777,9 @@ fn main() -> ! {
     let mut frame = [0u8; MAX_WIRE_FRAME];
     let mut screw_output = (0i32, false);
     let mut stopped = false;
+    // The motors held: a host owns the MCU (or seed 001's program runs) and no fault.
+    let mut energised = false;
+    let mut seed_started = false;
     let mut link_on = Transport::Uart;
     let mut uart_out = TxQueue::<UART_TX>::new();
     let mut line_sent: Option<[i32; 3]> = None;
@@ -771,11 +789,13 @@ fn main() -> ! {
     // The hardware watchdog restarts the chip if the main loop stops passing, which the
     // host-silence check inside it cannot see: the firmware starts again idle (nothing
     // stepping, pin closed, screw stopped) and the host sees a restarted MCU, a fault. A
-    // pass takes at most a few ms (main_max_cycles in the firmware tests: 259k cycles,
-    // 2 ms). A panic or a HardFault stops it: they stay halted, every output safe.
+    // pass takes at most a few ms (main_max_cycles in the firmware tests: at most 156k
+    // cycles, 1.25 ms; tests/firmware/run.sh holds it under the 1.75 ms the lead leaves). A
+    // panic or a HardFault stops it: they stay halted, every output safe.
     watchdog.start(rp2040_hal::fugit::MicrosDurationU32::millis(100));
     loop {
         let pass_started = cortex_m::peripheral::SYST::get_current();
+        let stopped_at_start = stopped;
         let now = timer_now();
         let generate_until = now + LEAD_TICKS;
         usb.poll(&mut [&mut usb_link, &mut usb_lines]);
@@ -800,6 +820,7 @@ fn main() -> ! {
                     switch_counted = true;
                     if endpoint.start_seed_program(now, SEED_PROGRAM_LEAD_TICKS) {
                         bump(&SEED_PROGRAM_STARTS, 1);
+                        seed_started = true;
                     }
                 }
             } else {
@@ -852,11 +873,15 @@ fn main() -> ! {
         let machine = endpoint.machine();
         sample_screw(machine, &mut screw_output, &mut to_pins);
         let faulted = machine.fault() != FaultCode::None;
+        let owned = machine.host_configured() || seed_started;
         if faulted && !stopped {
             stop_outputs(endpoint, &mut outputs);
             screw_output = (0, false);
-        } else if !faulted && stopped {
+            energised = false;
+        }
+        if !faulted && owned && !energised {
             restart_outputs(&outputs);
+            energised = true;
         }
         stopped = faulted;
         // Let the output interrupt arm its alarm for what was just queued.
@@ -895,7 +920,7 @@ fn main() -> ! {
         NAKS_SENT.store(counters.naks_sent, Ordering::Relaxed);
         let spent =
             pass_started.wrapping_sub(cortex_m::peripheral::SYST::get_current()) & 0x00FF_FFFF;
-        if spent > MAIN_MAX_CYCLES.load(Ordering::Relaxed) {
+        if !stopped_at_start && !stopped && spent > MAIN_MAX_CYCLES.load(Ordering::Relaxed) {
             MAIN_MAX_CYCLES.store(spent, Ordering::Relaxed);
         }
         let wake = (timer_now() as u32).wrapping_add(LOOP_PERIOD_TICKS);
@@ -926,10 +951,10 @@ fn force_safe_outputs() {
     unsafe { &*pac::WATCHDOG::ptr() }
         .ctrl()
         .modify(|_, w| w.enable().clear_bit());
+    profile::disable_drivers();
     sio()
         .gpio_out_clr()
-        .write(|w| unsafe { w.bits(profile::ALL_OUTPUTS) });
-    profile::disable_drivers();
+        .write(|w| unsafe { w.bits(profile::ALL_OUTPUTS & !profile::ENABLE_MASK) });
     // SAFETY: the screw slice's compare register; nothing else runs any more.
     let pwm = unsafe { &*pac::PWM::ptr() };
     pwm.ch(profile::SCREW_PWM_SLICE)

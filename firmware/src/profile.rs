@@ -68,32 +68,42 @@ mod pins {
 
 pub use pins::{STAGES, START_SWITCH_PIN};
 
-/// Every pin the firmware drives (the panic handler's safe state clears them all; the
-/// enable pin is set again afterwards).
+/// Every pin the firmware drives (the panic handler's safe state clears them all but the
+/// enable pin, which it sets: cleared, even for an instant, it would enable the drivers).
 pub const ALL_OUTPUTS: u32 = 0x0000_3FFF;
+
+/// The drivers' enable pin as a mask (0 without one).
+pub const ENABLE_MASK: u32 = match pins::ENABLE_PIN {
+    Some(pin) => 1 << pin,
+    None => 0,
+};
 
 fn sio() -> &'static pac::sio::RegisterBlock {
     // SAFETY: single-write set/clear registers.
     unsafe { &*pac::SIO::ptr() }
 }
 
-/// The stages' pins, the screw pin and the enable pin as SIO outputs at `levels` (enable
-/// asserted).
+/// The stages' pins, the screw pin and the enable pin as SIO outputs at `levels`, the
+/// drivers disabled: the main loop enables them once a host has configured the MCU, so a
+/// board waiting for its host holds no current in the motors.
 pub fn configure_pins(stage_mask: u32, levels: u32) {
     // SAFETY: called once from `main` after the HAL has taken IO_BANK0/PADS_BANK0 out of
     // reset, for pins the HAL was not asked to drive.
     let io = unsafe { &*pac::IO_BANK0::ptr() };
     let pads = unsafe { &*pac::PADS_BANK0::ptr() };
-    let mask = stage_mask | (1 << SCREW_PIN) | pins::ENABLE_PIN.map_or(0, |p| 1 << p);
-    sio().gpio_out_clr().write(|w| unsafe { w.bits(mask) });
-    sio().gpio_out_set().write(|w| unsafe { w.bits(levels) });
+    let mask = stage_mask | (1 << SCREW_PIN) | ENABLE_MASK;
+    sio()
+        .gpio_out_clr()
+        .write(|w| unsafe { w.bits(mask & !ENABLE_MASK) });
+    sio()
+        .gpio_out_set()
+        .write(|w| unsafe { w.bits(levels | ENABLE_MASK) });
     for pin in (0..30).filter(|p| mask & (1 << p) != 0) {
         pads.gpio(pin)
             .modify(|_, w| w.od().clear_bit().ie().set_bit());
         io.gpio(pin).gpio_ctrl().write(|w| w.funcsel().sio());
     }
     sio().gpio_oe_set().write(|w| unsafe { w.bits(mask) });
-    enable_drivers();
     #[cfg(feature = "bench-rig")]
     {
         // The start switch: input with pull-up (pressed reads low).

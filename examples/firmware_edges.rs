@@ -157,8 +157,6 @@ struct Step {
     sign: i8,
 }
 
-/// The highest step rate the pins kept up over [`PEAK_STEPS`] consecutive steps (steps per
-/// second); 0 with fewer steps.
 /// From power-up the motors are free — the drivers disabled (GP14 high from its first
 /// level) or the coils released — until the host's CONFIGURE reached the MCU (when the UART
 /// log has it), and held when the first step goes out. Prints its figures; true when they
@@ -203,6 +201,8 @@ fn check_power_up(
     ok
 }
 
+/// The highest step rate the pins kept up over [`PEAK_STEPS`] consecutive steps (steps per
+/// second); 0 with fewer steps.
 fn peak_rate(steps: &[Step]) -> f64 {
     steps
         .windows(PEAK_STEPS + 1)

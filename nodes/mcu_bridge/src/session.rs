@@ -473,10 +473,11 @@ impl McuSession {
         self.forget_plan();
         self.error = None;
         self.emergency = false;
-        self.controls.clear(); // a hold or drop still waiting is moot after a reset
-                               // Only to an MCU configured by this session: one not yet configured gets its RESET
-                               // with CONFIGURE, and one speaking another version (or unable to run a plan) none,
-                               // since it may read it as anything.
+        // A hold or drop still waiting is moot after a reset.
+        self.controls.clear();
+        // A RESET only to an MCU configured by this session: one not yet configured gets its
+        // RESET with CONFIGURE, and one speaking another version (or unable to run a plan)
+        // none, since it may read it as anything.
         if self.configured {
             self.control(HostMessage::Reset)?;
             // The last state's arrival stands for now; the bound is generous against it.
